@@ -1,0 +1,358 @@
+"""The ground-truth database: every labelled object's points in canonical pose, plus metadata.
+
+On-disk layout (a directory; no pickle anywhere)::
+
+    DB/
+      manifest.json        format name and version, build parameters, counts, content checksum
+      points.npy           float32 (P, 4)  all objects' points, concatenated, canonical pose
+      offsets.npy          int64   (N + 1,) object i owns points[offsets[i]:offsets[i + 1]]
+      boxes.npy            float64 (N, 7)  original LiDAR boxes (OpenPCDet convention)
+      names.npy            unicode (N,)    class names
+      frame_ids.npy        unicode (N,)    frame each object was cut from
+      index_in_frame.npy   int32   (N,)    row of the object in its frame's labels
+      num_points.npy       int64   (N,)    points per object
+      difficulty.npy       int8    (N,)    0 easy, 1 moderate, 2 hard, -1 unknown (KITTI)
+      occlusion.npy        int8    (N,)    KITTI occlusion level (-1 when unknown)
+      truncation.npy       float32 (N,)    KITTI truncation (NaN when unknown)
+
+``points.npy`` and ``offsets.npy`` are memory-mapped, so reading one object's points costs O(1)
+and opens no per-object file. Databases are written to a temporary sibling directory and renamed
+into place at the end, so an interrupted build never leaves a database that loads.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drcpo.errors import DataError
+
+FORMAT_NAME = "drcpo-gt-database"
+FORMAT_VERSION = 1
+DIFFICULTY_NAMES = ("easy", "moderate", "hard")  # codes 0, 1, 2; -1 is "unknown"
+
+_COLUMNS: dict[str, Any] = {
+    "boxes": np.float64,
+    "names": str,
+    "frame_ids": str,
+    "index_in_frame": np.int32,
+    "num_points": np.int64,
+    "difficulty": np.int8,
+    "occlusion": np.int8,
+    "truncation": np.float32,
+}
+_CHECKSUM_ORDER = ("points", "offsets", *_COLUMNS)
+
+
+def difficulty_name(code: int) -> str:
+    """``"easy"``, ``"moderate"``, ``"hard"`` or ``"unknown"`` for a difficulty code."""
+    return DIFFICULTY_NAMES[code] if 0 <= code < len(DIFFICULTY_NAMES) else "unknown"
+
+
+@dataclass(frozen=True)
+class ObjectRecord:
+    """One object to store: canonical points ``float32 (n, 4)`` and its metadata."""
+
+    points: np.ndarray
+    name: str
+    box: np.ndarray
+    frame_id: str = ""
+    index_in_frame: int = -1
+    difficulty: int = -1
+    occlusion: int = -1
+    truncation: float = float("nan")
+
+
+class GroundTruthDatabase:
+    """Objects' canonical points and metadata, memory-mapped from a directory or held in memory.
+
+    Use :meth:`open` for a database on disk and :meth:`from_records` / :meth:`from_arrays` for
+    one in memory (tests, synthetic data); :meth:`save` writes either kind.
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        offsets: np.ndarray,
+        columns: dict[str, np.ndarray],
+        manifest: dict[str, Any] | None = None,
+        path: Path | None = None,
+    ) -> None:
+        self._points = points
+        self._offsets = offsets
+        self._columns = columns
+        self.path = path
+        self.manifest = manifest if manifest is not None else {}
+        _check_consistent(points, offsets, columns, where=str(path or "<memory>"))
+
+    # Construction -------------------------------------------------------------------------
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> GroundTruthDatabase:
+        """Open a database directory; raises :class:`DataError` naming what is wrong."""
+        path = Path(path)
+        manifest_path = path / "manifest.json"
+        if not manifest_path.is_file():
+            raise DataError(f"{path}: not a drcpo database (no manifest.json)")
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
+        if manifest.get("format") != FORMAT_NAME:
+            raise DataError(
+                f"{manifest_path}: format is {manifest.get('format')!r}, expected {FORMAT_NAME!r}"
+            )
+        if manifest.get("format_version") != FORMAT_VERSION:
+            raise DataError(
+                f"{manifest_path}: format_version {manifest.get('format_version')} "
+                f"is not supported (this drcpo reads {FORMAT_VERSION})"
+            )
+        points = _load(path / "points.npy", mmap=True)
+        offsets = _load(path / "offsets.npy", mmap=True)
+        columns = {name: _load(path / f"{name}.npy") for name in _COLUMNS}
+        return cls(points, offsets, columns, manifest=manifest, path=path)
+
+    @classmethod
+    def from_records(
+        cls, records: Iterable[ObjectRecord], point_dim: int = 4
+    ) -> GroundTruthDatabase:
+        """An in-memory database from :class:`ObjectRecord` objects (in order)."""
+        records = list(records)
+        chunks = [np.asarray(r.points, dtype=np.float32).reshape(-1, point_dim) for r in records]
+        sizes = np.array([len(c) for c in chunks], dtype=np.int64)
+        points = np.concatenate(chunks) if chunks else np.zeros((0, point_dim), np.float32)
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        columns = {
+            "boxes": np.array([r.box for r in records], dtype=np.float64).reshape(-1, 7),
+            "names": np.array([r.name for r in records], dtype=str),
+            "frame_ids": np.array([r.frame_id for r in records], dtype=str),
+            "index_in_frame": np.array([r.index_in_frame for r in records], dtype=np.int32),
+            "num_points": sizes,
+            "difficulty": np.array([r.difficulty for r in records], dtype=np.int8),
+            "occlusion": np.array([r.occlusion for r in records], dtype=np.int8),
+            "truncation": np.array([r.truncation for r in records], dtype=np.float32),
+        }
+        return cls(points, offsets, columns)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        points: np.ndarray,
+        offsets: np.ndarray,
+        names: Sequence[str] | np.ndarray,
+        boxes: np.ndarray,
+        **columns: np.ndarray,
+    ) -> GroundTruthDatabase:
+        """An in-memory database from concatenated points, offsets and per-object columns.
+
+        Columns not given get "unknown" values (frame id "", index -1, difficulty -1, ...).
+        """
+        offsets = np.asarray(offsets, dtype=np.int64)
+        n = len(offsets) - 1
+        full = {
+            "boxes": np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
+            "names": np.asarray(names, dtype=str),
+            "frame_ids": np.full(n, "", dtype=str),
+            "index_in_frame": np.full(n, -1, dtype=np.int32),
+            "num_points": np.diff(offsets),
+            "difficulty": np.full(n, -1, dtype=np.int8),
+            "occlusion": np.full(n, -1, dtype=np.int8),
+            "truncation": np.full(n, np.nan, dtype=np.float32),
+        }
+        unknown = set(columns) - set(_COLUMNS)
+        if unknown:
+            raise ValueError(f"unknown database columns: {sorted(unknown)}")
+        for name, values in columns.items():
+            full[name] = np.asarray(values).astype(_COLUMNS[name], copy=False)
+        return cls(np.asarray(points, dtype=np.float32), offsets, full)
+
+    # Access -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._offsets) - 1
+
+    def __repr__(self) -> str:
+        where = self.path or "memory"
+        return f"GroundTruthDatabase({len(self)} objects, {len(self._points)} points, {where})"
+
+    @property
+    def points(self) -> np.ndarray:
+        """All objects' canonical points, concatenated: ``float32 (P, 4)`` (memory-mapped)."""
+        return self._points
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """``int64 (N + 1,)``: object i owns ``points[offsets[i]:offsets[i + 1]]``."""
+        return self._offsets
+
+    @property
+    def names(self) -> np.ndarray:
+        return self._columns["names"]
+
+    @property
+    def boxes(self) -> np.ndarray:
+        """Original LiDAR boxes ``float64 (N, 7)`` of the objects."""
+        return self._columns["boxes"]
+
+    @property
+    def num_points(self) -> np.ndarray:
+        return self._columns["num_points"]
+
+    @property
+    def frame_ids(self) -> np.ndarray:
+        return self._columns["frame_ids"]
+
+    @property
+    def index_in_frame(self) -> np.ndarray:
+        return self._columns["index_in_frame"]
+
+    @property
+    def difficulty(self) -> np.ndarray:
+        return self._columns["difficulty"]
+
+    @property
+    def occlusion(self) -> np.ndarray:
+        return self._columns["occlusion"]
+
+    @property
+    def truncation(self) -> np.ndarray:
+        return self._columns["truncation"]
+
+    @property
+    def classes(self) -> list[str]:
+        """Class names present, sorted."""
+        return sorted(set(self.names.tolist()))
+
+    @property
+    def checksum(self) -> str:
+        """Content checksum (from the manifest when opened from disk, else computed)."""
+        return self.manifest.get("checksum") or self.compute_checksum()
+
+    def rows_of_class(self, name: str) -> np.ndarray:
+        """Database rows ``int64`` of the objects of class ``name``, ascending."""
+        return np.flatnonzero(self.names == name)
+
+    def object_points(self, i: int) -> np.ndarray:
+        """Points ``float32 (n, 4)`` of object ``i`` in canonical pose (a read-only view)."""
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"object {i} out of range for a database of {len(self)} objects")
+        i = int(i) % len(self)
+        return self._points[self._offsets[i] : self._offsets[i + 1]]
+
+    def summary(self) -> dict[str, dict[str, int]]:
+        """``{class: {"objects": n, "points": m}}`` sorted by class name."""
+        out: dict[str, dict[str, int]] = {}
+        for name in self.classes:
+            rows = self.rows_of_class(name)
+            out[name] = {"objects": len(rows), "points": int(self.num_points[rows].sum())}
+        return out
+
+    def compute_checksum(self) -> str:
+        """SHA-256 over every array's bytes, in a fixed order."""
+        digest = hashlib.sha256()
+        arrays = {"points": self._points, "offsets": self._offsets, **self._columns}
+        for name in _CHECKSUM_ORDER:
+            array = np.ascontiguousarray(arrays[name])
+            digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
+            for start in range(0, len(array), 1 << 20):
+                digest.update(array[start : start + (1 << 20)].tobytes())
+        return "sha256:" + digest.hexdigest()
+
+    def verify(self) -> None:
+        """Recompute the checksum and raise :class:`DataError` if it differs from the manifest."""
+        stored = self.manifest.get("checksum")
+        if stored and stored != self.compute_checksum():
+            raise DataError(
+                f"{self.path}: content does not match the manifest checksum "
+                "(the database was modified or is corrupt)"
+            )
+
+    # Writing ------------------------------------------------------------------------------
+    def save(
+        self,
+        path: str | os.PathLike,
+        parameters: dict[str, Any] | None = None,
+        overwrite: bool = False,
+    ) -> Path:
+        """Write the database to ``path`` atomically (temporary directory, then rename)."""
+        arrays = {"points": self._points, "offsets": self._offsets, **self._columns}
+        manifest = {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "parameters": parameters
+            if parameters is not None
+            else self.manifest.get("parameters", {}),
+            "num_objects": len(self),
+            "num_points": len(self._points),
+            "point_dim": int(self._points.shape[1]),
+            "classes": self.summary(),
+            "checksum": self.compute_checksum(),
+        }
+
+        def write(tmp: Path) -> None:
+            for name, array in arrays.items():
+                np.save(tmp / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
+            (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+
+        return atomic_directory(path, write, overwrite=overwrite)
+
+
+def atomic_directory(path: str | os.PathLike, write, overwrite: bool = False) -> Path:
+    """Create directory ``path`` by calling ``write(tmp_dir)`` and renaming ``tmp_dir`` at the end.
+
+    If ``write`` raises, nothing is left at ``path`` (an existing directory is kept unless
+    ``overwrite`` and the new one is complete).
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} already exists (pass overwrite=True / --overwrite)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        write(tmp)
+        if path.exists():
+            old = path.with_name(f".{path.name}.old-{os.getpid()}")
+            path.rename(old)
+            tmp.rename(path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+def _load(path: Path, mmap: bool = False) -> np.ndarray:
+    if not path.is_file():
+        raise DataError(f"{path}: missing database file")
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DataError(f"{path}: unreadable array ({exc})") from exc
+
+
+def _check_consistent(
+    points: np.ndarray, offsets: np.ndarray, columns: dict[str, np.ndarray], where: str
+) -> None:
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise DataError(f"{where}: points must be (P, 3 + C), got {points.shape}")
+    if offsets.ndim != 1 or len(offsets) < 1 or offsets[0] != 0 or offsets[-1] != len(points):
+        raise DataError(f"{where}: offsets do not cover the {len(points)} points")
+    if len(offsets) > 1 and (np.diff(offsets) < 0).any():
+        raise DataError(f"{where}: offsets are not non-decreasing")
+    n = len(offsets) - 1
+    for name, array in columns.items():
+        if len(array) != n:
+            raise DataError(f"{where}: column {name!r} has {len(array)} rows, expected {n}")
+    if columns["boxes"].shape != (n, 7):
+        raise DataError(f"{where}: boxes must be ({n}, 7), got {columns['boxes'].shape}")
+    if not np.array_equal(columns["num_points"], np.diff(offsets)):
+        raise DataError(f"{where}: num_points disagrees with offsets")

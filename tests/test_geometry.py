@@ -1,0 +1,156 @@
+import numpy as np
+import pytest
+from conftest import random_boxes
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import Polygon
+
+from drcpo import geometry as g
+
+
+def test_rotation_matrix_is_orthonormal_and_turns_x_towards_y():
+    rot = g.rotation_matrix_z(np.pi / 2)
+    np.testing.assert_allclose(rot @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    angles = np.linspace(-4, 4, 9)
+    mats = g.rotation_matrix_z(angles)
+    np.testing.assert_allclose(
+        mats @ mats.transpose(0, 2, 1), np.broadcast_to(np.eye(3), mats.shape), atol=1e-12
+    )
+
+
+def test_wrap_angle_range():
+    wrapped = g.wrap_angle(np.array([-np.pi, np.pi, 3 * np.pi, -7.0, 0.5]))
+    assert (wrapped >= -np.pi).all() and (wrapped < np.pi).all()
+    np.testing.assert_allclose(np.cos(wrapped), np.cos([-np.pi, np.pi, 3 * np.pi, -7.0, 0.5]))
+
+
+def test_box_corners_match_dimensions_and_heading():
+    box = np.array([[1.0, 2.0, 3.0, 4.0, 2.0, 1.0, np.pi / 2]])
+    corners = g.box_corners(box)[0]
+    # Length runs along +y after a quarter turn.
+    assert np.ptp(corners[:, 1]) == pytest.approx(4.0)
+    assert np.ptp(corners[:, 0]) == pytest.approx(2.0)
+    assert np.ptp(corners[:, 2]) == pytest.approx(1.0)
+    np.testing.assert_allclose(corners.mean(axis=0), [1, 2, 3], atol=1e-12)
+
+
+def test_canonical_round_trip_keeps_features(rng):
+    points = rng.normal(size=(50, 5)).astype(np.float32)
+    box = np.array([3.0, -2.0, 0.5, 4, 2, 1.5, 2.3])
+    canonical = g.to_canonical(points, box)
+    np.testing.assert_array_equal(canonical[:, 3:], points[:, 3:])
+    np.testing.assert_allclose(g.from_canonical(canonical, box), points, atol=1e-5)
+
+
+def test_canonical_pose_puts_box_corners_on_axis_aligned_box():
+    box = np.array([10.0, 5.0, -1.0, 4.0, 2.0, 1.5, 0.7])
+    canonical = g.to_canonical(g.box_corners(box)[0], box)
+    np.testing.assert_allclose(np.abs(canonical), [[2.0, 1.0, 0.75]] * 8, atol=1e-12)
+
+
+def _points_in_boxes_halfspaces(points, boxes, margin=0.0):
+    """Independent check: a point is inside iff it is on the inner side of all six face planes."""
+    corners = g.box_corners(boxes)
+    out = np.zeros((len(points), len(boxes)), dtype=bool)
+    for m, c in enumerate(corners):
+        centre = c.mean(axis=0)
+        inside = np.ones(len(points), dtype=bool)
+        for a, b in [(0, 1), (1, 2), (0, 4)]:
+            axis = c[b] - c[a] if (a, b) != (0, 4) else c[4] - c[0]
+            length = np.linalg.norm(axis)
+            unit = axis / length
+            proj = (points[:, :3] - centre) @ unit
+            inside &= np.abs(proj) <= length / 2 + margin + 1e-9
+        out[:, m] = inside
+    return out
+
+
+def test_points_in_boxes_matches_halfspace_test(rng):
+    boxes = random_boxes(rng, 20)
+    points = rng.uniform(-7, 7, (5000, 4))
+    np.testing.assert_array_equal(
+        g.points_in_boxes(points, boxes), _points_in_boxes_halfspaces(points, boxes)
+    )
+    np.testing.assert_array_equal(
+        g.points_in_boxes(points, boxes, margin=0.1),
+        _points_in_boxes_halfspaces(points, boxes, margin=0.1),
+    )
+
+
+def test_points_in_boxes_boundary_is_closed():
+    box = np.array([[0.0, 0, 0, 2, 1, 1, 0]])
+    on_faces = np.array([[1, 0.5, 0.5], [-1, -0.5, -0.5], [1, 0, 0], [0, 0, 0.5]])
+    assert g.points_in_boxes(on_faces, box).all()
+    assert not g.points_in_boxes(np.array([[1.0001, 0, 0]]), box).any()
+
+
+def test_points_in_boxes_empty_inputs():
+    assert g.points_in_boxes(np.zeros((0, 4)), np.zeros((3, 7))).shape == (0, 3)
+    assert g.points_in_boxes(np.zeros((5, 4)), np.zeros((0, 7))).shape == (5, 0)
+
+
+def _shapely_overlap(a, b):
+    pa = [Polygon(c) for c in g.bev_corners(a)]
+    pb = [Polygon(c) for c in g.bev_corners(b)]
+    return np.array([[p.intersection(q).area for q in pb] for p in pa])
+
+
+def test_bev_overlap_matches_shapely(rng):
+    a, b = random_boxes(rng, 60, 3.0), random_boxes(rng, 40, 3.0)
+    np.testing.assert_allclose(g.bev_overlap_area(a, b), _shapely_overlap(a, b), atol=1e-9)
+
+
+def test_bev_overlap_degenerate_pairs():
+    boxes = np.array(
+        [
+            [0, 0, 0, 2, 1, 1, 0],
+            [0, 0, 0, 2, 1, 1, 0],  # identical
+            [2, 0, 0, 2, 1, 1, 0],  # touching along an edge
+            [1, 0, 0, 2, 1, 1, np.pi / 2],  # crossing at right angles
+            [0, 0, 0, 2, 1, 1, np.pi],  # same footprint, turned around
+        ]
+    )
+    np.testing.assert_allclose(g.bev_overlap_area(boxes), _shapely_overlap(boxes, boxes), atol=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.floats(-3, 3), min_size=2, max_size=2),
+    st.lists(st.floats(0.1, 5), min_size=4, max_size=4),
+    st.floats(-7, 7),
+    st.floats(-7, 7),
+)
+def test_bev_overlap_property(centre, dims, yaw_a, yaw_b):
+    a = np.array([[0, 0, 0, dims[0], dims[1], 1, yaw_a]])
+    b = np.array([[centre[0], centre[1], 0, dims[2], dims[3], 1, yaw_b]])
+    ours = g.bev_overlap_area(a, b)[0, 0]
+    assert ours == pytest.approx(_shapely_overlap(a, b)[0, 0], abs=1e-7)
+    assert ours == pytest.approx(g.bev_overlap_area(b, a)[0, 0], abs=1e-9)
+
+
+def test_bev_iou_of_box_with_itself_is_one(rng):
+    boxes = random_boxes(rng, 10)
+    np.testing.assert_allclose(np.diag(g.bev_iou(boxes)), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.diag(g.boxes_iou3d(boxes)), 1.0, atol=1e-9)
+
+
+def test_iou3d_matches_shapely_times_height(rng):
+    a, b = random_boxes(rng, 15, 2.0), random_boxes(rng, 15, 2.0)
+    inter_h = np.clip(
+        np.minimum(a[:, None, 2] + a[:, None, 5] / 2, b[None, :, 2] + b[None, :, 5] / 2)
+        - np.maximum(a[:, None, 2] - a[:, None, 5] / 2, b[None, :, 2] - b[None, :, 5] / 2),
+        0,
+        None,
+    )
+    inter = _shapely_overlap(a, b) * inter_h
+    union = a[:, 3:6].prod(1)[:, None] + b[:, 3:6].prod(1)[None] - inter
+    np.testing.assert_allclose(g.boxes_iou3d(a, b), inter / union, atol=1e-9)
+
+
+def test_canonical_iou3d_is_iou3d_of_centred_boxes(rng):
+    dims_a, dims_b = rng.uniform(0.2, 4, (30, 3)), rng.uniform(0.2, 4, (30, 3))
+    a = np.column_stack([np.zeros((30, 3)), dims_a, np.zeros(30)])
+    b = np.column_stack([np.zeros((30, 3)), dims_b, np.zeros(30)])
+    np.testing.assert_allclose(
+        g.canonical_iou3d(dims_a[:, None], dims_b[None]), g.boxes_iou3d(a, b), atol=1e-9
+    )
