@@ -1,14 +1,39 @@
 """KITTI object detection layout: calibration, coordinate conversions, labels, point clouds.
 
+Layout read here (``ROOT`` as OpenPCDet's ``data/kitti``)::
+
+    ROOT/ImageSets/{train,val,test,...}.txt     one frame id per line
+    ROOT/training/velodyne/ID.bin               float32 (N, 4) x, y, z, intensity
+    ROOT/training/label_2/ID.txt                camera-frame labels (DontCare ignored)
+    ROOT/training/calib/ID.txt                  P2, R0_rect, Tr_velo_to_cam
+    ROOT/training/planes/ID.txt                 optional road plane (rectified camera frame)
+    ROOT/training/image_2/ID.png                optional; only its size is read (FOV filter)
+
+The ``test`` split lives in ``ROOT/testing`` instead, as in OpenPCDet.
+
 Camera boxes (``label_2``) are converted to LiDAR boxes exactly as OpenPCDet does
 (``boxes3d_kitti_camera_to_lidar``), so our boxes agree with OpenPCDet's ``gt_boxes_lidar``.
+Every reader raises :class:`~drcpo.errors.DataError` naming the file (and line) on bad input.
 """
 
 from __future__ import annotations
 
+import os
+import struct
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
 
 import numpy as np
+
+from drcpo.errors import DataError
+from drcpo.frame import Frame
+
+DEFAULT_IMAGE_SHAPE = (375, 1242)
+"""``(height, width)`` in pixels of most KITTI images; used when a frame's image is absent."""
+
+DONT_CARE = "DontCare"
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,3 +98,401 @@ def lidar_boxes_to_camera(boxes_lidar: np.ndarray, calib: Calibration) -> np.nda
     xyz = calib.lidar_to_rect(bottom)
     length, width, height, heading = (boxes_lidar[:, i : i + 1] for i in (3, 4, 5, 6))
     return np.concatenate([xyz, length, height, width, -heading - np.pi / 2], axis=-1)
+
+
+# Point clouds -------------------------------------------------------------------------------
+def read_points(path: str | os.PathLike, num_features: int = 4) -> np.ndarray:
+    """Read a KITTI ``velodyne/*.bin`` file: ``float32 (N, num_features)`` (x, y, z, intensity).
+
+    Raises :class:`DataError` naming the file when it is missing, its size is not a multiple of
+    ``4 * num_features`` bytes, or a value is NaN or infinite.
+    """
+    path = Path(path)
+    row_bytes = 4 * num_features
+    try:
+        raw = np.fromfile(path, dtype="<f4")
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read point cloud ({exc.strerror or exc})") from exc
+    if raw.size * 4 % row_bytes:
+        raise DataError(
+            f"{path}: size {raw.size * 4} bytes is not a multiple of {row_bytes} "
+            f"({num_features} float32 values per point); truncated or not a KITTI .bin"
+        )
+    points = raw.reshape(-1, num_features).astype(np.float32, copy=False)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise DataError(
+            f"{path}: point {bad} holds a NaN or infinite value "
+            f"({int((~finite).sum())} such points)"
+        )
+    return points
+
+
+# Calibration --------------------------------------------------------------------------------
+_CALIB_FIELDS = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+
+
+def read_calib(path: str | os.PathLike) -> Calibration:
+    """Read a KITTI ``calib/*.txt`` file (fields ``P2``, ``R0_rect``, ``Tr_velo_to_cam``).
+
+    Fields are found by name, so their order does not matter; other fields are ignored.
+    Raises :class:`DataError` naming the file (and line or field) when it is missing, a
+    required field is absent, or a value is not a finite number.
+    """
+    path = Path(path)
+    lines = _read_lines(path, "calibration")
+    values: dict[str, np.ndarray] = {}
+    for number, line in enumerate(lines, start=1):
+        key, sep, rest = line.partition(":")
+        key = key.strip()
+        if not sep or key not in _CALIB_FIELDS:
+            continue
+        shape = _CALIB_FIELDS[key]
+        numbers = _parse_floats(rest.split(), path, number)
+        if numbers.size != shape[0] * shape[1] or not np.isfinite(numbers).all():
+            raise DataError(
+                f"{path}:{number}: {key} needs {shape[0] * shape[1]} finite numbers, "
+                f"got {rest.split()!r}"
+            )
+        values[key] = numbers.astype(np.float32).reshape(shape)
+    missing = [key for key in _CALIB_FIELDS if key not in values]
+    if missing:
+        raise DataError(f"{path}: calibration field(s) {', '.join(missing)} missing")
+    return Calibration(values["P2"], values["R0_rect"], values["Tr_velo_to_cam"])
+
+
+# Labels -------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class KittiLabels:
+    """The labelled objects of one frame (``DontCare`` rows dropped), in file order.
+
+    Attributes (M objects):
+        names: ``(M,)`` class names.
+        truncation: ``float64 (M,)`` 0 (inside the image) .. 1 (leaving it).
+        occlusion: ``int8 (M,)`` 0 visible, 1 partly, 2 largely occluded, 3 unknown.
+        alpha: ``float64 (M,)`` observation angle, radians.
+        bbox2d: ``float32 (M, 4)`` image box left, top, right, bottom in pixels.
+        dimensions: ``float64 (M, 3)`` length, height, width in metres (OpenPCDet's lhw order).
+        location: ``float32 (M, 3)`` bottom centre in rectified camera coordinates, metres.
+        rotation_y: ``float64 (M,)`` yaw about the camera's y axis, radians.
+        score: ``float64 (M,)`` detection score (-1 for ground truth).
+        difficulty: ``int8 (M,)`` 0 easy, 1 moderate, 2 hard, -1 unknown (see
+            :func:`kitti_difficulty`).
+        lines: ``int64 (M,)`` 1-based line of each object in its file, for error messages.
+
+    The dtypes follow OpenPCDet's reader, so derived LiDAR boxes agree with it bit for bit.
+    """
+
+    names: np.ndarray
+    truncation: np.ndarray
+    occlusion: np.ndarray
+    alpha: np.ndarray
+    bbox2d: np.ndarray
+    dimensions: np.ndarray
+    location: np.ndarray
+    rotation_y: np.ndarray
+    score: np.ndarray
+    difficulty: np.ndarray
+    lines: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def camera_boxes(self) -> np.ndarray:
+        """``float64 (M, 7)`` KITTI camera boxes x, y, z (bottom centre), l, h, w, ry."""
+        return np.column_stack([self.location, self.dimensions, self.rotation_y]).reshape(-1, 7)
+
+    def lidar_boxes(self, calib: Calibration) -> np.ndarray:
+        """``float64 (M, 7)`` LiDAR boxes (centre, dx, dy, dz, heading) as OpenPCDet makes them.
+
+        Same formula as :func:`camera_boxes_to_lidar`, kept in OpenPCDet's precision: the
+        float32 location goes through the float32 calibration and the half height is added in
+        float32, which is what its ``gt_boxes_lidar`` holds.
+        """
+        if len(self) == 0:
+            return np.zeros((0, 7))
+        xyz = calib.rect_to_lidar(self.location)
+        length, height, width = (self.dimensions[:, i : i + 1] for i in range(3))
+        xyz[:, 2] += height[:, 0] / 2  # float64 sum rounded into float32, as OpenPCDet
+        heading = -(np.pi / 2 + self.rotation_y[:, None])
+        return np.concatenate([xyz, length, width, height, heading], axis=1).astype(np.float64)
+
+
+_LABEL_FIELDS = 15  # type, truncation, occlusion, alpha, bbox (4), h, w, l, x, y, z, ry
+
+
+def read_labels(path: str | os.PathLike) -> KittiLabels:
+    """Read a KITTI ``label_2/*.txt`` file; ``DontCare`` rows and blank lines are skipped.
+
+    Raises :class:`DataError` naming the file and line for a line with the wrong number of
+    fields, a non-numeric or non-finite value, or a non-positive box size.
+    """
+    path = Path(path)
+    rows: list[tuple[str, np.ndarray, int]] = []
+    for number, line in enumerate(_read_lines(path, "label"), start=1):
+        fields = line.split()
+        if not fields:
+            continue
+        if len(fields) not in (_LABEL_FIELDS, _LABEL_FIELDS + 1):
+            raise DataError(
+                f"{path}:{number}: expected {_LABEL_FIELDS} or {_LABEL_FIELDS + 1} fields "
+                f"(type, truncated, occluded, alpha, bbox x4, h w l, x y z, ry[, score]), "
+                f"got {len(fields)}: {line.strip()!r}"
+            )
+        name = fields[0]
+        if name == DONT_CARE:
+            continue
+        numbers = _parse_floats(fields[1:], path, number)
+        if not np.isfinite(numbers).all():
+            raise DataError(f"{path}:{number}: NaN or infinite value in {line.strip()!r}")
+        if (numbers[7:10] <= 0).any():
+            raise DataError(
+                f"{path}:{number}: {name} has a non-positive size h, w, l = {numbers[7:10]}"
+            )
+        rows.append((name, numbers, number))
+    return _labels_from_rows(rows)
+
+
+def _labels_from_rows(rows: list[tuple[str, np.ndarray, int]]) -> KittiLabels:
+    numbers = _LABEL_FIELDS - 1  # all but the type; an optional score follows
+    table = np.array([r[1][:numbers] for r in rows], dtype=np.float64).reshape(-1, numbers)
+    truncation, occlusion = table[:, 0], table[:, 1]
+    bbox2d = table[:, 3:7].astype(np.float32)
+    h, w, length = table[:, 7], table[:, 8], table[:, 9]
+    score = np.array([r[1][numbers] if len(r[1]) > numbers else -1.0 for r in rows])
+    return KittiLabels(
+        names=np.array([r[0] for r in rows], dtype=str),
+        truncation=truncation,
+        occlusion=occlusion.astype(np.int8),
+        alpha=table[:, 2],
+        bbox2d=bbox2d,
+        dimensions=np.column_stack([length, h, w]),
+        location=table[:, 10:13].astype(np.float32),
+        rotation_y=table[:, 13],
+        score=score.astype(np.float64),
+        difficulty=kitti_difficulty(bbox2d, occlusion, truncation),
+        lines=np.array([r[2] for r in rows], dtype=np.int64),
+    )
+
+
+# KITTI difficulty thresholds per level: minimum 2D box height (pixels), maximum occlusion level,
+# maximum truncation (KITTI devkit, evaluate_object.cpp).
+_MIN_HEIGHT = (40.0, 25.0, 25.0)
+_MAX_OCCLUSION = (0, 1, 2)
+_MAX_TRUNCATION = (0.15, 0.3, 0.5)
+
+
+def kitti_difficulty(
+    bbox2d: np.ndarray,
+    occlusion: np.ndarray,
+    truncation: np.ndarray,
+    convention: Literal["openpcdet", "devkit"] = "openpcdet",
+) -> np.ndarray:
+    """KITTI difficulty ``int8 (M,)``: 0 easy, 1 moderate, 2 hard, -1 unknown.
+
+    Args:
+        bbox2d: ``(M, 4)`` image boxes left, top, right, bottom (pixels).
+        occlusion: ``(M,)`` occlusion levels 0..3.
+        truncation: ``(M,)`` truncation 0..1.
+        convention: ``"openpcdet"`` measures the box height as ``bottom - top + 1`` (OpenPCDet's
+            ``get_kitti_obj_level``, whose levels its infos and databases store);
+            ``"devkit"`` as ``bottom - top`` (the KITTI devkit's evaluation).
+
+    An object gets the easiest level whose height is at least (40, 25, 25) pixels, occlusion at
+    most (0, 1, 2) and truncation at most (0.15, 0.3, 0.5); otherwise -1.
+    """
+    # float32 boxes widened to float64, as OpenPCDet computes the height
+    bbox2d = np.asarray(bbox2d, dtype=np.float32).astype(np.float64).reshape(-1, 4)
+    height = bbox2d[:, 3] - bbox2d[:, 1]
+    if convention == "openpcdet":
+        height = height + 1.0
+    elif convention != "devkit":
+        raise ValueError(f"convention must be 'openpcdet' or 'devkit', got {convention!r}")
+    occlusion = np.asarray(occlusion, dtype=np.float64)
+    truncation = np.asarray(truncation, dtype=np.float64)
+    out = np.full(len(bbox2d), -1, dtype=np.int8)
+    for level in reversed(range(3)):  # easiest level last, so it wins
+        fits = (
+            (height >= _MIN_HEIGHT[level])
+            & (occlusion <= _MAX_OCCLUSION[level])
+            & (truncation <= _MAX_TRUNCATION[level])
+        )
+        out[fits] = level
+    return out
+
+
+# Splits, planes, images ---------------------------------------------------------------------
+def read_split(root: str | os.PathLike, split: str) -> list[str]:
+    """Frame ids of ``root/ImageSets/<split>.txt`` in file order.
+
+    Raises :class:`DataError` listing the available splits when ``split`` is unknown.
+    """
+    image_sets = Path(root) / "ImageSets"
+    path = image_sets / f"{split}.txt"
+    if not path.is_file():
+        available = sorted(p.stem for p in image_sets.glob("*.txt")) if image_sets.is_dir() else []
+        listing = ", ".join(available) if available else f"none: no {image_sets}/*.txt"
+        raise DataError(f"{path}: unknown split {split!r} (available: {listing})")
+    return [line.strip() for line in _read_lines(path, "split") if line.strip()]
+
+
+def split_directory(root: str | os.PathLike, split: str) -> Path:
+    """``root/testing`` for the ``test`` split, else ``root/training`` (OpenPCDet's rule)."""
+    return Path(root) / ("testing" if split == "test" else "training")
+
+
+def read_plane(path: str | os.PathLike) -> np.ndarray:
+    """Read a KITTI road plane ``planes/*.txt``: ``float64 (4,)`` a, b, c, d in rect. camera frame.
+
+    As OpenPCDet: the coefficients on the fourth line, flipped so the normal points up (negative
+    camera y) and scaled to a unit normal. The plane is ``a x + b y + c z + d = 0``.
+    """
+    path = Path(path)
+    lines = _read_lines(path, "road plane")
+    if len(lines) < 4:
+        raise DataError(f"{path}: expected the plane coefficients on line 4, file has {len(lines)}")
+    plane = _parse_floats(lines[3].split(), path, 4)
+    norm = np.linalg.norm(plane[:3]) if plane.size == 4 else 0.0
+    if plane.size != 4 or not np.isfinite(plane).all() or norm == 0:
+        raise DataError(f"{path}:4: expected 4 finite coefficients a b c d, got {lines[3]!r}")
+    if plane[1] > 0:
+        plane = -plane
+    return plane / norm
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def read_image_shape(path: str | os.PathLike) -> tuple[int, int]:
+    """``(height, width)`` of a PNG image, read from its header (the pixels are not decoded)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as file:
+            head = file.read(24)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read image ({exc.strerror or exc})") from exc
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise DataError(f"{path}: not a PNG image")
+    width, height = struct.unpack(">II", head[16:24])
+    return int(height), int(width)
+
+
+def fov_mask(
+    points: np.ndarray,
+    calib: Calibration,
+    image_shape: tuple[int, int] = DEFAULT_IMAGE_SHAPE,
+) -> np.ndarray:
+    """Which points the camera P2 sees: ``bool (N,)``.
+
+    Args:
+        points: ``(N, 3+)`` LiDAR points, metres.
+        calib: the frame's calibration.
+        image_shape: ``(height, width)`` of the frame's image in pixels; KITTI images vary
+            slightly (e.g. 370 x 1224), :data:`DEFAULT_IMAGE_SHAPE` is the common 375 x 1242.
+
+    Same semantics and float32 arithmetic as OpenPCDet's ``get_fov_flag``: a point is kept when
+    its projection lies in ``[0, width) x [0, height)`` and its depth is >= 0. Like OpenPCDet,
+    the pixel coordinates divide by the rectified depth (not the projected one).
+    """
+    rect = calib.lidar_to_rect(np.asarray(points, dtype=np.float32))
+    hom = np.hstack([rect, np.ones((len(rect), 1), np.float32)])
+    projected = hom @ calib.P2.T
+    depth = projected[:, 2] - calib.P2[2, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = projected[:, 0] / rect[:, 2]
+        v = projected[:, 1] / rect[:, 2]
+    height, width = image_shape
+    return (u >= 0) & (u < width) & (v >= 0) & (v < height) & (depth >= 0)
+
+
+# Whole frames -------------------------------------------------------------------------------
+class KittiDataset:
+    """Frames of one KITTI split: ``len(ds)``, ``ds[i]``, ``ds.frame(frame_id)``, iteration.
+
+    Each :class:`Frame` holds the full point cloud (not field-of-view filtered), the LiDAR boxes
+    and names of the non-``DontCare`` labels in file order, and metadata: ``frame_id``,
+    ``calib``, ``plane`` (or ``None``), ``image_shape``, ``labels`` (:class:`KittiLabels`),
+    ``difficulty``, ``occlusion``, ``truncation``. Frames without a label file (the ``test``
+    split) have no boxes.
+    """
+
+    def __init__(self, root: str | os.PathLike, split: str = "train", num_features: int = 4):
+        self.root = Path(root)
+        self.split = split
+        self.num_features = num_features
+        self.directory = split_directory(self.root, split)
+        if not self.directory.is_dir():
+            raise DataError(f"{self.directory}: KITTI directory missing (split {split!r})")
+        self.frame_ids = read_split(self.root, split)
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __getitem__(self, index: int) -> Frame:
+        return self.frame(self.frame_ids[index])
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self.frame(frame_id) for frame_id in self.frame_ids)
+
+    def path(self, kind: str, frame_id: str) -> Path:
+        """Path of one file: ``kind`` is velodyne, label_2, calib, planes or image_2."""
+        suffix = {"velodyne": ".bin", "image_2": ".png"}.get(kind, ".txt")
+        return self.directory / kind / f"{frame_id}{suffix}"
+
+    def calib(self, frame_id: str) -> Calibration:
+        return read_calib(self.path("calib", frame_id))
+
+    def labels(self, frame_id: str) -> KittiLabels | None:
+        """The frame's labels, or ``None`` for a split without ``label_2`` (``test``)."""
+        path = self.path("label_2", frame_id)
+        if not path.parent.is_dir() and self.split == "test":
+            return None
+        return read_labels(path)
+
+    def points(self, frame_id: str) -> np.ndarray:
+        return read_points(self.path("velodyne", frame_id), self.num_features)
+
+    def image_shape(self, frame_id: str) -> tuple[int, int]:
+        """``(height, width)`` from ``image_2`` when present, else :data:`DEFAULT_IMAGE_SHAPE`."""
+        path = self.path("image_2", frame_id)
+        return read_image_shape(path) if path.is_file() else DEFAULT_IMAGE_SHAPE
+
+    def plane(self, frame_id: str) -> np.ndarray | None:
+        path = self.path("planes", frame_id)
+        return read_plane(path) if path.is_file() else None
+
+    def frame(self, frame_id: str) -> Frame:
+        calib = self.calib(frame_id)
+        labels = self.labels(frame_id)
+        metadata = {
+            "frame_id": frame_id,
+            "calib": calib,
+            "plane": self.plane(frame_id),
+            "image_shape": self.image_shape(frame_id),
+            "labels": labels,
+        }
+        if labels is None:
+            return Frame(self.points(frame_id), metadata=metadata)
+        metadata.update(
+            difficulty=labels.difficulty, occlusion=labels.occlusion, truncation=labels.truncation
+        )
+        return Frame(self.points(frame_id), labels.lidar_boxes(calib), labels.names, metadata)
+
+
+# Helpers ------------------------------------------------------------------------------------
+def _read_lines(path: Path, what: str) -> list[str]:
+    try:
+        return path.read_text().splitlines()
+    except FileNotFoundError:
+        raise DataError(f"{path}: {what} file missing") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: cannot read {what} file ({exc})") from exc
+
+
+def _parse_floats(tokens: Sequence[str], path: Path, line: int) -> np.ndarray:
+    try:
+        return np.array([float(token) for token in tokens], dtype=np.float64)
+    except ValueError as exc:
+        raise DataError(f"{path}:{line}: not a number ({exc})") from None
