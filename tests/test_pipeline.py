@@ -7,6 +7,7 @@ from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_overlap_area, box_corners, from_canonical, points_in_boxes
 from drcpo.pipeline import (
+    BoxQuery,
     Compose,
     GlobalFlip,
     GlobalRotation,
@@ -399,3 +400,24 @@ def test_stats_helper_counts():
     copy = Stats(d)
     copy.added("drcpo", "Car")
     assert d["objects"]["drcpo"]["Car"]["added"] == 2  # a deep copy
+
+
+def test_box_query_equals_points_in_boxes(rng):
+    from conftest import random_boxes
+
+    boxes = random_boxes(rng, 12, spread=4.0)
+    points = rng.uniform(-6, 6, (4000, 4)).astype(np.float32)
+    # Points exactly on faces and corners must follow the same closed-box rule.
+    on_faces = box_corners(boxes[:3]).reshape(-1, 3)
+    points = np.concatenate([points, np.column_stack([on_faces, np.zeros(len(on_faces))])])
+    points = points.astype(np.float32)
+    query = BoxQuery(points)
+    for margin in (0.0, 0.2):
+        reference = points_in_boxes(points, boxes, margin)
+        for m, box in enumerate(boxes):
+            np.testing.assert_array_equal(
+                query.inside(box, margin), np.flatnonzero(reference[:, m])
+            )
+        np.testing.assert_array_equal(query.inside_any(boxes, margin), reference.any(axis=1))
+        np.testing.assert_array_equal(query.counts(boxes, margin), reference.sum(axis=0))
+    assert query.inside_any(np.zeros((0, 7))).sum() == 0
