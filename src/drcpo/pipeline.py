@@ -398,12 +398,51 @@ class BoxQuery:
         return np.array([len(self.inside(box, margin)) for box in boxes], dtype=np.int64)
 
 
-def _extend_box_mask(metadata: dict[str, Any], added: int) -> dict[str, Any]:
-    """OpenPCDet's optional ``gt_boxes_mask`` grows with the added boxes (all marked True)."""
-    if "gt_boxes_mask" not in metadata or added == 0:
-        return metadata
-    mask = np.concatenate([np.asarray(metadata["gt_boxes_mask"], bool), np.ones(added, bool)])
-    return {**metadata, "gt_boxes_mask": mask}
+#: Metadata arrays holding one row per box, kept in step when boxes are added or removed, with
+#: the value an added box gets when its source does not provide one.
+PER_BOX_METADATA: dict[str, Any] = {
+    "gt_boxes_mask": True,  # OpenPCDet
+    "difficulty": -1,
+    "occlusion": -1,
+    "truncation": np.nan,
+    "num_points_in_gt": -1,
+}
+#: Metadata that describes the original boxes as a whole and is dropped once they change.
+STALE_WHEN_BOXES_CHANGE = ("labels",)
+
+
+def update_box_metadata(
+    metadata: Mapping[str, Any],
+    num_boxes: int,
+    keep: np.ndarray | None = None,
+    added: int = 0,
+    added_values: Mapping[str, np.ndarray] | None = None,
+) -> dict[str, Any]:
+    """Metadata with its per-box arrays (:data:`PER_BOX_METADATA`) matching new boxes.
+
+    Args:
+        metadata: the frame's metadata (not modified).
+        num_boxes: boxes before the change.
+        keep: indices of the boxes kept, in order (``None``: all).
+        added: boxes appended after the kept ones.
+        added_values: values of the appended boxes per key (default: the fill value).
+    """
+    if keep is None and added == 0:
+        return dict(metadata)
+    out = {k: v for k, v in metadata.items() if k not in STALE_WHEN_BOXES_CHANGE}
+    for key, fill in PER_BOX_METADATA.items():
+        value = metadata.get(key)
+        if value is None or np.ndim(value) != 1 or len(value) != num_boxes:
+            continue
+        value = np.asarray(value)
+        kept = value if keep is None else value[keep]
+        extra = (added_values or {}).get(key)
+        if extra is None:
+            extra = np.full(added, fill)
+        out[key] = np.concatenate([kept, np.asarray(extra)]).astype(
+            np.result_type(value.dtype, np.asarray(fill).dtype), copy=False
+        )
+    return out
 
 
 def _sampling_pools(
@@ -557,7 +596,18 @@ class GroundTruthSampling(Transform):
         keep = ~BoxQuery(frame.points).inside_any(boxes)
         points = np.concatenate([frame.points[keep], *objects])
         names = np.concatenate([frame.names, self.database.names[rows].astype(str)])
-        metadata = _extend_box_mask(frame.metadata, len(rows))
+        db = self.database
+        metadata = update_box_metadata(
+            frame.metadata,
+            len(frame.boxes),
+            added=len(rows),
+            added_values={
+                "difficulty": db.difficulty[rows],
+                "occlusion": db.occlusion[rows],
+                "truncation": db.truncation[rows],
+                "num_points_in_gt": db.num_points[rows],
+            },
+        )
         return frame.replace(
             points=points,
             boxes=np.concatenate([frame.boxes, boxes]),
