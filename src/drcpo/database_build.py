@@ -1,0 +1,341 @@
+"""Making a ground-truth database: from a KITTI split, or by importing OpenPCDet's.
+
+Both paths give the same database for the same frames: objects cut out of the *full* point
+cloud (not field-of-view filtered) with OpenPCDet's own inside rule, so the per-object point
+counts equal OpenPCDet's ``num_points_in_gt``, then stored in canonical pose with their metadata
+(see :mod:`drcpo.database`). Filters such as minimum points or difficulty are applied later,
+when indexing or sampling, as OpenPCDet does.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drcpo import safe_pickle
+from drcpo.database import GroundTruthDatabase, ObjectRecord
+from drcpo.datasets.kitti import DONT_CARE, KittiDataset, KittiLabels, read_labels, read_points
+from drcpo.errors import ConfigError, DataError
+from drcpo.frame import Frame
+from drcpo.geometry import rotate_points_z, to_canonical
+
+DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")
+
+Progress = Callable[[int, int], None]
+"""Called as ``progress(done, total)`` after each frame (build) or object (import)."""
+
+# OpenPCDet's points_in_boxes_cpu (roiaware_pool3d.cpp, check_pt_in_box3d_cpu) widens the box
+# by this float32 margin in x and y only.
+_OPENPCDET_MARGIN = float(np.float32(1e-2))
+
+
+def points_in_boxes_openpcdet(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """OpenPCDet's ``points_in_boxes_cpu`` rule, bit for bit: ``bool (N, M)``.
+
+    Args:
+        points: ``(N, 3+)`` LiDAR points, metres.
+        boxes: ``(M, 7)`` boxes (centre, dx, dy, dz, heading).
+
+    Points and boxes are cast to float32. A point is inside when ``|z - cz| <= dz / 2`` and, in
+    the box frame, ``|local_x| < dx / 2 + 0.01`` and ``|local_y| < dy / 2 + 0.01``; the offsets
+    and the rotation are float32 sums and products, the comparisons are in float64 (the C++
+    source compares a float against ``dz / 2.0``). This differs from
+    :func:`drcpo.geometry.points_in_boxes` (closed, no margin) on purpose: it reproduces the
+    point sets of OpenPCDet's ``gt_database``.
+    """
+    xyz = np.asarray(points)[:, :3].astype(np.float32)
+    boxes = np.asarray(boxes, dtype=np.float32).reshape(-1, 7)
+    out = np.zeros((len(xyz), len(boxes)), dtype=bool)
+    for m, (cx, cy, cz, dx, dy, dz, heading) in enumerate(boxes):
+        near_z = np.abs(xyz[:, 2] - cz).astype(np.float64) <= float(dz) / 2.0
+        rows = np.flatnonzero(near_z)
+        # cos/sin of the float angle rounded to float32, as the C++ code stores them
+        cos = np.float32(np.cos(-float(heading)))
+        sin = np.float32(np.sin(-float(heading)))
+        shift_x = xyz[rows, 0] - cx
+        shift_y = xyz[rows, 1] - cy
+        local_x = shift_x * cos + shift_y * -sin
+        local_y = shift_x * sin + shift_y * cos
+        inside = (np.abs(local_x).astype(np.float64) < float(dx) / 2.0 + _OPENPCDET_MARGIN) & (
+            np.abs(local_y).astype(np.float64) < float(dy) / 2.0 + _OPENPCDET_MARGIN
+        )
+        out[rows[inside], m] = True
+    return out
+
+
+def frame_records(frame: Frame, classes: Sequence[str] | None = None) -> list[ObjectRecord]:
+    """Cut the labelled objects of the chosen ``classes`` (``None``: all) out of a KITTI frame.
+
+    ``frame`` comes from :class:`~drcpo.datasets.kitti.KittiDataset` (its metadata holds the
+    labels). Each record's ``index_in_frame`` is the object's row among the frame's
+    non-``DontCare`` labels, OpenPCDet's ``gt_idx``.
+    """
+    labels: KittiLabels | None = frame.metadata.get("labels")
+    keep = [i for i, name in enumerate(frame.names) if classes is None or name in classes]
+    if not keep:
+        return []
+    inside = points_in_boxes_openpcdet(frame.points, frame.boxes[keep])
+    records = []
+    for column, i in enumerate(keep):
+        box = frame.boxes[i]
+        records.append(
+            ObjectRecord(
+                points=to_canonical(frame.points[inside[:, column]], box),
+                name=str(frame.names[i]),
+                box=box,
+                frame_id=str(frame.frame_id),
+                index_in_frame=i,
+                difficulty=int(labels.difficulty[i]) if labels is not None else -1,
+                occlusion=int(labels.occlusion[i]) if labels is not None else -1,
+                truncation=float(labels.truncation[i]) if labels is not None else float("nan"),
+            )
+        )
+    return records
+
+
+def build_database(
+    root: str | os.PathLike,
+    split: str,
+    out: str | os.PathLike,
+    classes: Sequence[str] | str = DEFAULT_CLASSES,
+    workers: int = 1,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+) -> GroundTruthDatabase:
+    """Build a ground-truth database from a KITTI split and write it to ``out`` atomically.
+
+    Args:
+        root: KITTI root (holding ``ImageSets`` and ``training``).
+        split: split name, a file ``ImageSets/<split>.txt``.
+        out: database directory to create.
+        classes: class names to keep, or ``"all"`` for every non-``DontCare`` class.
+        workers: processes reading frames in parallel; the result does not depend on it.
+        overwrite: replace an existing ``out`` (only once the new database is complete).
+        progress: optional ``progress(frames_done, frames_total)`` callback.
+
+    Returns the database opened from ``out``. Raises :class:`DataError` on bad input (naming the
+    file) or when the split holds no object of the chosen classes, :class:`ConfigError` on bad
+    arguments, :class:`FileExistsError` when ``out`` exists and ``overwrite`` is false.
+    """
+    chosen = _check_classes(classes)
+    if workers < 1:
+        raise ConfigError(f"workers must be >= 1, got {workers}")
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists (pass overwrite=True / --overwrite)")
+    dataset = KittiDataset(root, split)
+    records = [
+        record
+        for frame_objects in _map_frames(dataset, chosen, workers, progress)
+        for record in frame_objects
+    ]
+    if not records:
+        raise DataError(
+            f"{dataset.root}: split {split!r} ({len(dataset)} frames) holds no object of "
+            f"classes {classes if chosen is None else list(chosen)}"
+        )
+    parameters = {
+        "source": "kitti",
+        "root": str(Path(root).resolve()),
+        "split": split,
+        "classes": "all" if chosen is None else list(chosen),
+        "frames": len(dataset),
+        "inside_rule": "openpcdet points_in_boxes_cpu (full point cloud, not FOV-filtered)",
+    }
+    database = GroundTruthDatabase.from_records(records, point_dim=dataset.num_features)
+    database.save(out, parameters=parameters, overwrite=overwrite)
+    return GroundTruthDatabase.open(out)
+
+
+def _check_classes(classes: Sequence[str] | str) -> tuple[str, ...] | None:
+    if isinstance(classes, str):
+        if classes == "all":
+            return None
+        classes = [classes]
+    chosen = tuple(dict.fromkeys(str(c) for c in classes))
+    if not chosen:
+        raise ConfigError("classes: give at least one class name, or 'all'")
+    if "all" in chosen:
+        raise ConfigError(f"classes: 'all' cannot be combined with class names {list(chosen)}")
+    if DONT_CARE in chosen:
+        raise ConfigError("classes: DontCare regions are not objects and cannot be stored")
+    return chosen
+
+
+# Worker processes read their frames from this dataset (set once per process, not per task).
+_WORKER_STATE: dict[str, Any] = {}
+
+
+def _init_worker(dataset: KittiDataset, classes: tuple[str, ...] | None) -> None:
+    _WORKER_STATE.update(dataset=dataset, classes=classes)
+
+
+def _records_of(frame_id: str) -> list[ObjectRecord]:
+    return frame_records(_WORKER_STATE["dataset"].frame(frame_id), _WORKER_STATE["classes"])
+
+
+def _map_frames(
+    dataset: KittiDataset,
+    classes: tuple[str, ...] | None,
+    workers: int,
+    progress: Progress | None,
+) -> Iterator[list[ObjectRecord]]:
+    """Records of every frame, in split order, computed by ``workers`` processes."""
+    total = len(dataset)
+    if workers == 1 or total <= 1:
+        results: Iterable[list[ObjectRecord]] = (
+            frame_records(dataset.frame(frame_id), classes) for frame_id in dataset.frame_ids
+        )
+        yield from _report(results, total, progress)
+        return
+    chunk = max(1, total // (workers * 8))
+    with ProcessPoolExecutor(
+        max_workers=workers, initializer=_init_worker, initargs=(dataset, classes)
+    ) as pool:
+        # map() yields in submission order, so the database does not depend on scheduling.
+        results = pool.map(_records_of, dataset.frame_ids, chunksize=chunk)
+        yield from _report(results, total, progress)
+
+
+def _report(items: Iterable, total: int, progress: Progress | None) -> Iterator:
+    for done, item in enumerate(items, start=1):
+        if progress is not None:
+            progress(done, total)
+        yield item
+
+
+# OpenPCDet import -----------------------------------------------------------------------------
+_DBINFO_KEYS = ("name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt")
+
+
+def import_openpcdet(
+    dbinfos_pkl: str | os.PathLike,
+    out: str | os.PathLike,
+    root: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    num_features: int = 4,
+    progress: Progress | None = None,
+) -> GroundTruthDatabase:
+    """Convert an OpenPCDet database (``*_dbinfos_*.pkl`` + ``gt_database/*.bin``) to ours.
+
+    Args:
+        dbinfos_pkl: OpenPCDet's ``kitti_dbinfos_<split>.pkl``, read through
+            :mod:`drcpo.safe_pickle` (only numpy arrays/scalars/dtypes and builtins).
+        out: database directory to create (atomically).
+        root: data root the ``path`` entries are relative to; default: the pickle's directory.
+        overwrite: replace an existing ``out``.
+        num_features: float32 values per point in the ``.bin`` files.
+        progress: optional ``progress(objects_done, objects_total)`` callback.
+
+    OpenPCDet stores each object's points minus the box centre; they are rotated by the box's
+    -heading into canonical pose. Objects are ordered by frame id, then index in frame, as a
+    build from the same frames orders them. Occlusion and truncation, which the infos lack, are
+    read from ``root/training/label_2`` when those label files exist (else left unknown).
+    """
+    dbinfos_pkl = Path(dbinfos_pkl)
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} already exists (pass overwrite=True / --overwrite)")
+    root = Path(root) if root is not None else dbinfos_pkl.parent
+    entries = sorted(_dbinfo_entries(dbinfos_pkl), key=lambda e: (e["image_idx"], e["gt_idx"]))
+    if not entries:
+        raise DataError(f"{dbinfos_pkl}: holds no objects")
+    labels = _LabelLookup(root / "training" / "label_2")
+    records = []
+    for done, entry in enumerate(entries, start=1):
+        records.append(_imported_record(entry, root, num_features, labels))
+        if progress is not None:
+            progress(done, len(entries))
+    parameters = {
+        "source": "openpcdet",
+        "dbinfos": str(dbinfos_pkl.resolve()),
+        "root": str(root.resolve()),
+        "classes": sorted({entry["name"] for entry in entries}),
+        "labels_read": labels.used,
+    }
+    database = GroundTruthDatabase.from_records(records, point_dim=num_features)
+    database.save(out, parameters=parameters, overwrite=overwrite)
+    return GroundTruthDatabase.open(out)
+
+
+def _dbinfo_entries(path: Path) -> Iterator[dict[str, Any]]:
+    """Validated dbinfo dicts of every class, with plain Python / numpy values."""
+    infos = safe_pickle.load(path)
+    if not isinstance(infos, dict):
+        raise DataError(f"{path}: expected a dict of class name -> list of objects")
+    for class_name, objects in infos.items():
+        if not isinstance(objects, list):
+            kind = type(objects).__name__
+            raise DataError(f"{path}: class {class_name!r} holds a {kind}, not a list")
+        for position, info in enumerate(objects):
+            where = f"{path}: {class_name}[{position}]"
+            missing = [key for key in _DBINFO_KEYS if not isinstance(info, dict) or key not in info]
+            if missing:
+                raise DataError(f"{where}: missing key(s) {', '.join(missing)}")
+            box = np.asarray(info["box3d_lidar"], dtype=np.float64).reshape(-1)
+            if box.shape[0] < 7 or not np.isfinite(box[:7]).all() or (box[3:6] <= 0).any():
+                raise DataError(f"{where}: box3d_lidar {box} is not a valid (7,) box")
+            yield {
+                "name": str(info["name"]),
+                "path": str(info["path"]),
+                "image_idx": str(info["image_idx"]),
+                "gt_idx": int(info["gt_idx"]),
+                "box": box[:7],
+                "num_points": int(info["num_points_in_gt"]),
+                "difficulty": int(info.get("difficulty", -1)),
+            }
+
+
+class _LabelLookup:
+    """KITTI labels by frame id, read once each, when the label directory exists."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.used = directory.is_dir()
+        self._cache: dict[str, KittiLabels] = {}
+
+    def get(self, frame_id: str) -> KittiLabels | None:
+        path = self.directory / f"{frame_id}.txt"
+        if not self.used or not path.is_file():
+            return None
+        if frame_id not in self._cache:
+            self._cache[frame_id] = read_labels(path)
+        return self._cache[frame_id]
+
+
+def _imported_record(
+    entry: dict[str, Any], root: Path, num_features: int, labels: _LabelLookup
+) -> ObjectRecord:
+    path = root / entry["path"]
+    relative = read_points(path, num_features)
+    if len(relative) != entry["num_points"]:
+        raise DataError(
+            f"{path}: holds {len(relative)} points, the infos say num_points_in_gt = "
+            f"{entry['num_points']}"
+        )
+    box = entry["box"]
+    occlusion, truncation = -1, float("nan")
+    frame_labels = labels.get(entry["image_idx"])
+    if frame_labels is not None:
+        i = entry["gt_idx"]
+        if i >= len(frame_labels) or frame_labels.names[i] != entry["name"]:
+            raise DataError(
+                f"{labels.directory / (entry['image_idx'] + '.txt')}: object {i} is not a "
+                f"{entry['name']} as {entry['path']} says; labels and database disagree"
+            )
+        occlusion, truncation = int(frame_labels.occlusion[i]), float(frame_labels.truncation[i])
+    return ObjectRecord(
+        points=rotate_points_z(relative, -box[6]),
+        name=entry["name"],
+        box=box,
+        frame_id=entry["image_idx"],
+        index_in_frame=entry["gt_idx"],
+        difficulty=entry["difficulty"],
+        occlusion=occlusion,
+        truncation=truncation,
+    )
