@@ -7,6 +7,8 @@ the culprit on bad input (any :class:`drcpo.errors.DrcpoError`).
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -43,6 +45,82 @@ def class_table(summary: dict[str, dict[str, int]], title: str) -> Table:
         str(sum(r["points"] for r in summary.values())),
     )
     return table
+
+
+@contextmanager
+def progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
+    """A rich progress bar on stderr; yields a ``progress(done, total)`` callback."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    columns = (*Progress.get_default_columns()[:1], BarColumn(), MofNCompleteColumn())
+    with Progress(*columns, TimeElapsedColumn(), console=console) as bar:
+        task = bar.add_task(description, total=None)
+        yield lambda done, total: bar.update(task, completed=done, total=total)
+
+
+def _class_list(classes: list[str] | None, extra: list[str]) -> list[str] | str:
+    """``--classes`` values: repeated, comma-separated or space-separated (``Car Pedestrian``)."""
+    if extra and not classes:
+        fail(f"unexpected argument(s): {' '.join(extra)}")
+    if not classes:
+        from drcpo.database_build import DEFAULT_CLASSES
+
+        return list(DEFAULT_CLASSES)
+    names = [name for item in [*classes, *extra] for name in item.split(",") if name]
+    return "all" if names == ["all"] else names
+
+
+@app.command("build-db", context_settings={"allow_extra_args": True})
+def build_db(
+    ctx: typer.Context,
+    kitti: Annotated[Path, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")],
+    out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
+    split: Annotated[str, typer.Option(help="Split: frames of ImageSets/<split>.txt.")] = "train",
+    classes: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Classes to keep (e.g. --classes Car Pedestrian), or 'all' for every "
+            "non-DontCare class. Default: Car Pedestrian Cyclist."
+        ),
+    ] = None,
+    workers: Annotated[int, typer.Option(min=1, help="Processes reading frames.")] = 1,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
+) -> None:
+    """Build a ground-truth database from a KITTI split."""
+    from drcpo.database_build import build_database
+
+    chosen = _class_list(classes, list(ctx.args))
+    try:
+        with progress_bar(f"frames of {split}") as progress:
+            database = build_database(
+                kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
+            )
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
+    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
+
+
+@app.command("import-openpcdet")
+def import_openpcdet_command(
+    dbinfos: Annotated[Path, typer.Argument(help="OpenPCDet *_dbinfos_*.pkl file.")],
+    out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
+    root: Annotated[
+        Path | None,
+        typer.Option(help="Data root the gt_database paths are relative to (default: the pkl's)."),
+    ] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
+) -> None:
+    """Convert an OpenPCDet ground-truth database (dbinfos pickle + gt_database/) to drcpo's."""
+    from drcpo.database_build import import_openpcdet
+
+    try:
+        with progress_bar("objects") as progress:
+            database = import_openpcdet(
+                dbinfos, out, root=root, overwrite=overwrite, progress=progress
+            )
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
+    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
 @app.command()
