@@ -19,10 +19,14 @@ Each transform keeps its parameters in a frozen config (:mod:`drcpo.config`), ex
 from __future__ import annotations
 
 import copy
+import json
 import math
+import os
+import shutil
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,7 +43,13 @@ from drcpo.config import (
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
-from drcpo.geometry import bev_overlap_area, from_canonical, points_in_boxes, wrap_angle
+from drcpo.geometry import (
+    bev_overlap_area,
+    box_corners,
+    from_canonical,
+    points_in_boxes,
+    wrap_angle,
+)
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
@@ -638,3 +648,143 @@ def transform_from_config(
             f"transform type {kind!r} is unknown; allowed: {', '.join(sorted(TRANSFORMS))}"
         )
     return TRANSFORMS[kind].from_config(data, database=database, index=index)
+
+
+# --------------------------------------------------------------------------------------------
+# Offline generation: augmented frames in KITTI layout
+# --------------------------------------------------------------------------------------------
+def kitti_label_lines(frame: Frame, image_shape: tuple[int, int] | None = None) -> list[str]:
+    """KITTI ``label_2`` lines of a frame's boxes, through its ``metadata["calib"]``.
+
+    Boxes go to the camera frame with :func:`drcpo.datasets.kitti.lidar_boxes_to_camera`;
+    ``alpha`` is OpenPCDet's ``-arctan2(-y, x) + ry``; the 2D box is the projection of the
+    eight corners clipped to the image. Truncation and occlusion come from the frame's per-box
+    metadata when known, else 0.00 and 3 ("unknown", as KITTI defines it).
+    """
+    from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, lidar_boxes_to_camera
+
+    calib = frame.metadata.get("calib")
+    if calib is None:
+        raise DataError(f"frame {frame.frame_id!r}: writing KITTI labels needs metadata['calib']")
+    if len(frame.boxes) == 0:
+        return []
+    height, width = image_shape or frame.metadata.get("image_shape") or DEFAULT_IMAGE_SHAPE
+    camera = lidar_boxes_to_camera(frame.boxes, calib)
+    alpha = wrap_angle(-np.arctan2(-frame.boxes[:, 1], frame.boxes[:, 0]) + camera[:, 6])
+    corners = box_corners(frame.boxes).reshape(-1, 3)
+    pixels, _ = calib.rect_to_image(calib.lidar_to_rect(corners))
+    pixels = pixels.reshape(-1, 8, 2)
+    left_top = np.clip(pixels.min(axis=1), 0, [width - 1, height - 1])
+    right_bottom = np.clip(pixels.max(axis=1), 0, [width - 1, height - 1])
+    count = len(frame.boxes)
+    truncation = np.asarray(frame.metadata.get("truncation", np.full(count, np.nan)), float)
+    occlusion = np.asarray(frame.metadata.get("occlusion", np.full(count, -1)), float)
+    if truncation.shape != (count,):
+        truncation = np.full(count, np.nan)
+    if occlusion.shape != (count,):
+        occlusion = np.full(count, -1.0)
+    truncation = np.where(np.isfinite(truncation), np.clip(truncation, 0, 1), 0.0)
+    occlusion = np.where((occlusion >= 0) & (occlusion <= 3), occlusion, 3).astype(int)
+    lines = []
+    for i in range(count):
+        x, y, z, length, h, w, ry = camera[i]
+        lines.append(
+            f"{frame.names[i]} {truncation[i]:.2f} {occlusion[i]:d} {alpha[i]:.2f} "
+            f"{left_top[i, 0]:.2f} {left_top[i, 1]:.2f} {right_bottom[i, 0]:.2f} "
+            f"{right_bottom[i, 1]:.2f} {h:.2f} {w:.2f} {length:.2f} {x:.2f} {y:.2f} {z:.2f} "
+            f"{wrap_angle(ry):.2f}"
+        )
+    return lines
+
+
+def frame_seed(seed: int, index: int) -> np.random.Generator:
+    """The generator of frame ``index`` of a run seeded with ``seed``: independent per frame and
+    independent of the order or the process frames are augmented in."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
+
+
+def augment_kitti(
+    root: str | os.PathLike,
+    split: str,
+    transform: Transform,
+    out: str | os.PathLike,
+    frames: int | None = None,
+    seed: int = 0,
+    fov_only: bool = True,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Augment frames of a KITTI split and write them in KITTI layout under ``out``.
+
+    Writes ``training/velodyne/*.bin`` (float32, the frame's point columns),
+    ``training/label_2/*.txt`` (:func:`kitti_label_lines`), ``training/calib/*.txt`` (copied),
+    ``ImageSets/<split>.txt`` and ``stats.jsonl`` (one JSON object per frame: ``frame_id``,
+    ``points``, ``boxes`` per class and the transform's statistics). Everything is written to a
+    temporary directory renamed to ``out`` at the end, so an interrupted run leaves nothing.
+
+    Args:
+        root: KITTI root; split: split name; transform: the augmentation.
+        frames: augment the first ``frames`` frames of the split (``None``: all).
+        seed: frame i uses :func:`frame_seed` ``(seed, i)``.
+        fov_only: cut frames to the camera's field of view first (as OpenPCDet trains KITTI);
+            frames then carry ``metadata["fov_only"] = True``.
+        progress: ``progress(done, total)`` after each frame.
+
+    Returns a summary: frames written, points and boxes per class over all frames, mean ms.
+    """
+    from drcpo.database import atomic_directory
+    from drcpo.datasets.kitti import KittiDataset, fov_mask
+
+    dataset = KittiDataset(root, split)
+    ids = dataset.frame_ids if frames is None else dataset.frame_ids[: max(0, int(frames))]
+    summary: dict[str, Any] = {"frames": len(ids), "points": 0, "boxes": {}, "ms": []}
+
+    def write(tmp: Path) -> None:
+        base = tmp / "training"
+        for sub in ("velodyne", "label_2", "calib"):
+            (base / sub).mkdir(parents=True)
+        (tmp / "ImageSets").mkdir()
+        (tmp / "ImageSets" / f"{split}.txt").write_text("".join(f"{i}\n" for i in ids))
+        with (tmp / "stats.jsonl").open("w") as stats_file:
+            for number, frame_id in enumerate(ids):
+                frame = dataset.frame(frame_id)
+                if fov_only:
+                    keep = fov_mask(
+                        frame.points, frame.metadata["calib"], dataset.image_shape(frame_id)
+                    )
+                    frame = frame.replace(
+                        points=frame.points[keep], metadata={**frame.metadata, "fov_only": True}
+                    )
+                start = time.perf_counter()
+                result = transform(frame, frame_seed(seed, number))
+                elapsed = (time.perf_counter() - start) * 1000.0
+                np.ascontiguousarray(result.points, np.float32).tofile(
+                    base / "velodyne" / f"{frame_id}.bin"
+                )
+                lines = kitti_label_lines(result)
+                (base / "label_2" / f"{frame_id}.txt").write_text("".join(f"{x}\n" for x in lines))
+                shutil.copyfile(dataset.path("calib", frame_id), base / "calib" / f"{frame_id}.txt")
+                names, counts = np.unique(result.names, return_counts=True)
+                per_class = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
+                record = {
+                    "frame_id": frame_id,
+                    "seed": [int(seed), number],
+                    "points_in": len(frame),
+                    "points": len(result),
+                    "boxes": per_class,
+                    "ms": elapsed,
+                    **result.metadata.get(STATS_KEY, {}),
+                }
+                stats_file.write(json.dumps(record) + "\n")
+                summary["points"] += len(result)
+                for name, count in per_class.items():
+                    summary["boxes"][name] = summary["boxes"].get(name, 0) + count
+                summary["ms"].append(elapsed)
+                if progress is not None:
+                    progress(number + 1, len(ids))
+
+    atomic_directory(out, write, overwrite=overwrite)
+    summary["mean_ms"] = float(np.mean(summary["ms"])) if summary["ms"] else 0.0
+    summary["median_ms"] = float(np.median(summary["ms"])) if summary["ms"] else 0.0
+    del summary["ms"]
+    return summary
