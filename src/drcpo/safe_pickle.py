@@ -9,6 +9,8 @@ looked up, so nothing it names is imported or called.
 
 from __future__ import annotations
 
+import builtins
+import collections
 import io
 import os
 import pickle
@@ -32,6 +34,14 @@ _NUMPY_GLOBALS: dict[str, Any] = {
 }
 _NUMERIC_GLOBALS: dict[str, Any] = {"_frombuffer": _numeric._frombuffer}
 
+
+def _latin1_encode(text: str, encoding: str = "utf-8") -> bytes:
+    """``_codecs.encode`` restricted to latin-1, which protocols 0-2 use to store bytes."""
+    if encoding != "latin1" or not isinstance(text, str):
+        raise pickle.UnpicklingError(f"_codecs.encode with {encoding!r} is not allowed")
+    return text.encode("latin1")
+
+
 # Pickles written under numpy 1.x name ``numpy.core.*``, under numpy 2.x ``numpy._core.*``;
 # both spellings resolve to the objects of the installed numpy.
 ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
@@ -41,14 +51,16 @@ ALLOWED_GLOBALS: dict[tuple[str, str], Any] = {
        for name, obj in _NUMERIC_GLOBALS.items()},
     ("numpy", "ndarray"): np.ndarray,
     ("numpy", "dtype"): np.dtype,
+    ("_codecs", "encode"): _latin1_encode,
     **{
-        ("builtins", name): getattr(__import__("builtins"), name)
+        (module, name): getattr(builtins, name)
+        for module in ("builtins", "__builtin__")  # protocols 0-2 write __builtin__
         for name in (
             "dict", "list", "tuple", "set", "frozenset", "bytearray", "bytes", "complex",
             "slice", "range",
         )
     },
-    ("collections", "OrderedDict"): __import__("collections").OrderedDict,
+    ("collections", "OrderedDict"): collections.OrderedDict,
 }  # fmt: skip
 
 
