@@ -5,6 +5,7 @@ import shutil
 
 import numpy as np
 import pytest
+from conftest import random_boxes
 from typer.testing import CliRunner
 
 from drcpo import safe_pickle
@@ -19,7 +20,6 @@ from drcpo.database_build import (
 from drcpo.datasets.kitti import KittiDataset, fov_mask
 from drcpo.errors import ConfigError, DataError
 from drcpo.geometry import points_in_boxes, rotate_points_z, wrap_angle
-from tests.conftest import random_boxes
 
 
 def _mirror(kitti_sample, tmp_path):
