@@ -1,0 +1,53 @@
+"""A built-in LiDAR world: a ray-cast HDL-64E-like sensor in procedural streets.
+
+It writes KITTI-layout data with labels computed from true visibility, and tells which points
+of an object placed in a frame the sensor truly sees (the reference for HPR occlusion).
+
+Modules: :mod:`.sensor` (sensor model), :mod:`.solids` (primitives), :mod:`.raycast`,
+:mod:`.actors` (Car, Pedestrian, Cyclist), :mod:`.world` (procedural street), :mod:`.scan`
+(sweeps and per-object visibility), :mod:`.truth` (visibility of arbitrary points),
+:mod:`.dataset` (KITTI data sets).
+"""
+
+from drcpo.synth.actors import CLASSES, Actor, make_actor
+from drcpo.synth.dataset import (
+    SyntheticFrame,
+    frame_rng,
+    synthesize_frame,
+    write_synthetic_kitti,
+)
+from drcpo.synth.raycast import Ground, RayHits, Scene
+from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
+from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, ray_grid
+from drcpo.synth.solids import Solids
+from drcpo.synth.truth import PlacedObjectTruth, place_object, visible_points
+from drcpo.synth.world import World, WorldConfig, generate_world
+
+__all__ = [
+    "CLASSES",
+    "Actor",
+    "Ground",
+    "LidarConfig",
+    "PlacedObjectTruth",
+    "RayGrid",
+    "RayHits",
+    "Scene",
+    "Solids",
+    "Sweep",
+    "SyntheticFrame",
+    "Visibility",
+    "World",
+    "WorldConfig",
+    "actor_visibility",
+    "frame_rng",
+    "generate_world",
+    "hdl64e_elevations",
+    "make_actor",
+    "occlusion_level",
+    "place_object",
+    "ray_grid",
+    "scan",
+    "synthesize_frame",
+    "visible_points",
+    "write_synthetic_kitti",
+]

@@ -1,0 +1,66 @@
+"""Ground truth for occlusion: which points the sensor at the origin truly sees.
+
+A point is visible when the ray from the sensor towards it meets no surface before it (closer
+than ``distance - tolerance``); a point on a surface is therefore visible iff it is the first hit
+of its ray. This is the reference HPR-based occlusion is scored against.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from drcpo.synth.actors import Actor
+from drcpo.synth.raycast import MISS, Scene
+from drcpo.synth.solids import Solids
+from drcpo.synth.world import World
+
+
+def visible_points(scene: Scene, points: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
+    """``bool (N,)``: points ``(N, 3+)`` (metres, LiDAR frame) that the sensor sees in ``scene``.
+
+    Points within ``tolerance`` metres of the sensor are visible.
+    """
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    if not np.isfinite(xyz).all():
+        raise ValueError("points must be finite")
+    distance = np.linalg.norm(xyz, axis=1)
+    near = distance <= tolerance
+    directions = xyz / np.where(near, 1.0, distance)[:, None]
+    directions[near] = (0.0, 0.0, 1.0)
+    hits = scene.cast(directions, np.maximum(distance - tolerance, 0.0))
+    return (hits.hit == MISS) | near
+
+
+@dataclass(frozen=True, eq=False)
+class PlacedObjectTruth:
+    """Surface samples of an actor placed in a world, and which of them the sensor sees.
+
+    Attributes:
+        points: ``float64 (N, 3)`` samples on the actor's outer surface, LiDAR frame.
+        self_visible: ``bool (N,)`` visible with the actor alone (self-occlusion only).
+        visible: ``bool (N,)`` visible in the world with the actor inserted.
+        solids: the actor's solids at its pose (owner ``len(world.actors)``).
+    """
+
+    points: np.ndarray
+    self_visible: np.ndarray
+    visible: np.ndarray
+    solids: Solids
+
+
+def place_object(
+    world: World,
+    actor: Actor,
+    box: np.ndarray,
+    rng: np.random.Generator,
+    spacing: float = 0.05,
+    tolerance: float = 0.02,
+) -> PlacedObjectTruth:
+    """Place ``actor`` at pose ``box (7,)`` in ``world``; sample it and ray-cast the truth."""
+    solids = actor.placed(np.asarray(box, dtype=np.float64), len(world.actors))
+    points, _ = solids.surface_samples(rng, spacing)
+    self_visible = visible_points(Scene(solids, None, num_bins=64), points, tolerance)
+    visible = visible_points(world.with_extra(solids), points, tolerance)
+    return PlacedObjectTruth(points, self_visible, visible, solids)
