@@ -3,18 +3,23 @@
 Method (all vectorised over a bird's-eye-view grid, a few milliseconds for a KITTI sweep):
 
 1. Lowest point per BEV cell (default 1 m cells) of the points within ``max_range``.
-2. Frame-wide plane: RANSAC over the cell minima (explicit ``rng``; normals within
-   ``max_tilt`` of vertical), refined by least squares on its inliers. A KITTI road plane, when
-   given with its calibration, replaces this fit.
-3. Cells whose minimum lies more than ``max_below_plane`` below the plane are noise (reflections)
-   and dropped. A cell is *ground* when its minimum is at most ``tolerance`` above every other
-   cell's minimum plus ``max_slope`` times their distance (a grey erosion with a cone-shaped
-   structuring element). This rejects car roofs, walls and canopies whose foot is hidden, since
-   visible ground lies within a few metres of them.
+2. Frame-wide plane: RANSAC over the cells' lowest points (explicit ``rng``; normals within
+   ``max_tilt_deg`` of vertical), refined by least squares on its inliers. A KITTI road plane,
+   when given with its calibration, replaces this fit. Each cell's lowest point is carried to
+   the cell centre along the plane's slope.
+3. Cells more than ``max_below_plane`` below the plane are noise (reflections); cells more than
+   ``max_above_plane`` above it are roofs, walls or canopies with no visible ground near them.
+   Both are dropped. Of the rest, a cell is *ground* when its height is at most ``tolerance``
+   above every other cell's height plus ``max_slope`` times their distance (a grey erosion with
+   a cone-shaped structuring element, radius ``window``). This rejects car roofs, walls and
+   canopies whose foot is hidden, since visible ground lies within a few metres of them.
 4. Cells without ground take the nearest ground cell's height, corrected by the plane's slope
    between the two, when it lies within ``fill_radius``; otherwise the plane's height.
 5. :meth:`GroundModel.height_at` interpolates the cell-centre heights bilinearly; queries
    outside the grid use the nearest edge cell with the same plane correction.
+
+The estimates sit slightly low (a cell's lowest point is about 1.5 noise sigmas below the mean
+surface, i.e. 2-4 cm for a Velodyne HDL-64E).
 
 Without any usable point (empty frame) the model is the given road plane, or flat ground at
 ``fallback_height`` (KITTI's Velodyne is mounted 1.73 m above the road).
@@ -46,6 +51,7 @@ class GroundConfig:
         window: radius of the neighbourhood searched for lower ground.
         fill_radius: cells farther than this from any ground cell use the plane.
         max_below_plane: cell minima this far below the plane are treated as noise.
+        max_above_plane: cell minima this far above the plane are never ground.
         ransac_iterations: plane hypotheses tried.
         ransac_threshold: inlier distance of the plane fit.
         max_tilt_deg: largest angle (degrees) between the plane's normal and +z.
@@ -59,13 +65,21 @@ class GroundConfig:
     window: float = 4.0
     fill_radius: float = 10.0
     max_below_plane: float = 1.0
+    max_above_plane: float = 1.5
     ransac_iterations: int = 100
     ransac_threshold: float = 0.15
     max_tilt_deg: float = 20.0
     fallback_height: float = -KITTI_SENSOR_HEIGHT
 
     def __post_init__(self) -> None:
-        positive = ("cell_size", "max_range", "window", "ransac_threshold", "max_below_plane")
+        positive = (
+            "cell_size",
+            "max_range",
+            "window",
+            "ransac_threshold",
+            "max_below_plane",
+            "max_above_plane",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"ground.{name} must be > 0, got {getattr(self, name)}")
@@ -149,21 +163,26 @@ class GroundModel:
         ix = ((x - origin[0]) / cs).astype(np.int64)
         iy = ((y - origin[1]) / cs).astype(np.int64)
         shape = (int(ix.max()) + 1, int(iy.max()) + 1)
-        minima = np.full(shape[0] * shape[1], np.inf)
-        np.minimum.at(minima, ix * shape[1] + iy, z.astype(np.float64))
-        minima = minima.reshape(shape)
-        occupied = np.isfinite(minima)
-        centres = _cell_centres(origin, cs, shape)
+        flat = ix * shape[1] + iy
+        lowest = _lowest_points(flat, x, y, z.astype(np.float64), shape[0] * shape[1])
+        occupied = np.isfinite(lowest[:, 2])
         if given is None:
             rng = np.random.default_rng(0) if rng is None else rng
-            fitted = _ransac_plane(centres[occupied], minima[occupied], rng, config)
+            fitted = _ransac_plane(lowest[occupied], rng, config)
             if fitted is None:
                 return cls.flat(config.fallback_height)
             frame_plane = fitted
         else:
             frame_plane = given
-        plane_z = centres @ frame_plane[:2] + frame_plane[2]
-        minima[minima < plane_z - config.max_below_plane] = np.inf
+        centres = _cell_centres(origin, cs, shape).reshape(-1, 2)
+        plane_z = (centres @ frame_plane[:2] + frame_plane[2]).reshape(shape)
+        # A cell's lowest point sits anywhere in it; carry it to the centre along the plane.
+        shift = np.where(occupied[:, None], centres - lowest[:, :2], 0.0) @ frame_plane[:2]
+        minima = (lowest[:, 2] + shift).reshape(shape)
+        outlier = (minima < plane_z - config.max_below_plane) | (
+            minima > plane_z + config.max_above_plane
+        )
+        minima[outlier] = np.inf
         ground = _ground_cells(minima, config)
         if ground.sum() < 3:
             return cls.from_plane(frame_plane, source="plane" if given is None else "road_plane")
@@ -262,12 +281,12 @@ def _cell_centres(origin: np.ndarray, cell_size: float, shape: tuple[int, int]) 
 
 
 def _ransac_plane(
-    xy: np.ndarray, z: np.ndarray, rng: np.random.Generator, config: GroundConfig
+    seeds: np.ndarray, rng: np.random.Generator, config: GroundConfig
 ) -> np.ndarray | None:
-    """``(a, b, c)`` of ``z = a x + b y + c`` with most inliers, refined; ``None`` if < 3 seeds."""
-    if len(z) < 3:
+    """``(a, b, c)`` of ``z = a x + b y + c`` through most ``(S, 3)`` seeds; ``None`` if S < 3."""
+    if len(seeds) < 3:
         return None
-    seeds = np.column_stack([xy, z])
+    z = seeds[:, 2]
     picks = rng.integers(0, len(z), size=(config.ransac_iterations, 3))
     # Hypotheses are scored on a random subset: enough to rank planes, much cheaper.
     scored = (
@@ -291,6 +310,20 @@ def _ransac_plane(
     )
     chosen = seeds[inliers]
     return _least_squares_plane(chosen) if len(chosen) >= 3 else _least_squares_plane(seeds)
+
+
+def _lowest_points(
+    cells: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, count: int
+) -> np.ndarray:
+    """``(count, 3)`` x, y, z of the lowest point of each cell (inf z for empty cells)."""
+    low_z = np.full(count, np.inf)
+    np.minimum.at(low_z, cells, z)
+    at_min = np.flatnonzero(z == low_z[cells])
+    # Ties keep one of the tied points (the last written); any lowest point will do.
+    low_x, low_y = np.full(count, np.inf), np.full(count, np.inf)
+    low_x[cells[at_min]] = x[at_min]
+    low_y[cells[at_min]] = y[at_min]
+    return np.column_stack([low_x, low_y, low_z])
 
 
 def _least_squares_plane(xyz: np.ndarray) -> np.ndarray:

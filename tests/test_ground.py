@@ -1,0 +1,209 @@
+import numpy as np
+import pytest
+
+from drcpo.datasets.kitti import Calibration
+from drcpo.errors import ConfigError, DataError
+from drcpo.geometry import rotation_matrix_z
+from drcpo.ground import KITTI_SENSOR_HEIGHT, GroundConfig, GroundModel, road_plane_to_lidar
+
+
+def tilted(xy):
+    return 0.04 * xy[:, 0] - 0.03 * xy[:, 1] - 1.7
+
+
+def uneven(xy):
+    return -1.7 + 0.03 * xy[:, 0] + 0.3 * np.sin(xy[:, 0] / 6.0) * np.cos(xy[:, 1] / 7.0)
+
+
+def ground_points(rng, surface, n=40000, noise=0.02, extent=((0, 60), (-30, 30))):
+    xy = np.column_stack([rng.uniform(*extent[0], n), rng.uniform(*extent[1], n)])
+    return np.column_stack([xy, surface(xy) + rng.normal(0, noise, n)])
+
+
+def clutter(rng, surface):
+    """Points of a wall, a parked car's body (its ground hidden) and a tree canopy."""
+    wall_xy = np.column_stack([np.full(3000, 45.0), rng.uniform(-20, 20, 3000)])
+    wall = np.column_stack([wall_xy, surface(wall_xy) + rng.uniform(0.0, 4.0, 3000)])
+    car_xy = np.column_stack([rng.uniform(18, 22, 3000), rng.uniform(4, 6, 3000)])
+    car = np.column_stack([car_xy, surface(car_xy) + rng.uniform(0.5, 1.5, 3000)])
+    tree_xy = np.column_stack([rng.uniform(30, 34, 2000), rng.uniform(-12, -8, 2000)])
+    tree = np.column_stack([tree_xy, surface(tree_xy) + rng.uniform(3.0, 6.0, 2000)])
+    return {"wall": wall, "car": car, "tree": tree}
+
+
+def frame_with_clutter(rng, surface):
+    parts = clutter(rng, surface)
+    ground = ground_points(rng, surface)
+    # The car and the tree hide the ground under them.
+    hidden = ((ground[:, 0] > 17.5) & (ground[:, 0] < 22.5) & (abs(ground[:, 1] - 5) < 1.5)) | (
+        (ground[:, 0] > 29.5) & (ground[:, 0] < 34.5) & (abs(ground[:, 1] + 10) < 2.5)
+    )
+    points = np.concatenate([ground[~hidden], *parts.values()])
+    features = rng.uniform(0, 1, (len(points), 1))
+    return np.column_stack([points, features]).astype(np.float32), ground[~hidden], parts
+
+
+def query_grid(extent=((2, 58), (-28, 28)), step=2.0):
+    xs = np.arange(extent[0][0], extent[0][1], step)
+    ys = np.arange(extent[1][0], extent[1][1], step)
+    return np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def test_recovers_a_tilted_plane_and_ignores_walls_objects_and_trees(rng):
+    points, ground, parts = frame_with_clutter(rng, tilted)
+    model = GroundModel.from_points(points, rng=np.random.default_rng(0))
+    assert model.source == "points"
+    np.testing.assert_allclose(model.plane[:2], [0.04, -0.03], atol=0.003)
+    # Built on each cell's lowest point, the estimate sits about 1.5 noise sigmas low.
+    assert -1.7 - 0.05 < model.plane[2] < -1.7
+    xy = query_grid()
+    assert np.abs(model.height_at(xy) - tilted(xy)).max() < 0.1
+    # Under the car and the tree the ground is unseen; the estimate must not ride on them.
+    under = np.array([[20.0, 5.0], [32.0, -10.0], [45.0, 0.0]])
+    assert np.abs(model.height_at(under) - tilted(under)).max() < 0.15
+    assert model.is_ground(ground).mean() > 0.99
+    for name, cloud in parts.items():
+        high = cloud[cloud[:, 2] > tilted(cloud[:, :2]) + 0.3]
+        assert not model.is_ground(high).any(), name
+
+
+def test_follows_uneven_ground_better_than_a_plane(rng):
+    points, _, _ = frame_with_clutter(rng, uneven)
+    model = GroundModel.from_points(points)
+    xy = query_grid()
+    local_error = np.abs(model.height_at(xy) - uneven(xy))
+    plane_error = np.abs(model.plane_height_at(xy) - uneven(xy))
+    assert local_error.max() < 0.12
+    assert plane_error.max() > 0.25
+
+
+def test_ignores_noise_far_below_the_ground(rng):
+    points = ground_points(rng, tilted)
+    noise_xy = rng.uniform([10, -10], [40, 10], (40, 2))
+    noise = np.column_stack([noise_xy, tilted(noise_xy) - rng.uniform(2, 5, 40)])
+    model = GroundModel.from_points(np.concatenate([points, noise]))
+    xy = query_grid()
+    assert np.abs(model.height_at(xy) - tilted(xy)).max() < 0.1
+
+
+def test_outside_the_grid_continues_along_the_plane(rng):
+    model = GroundModel.from_points(ground_points(rng, tilted))
+    far = np.array([[80.0, 0.0], [-20.0, 45.0], [30.0, -50.0]])
+    np.testing.assert_allclose(model.height_at(far), tilted(far), atol=0.1)
+
+
+def test_sparse_far_ground_is_filled_from_neighbours(rng):
+    near = ground_points(rng, uneven, n=20000, extent=((0, 30), (-15, 15)))
+    far = ground_points(rng, uneven, n=300, extent=((30, 60), (-15, 15)))
+    model = GroundModel.from_points(np.concatenate([near, far]))
+    xy = query_grid(extent=((2, 58), (-14, 14)))
+    assert np.abs(model.height_at(xy) - uneven(xy)).max() < 0.2
+    assert not model.ground_cells.all()
+
+
+def test_same_seed_same_model_and_default_seed_is_fixed(rng):
+    points, _, _ = frame_with_clutter(rng, uneven)
+    a = GroundModel.from_points(points, rng=np.random.default_rng(3))
+    b = GroundModel.from_points(points, rng=np.random.default_rng(3))
+    np.testing.assert_array_equal(a.heights, b.heights)
+    np.testing.assert_array_equal(a.plane, b.plane)
+    c, d = GroundModel.from_points(points), GroundModel.from_points(points)
+    np.testing.assert_array_equal(c.heights, d.heights)
+
+
+def test_empty_or_degenerate_frames_fall_back():
+    empty = GroundModel.from_points(np.zeros((0, 4), np.float32))
+    assert empty.source == "default"
+    np.testing.assert_allclose(empty.height_at(np.array([[5.0, 1.0]])), [-KITTI_SENSOR_HEIGHT])
+    nan = GroundModel.from_points(np.full((10, 4), np.nan, np.float32))
+    assert nan.source == "default"
+    two = GroundModel.from_points(np.array([[1.0, 0.0, -1.5], [2.0, 0.0, -1.5]]))
+    assert np.isfinite(two.height_at(np.array([[1.5, 0.0]]))).all()
+    assert GroundModel.flat(-2.0).is_ground(np.array([[0, 0, -1.85], [0, 0, -1.75]])).tolist() == [
+        True,
+        False,
+    ]
+
+
+def test_bad_input_is_rejected():
+    with pytest.raises(DataError, match="shape"):
+        GroundModel.from_points(np.zeros((5, 2)))
+    with pytest.raises(DataError, match="shape"):
+        GroundModel.flat().height_at(np.zeros(3))
+    with pytest.raises(DataError, match="calib"):
+        GroundModel.from_points(np.zeros((5, 3)), plane=np.array([0, -1, 0, 1.7]))
+    with pytest.raises(ConfigError, match="ground.cell_size"):
+        GroundConfig(cell_size=0)
+    with pytest.raises(ConfigError, match="max_tilt_deg"):
+        GroundConfig(max_tilt_deg=90)
+
+
+def kitti_like_calibration() -> Calibration:
+    """Velodyne-to-camera axes as in KITTI, with small extra rotations so nothing is trivial."""
+    axes = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    tilt = rotation_matrix_z(0.01)[[0, 2, 1]][:, [0, 2, 1]]  # a small turn about camera y
+    tr = np.column_stack([tilt @ axes @ rotation_matrix_z(0.02), [0.004, -0.076, -0.27]])
+    r0 = rotation_matrix_z(0.005)
+    p2 = np.array([[721.5, 0, 609.6, 44.9], [0, 721.5, 172.9, 0.2], [0, 0, 1, 0.003]])
+    return Calibration(P2=p2, R0_rect=r0, Tr_velo_to_cam=tr)
+
+
+def test_kitti_road_plane_matches_openpcdet_box_placement():
+    calib = kitti_like_calibration()
+    plane = np.array([0.02, -0.999, 0.03, 1.65])
+    plane /= np.linalg.norm(plane[:3])
+    lidar_plane = road_plane_to_lidar(plane, calib)
+    model = GroundModel.from_points(np.zeros((0, 4)), plane=plane, calib=calib)
+    assert model.source == "road_plane"
+    xy = np.array([[5.0, 1.0], [20.0, -6.0], [40.0, 10.0]])
+    on_plane = np.column_stack([xy, model.height_at(xy)])
+    rect = on_plane @ (calib.R0_rect @ calib.Tr_velo_to_cam[:, :3]).T.astype(np.float64)
+    rect += calib.R0_rect.astype(np.float64) @ calib.Tr_velo_to_cam[:, 3]
+    np.testing.assert_allclose(rect @ plane[:3] + plane[3], 0, atol=1e-5)
+    # OpenPCDet's put_boxes_on_road_planes: solve the plane for rect y at the box centre's rect
+    # x and z, convert back, take the LiDAR z.
+    centres = np.column_stack([xy, np.zeros(len(xy))])
+    rect_centres = calib.lidar_to_rect(centres.astype(np.float32)).astype(np.float64)
+    a, b, c, d = plane
+    rect_centres[:, 1] = (-d - a * rect_centres[:, 0] - c * rect_centres[:, 2]) / b
+    back = calib.rect_to_lidar(rect_centres)
+    ours = back[:, :2] @ lidar_plane[:2] + lidar_plane[2]
+    np.testing.assert_allclose(ours, back[:, 2], atol=1e-4)
+
+
+def test_road_plane_replaces_the_ransac_fit(rng):
+    calib = kitti_like_calibration()
+    plane = np.array([0.0, -1.0, 0.0, 1.65])
+    points = ground_points(rng, lambda xy: road_z(xy, plane, calib))
+    model = GroundModel.from_points(points, plane=plane, calib=calib)
+    np.testing.assert_allclose(model.plane, road_plane_to_lidar(plane, calib))
+    xy = query_grid()
+    np.testing.assert_allclose(model.height_at(xy), road_z(xy, plane, calib), atol=0.1)
+
+
+def road_z(xy, plane, calib):
+    coef = road_plane_to_lidar(plane, calib)
+    return xy @ coef[:2] + coef[2]
+
+
+def test_vertical_road_plane_is_rejected():
+    calib = kitti_like_calibration()
+    with pytest.raises(DataError, match="vertical"):
+        road_plane_to_lidar(np.array([0.0, 0.0, 1.0, -5.0]), calib)
+
+
+def test_real_kitti_ground_is_plausible(kitti_sample):
+    near = np.array([[6.0, 0.0], [8.0, -1.0], [10.0, 1.0], [12.0, 0.0]])
+    for path in sorted((kitti_sample / "training" / "velodyne").glob("*.bin")):
+        points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+        model = GroundModel.from_points(points)
+        assert model.source == "points", path.name
+        heights = model.height_at(near)
+        assert ((heights > -2.1) & (heights < -1.4)).all(), (path.name, heights)
+        assert -2.0 < model.plane[2] < -1.5, (path.name, model.plane)
+        normal = np.array([-model.plane[0], -model.plane[1], 1.0])
+        assert normal[2] / np.linalg.norm(normal) > np.cos(np.deg2rad(5))
+        # Within 40 m, nothing 2 m above the road is ground (far away, hills may rise that high).
+        near_high = (np.hypot(points[:, 0], points[:, 1]) < 40) & (points[:, 2] > 0.3)
+        assert not model.is_ground(points[near_high]).any(), path.name
+        assert 0.2 < model.is_ground(points).mean() < 0.9
