@@ -228,9 +228,15 @@ class PlacementSettings:
         default=10,
         metadata=_spec("int", "frame points allowed inside a placed box", low=0, high=1_000_000),
     )
+    ground_tolerance: float = field(
+        default=0.2,
+        metadata=_spec(
+            "float", "points this far above the ground are non-ground (m)", low=0.0, high=10.0
+        ),
+    )
     attempts: int = field(
-        default=10,
-        metadata=_spec("int", "candidate poses tried per sampled object", low=1, high=1000),
+        default=1,
+        metadata=_spec("int", "poses tried per sampled object (the paper: 1)", low=1, high=1000),
     )
     camera_fov: str = field(
         default="auto",
@@ -586,3 +592,11 @@ def _build(data: dict[str, Any]) -> AugmentConfig:
         preset_data.pop("preset", None)
         base = _merge(base, preset_data, "")
     return _merge(base, data, "")
+
+
+def build_pipeline(config: Any = None, database: Any = None, index: Any = None, kind=None):
+    """Shorthand for :func:`drcpo.pipeline.build_pipeline` (imported lazily: the pipeline
+    module builds on this one)."""
+    from drcpo.pipeline import build_pipeline as build
+
+    return build(config, database, index, kind)

@@ -26,12 +26,15 @@ import shutil
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from drcpo import construction, placement
 from drcpo.config import (
+    DRCPOConfig,
     FlipConfig,
     GTSamplingConfig,
     RotationConfig,
@@ -44,12 +47,13 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import (
+    bev_corners,
     bev_overlap_area,
-    box_corners,
     from_canonical,
     points_in_boxes,
     wrap_angle,
 )
+from drcpo.ground import GroundModel
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
@@ -65,7 +69,8 @@ class Stats:
 
         {"stages": {name: {"ms": float, "points_in": int, "points_out": int}},
          "objects": {transform: {class: {"tried": n, "added": n, "rejected": {reason: n}}}},
-         "construction_iterations": {class: [iterations of each constructed object]}}
+         "construction_iterations": {class: [iterations of each constructed object]},
+         "labels_dropped": {class: original boxes dropped for losing their points}}
 
     A stage recorded twice (e.g. two rotations in one pipeline) adds up its milliseconds and keeps
     the first ``points_in`` and the last ``points_out``. A new :class:`Stats` starts from the
@@ -77,6 +82,7 @@ class Stats:
         self.stages: dict[str, dict[str, Any]] = data.get("stages", {})
         self.objects: dict[str, dict[str, dict[str, Any]]] = data.get("objects", {})
         self.iterations: dict[str, list[int]] = data.get("construction_iterations", {})
+        self.dropped: dict[str, int] = data.get("labels_dropped", {})
 
     @classmethod
     def of(cls, frame: Frame) -> Stats:
@@ -119,11 +125,15 @@ class Stats:
     def construction(self, name: str, iterations: int) -> None:
         self.iterations.setdefault(str(name), []).append(int(iterations))
 
+    def label_dropped(self, name: str, count: int = 1) -> None:
+        self.dropped[str(name)] = self.dropped.get(str(name), 0) + int(count)
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "stages": self.stages,
             "objects": self.objects,
             "construction_iterations": self.iterations,
+            "labels_dropped": self.dropped,
         }
 
     def attach(self, frame: Frame) -> Frame:
@@ -627,6 +637,400 @@ class GroundTruthSampling(Transform):
 
 
 # --------------------------------------------------------------------------------------------
+# DR.CPO
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class _Insertion:
+    """One object on its way into the frame: source row, class, placed box, placed points."""
+
+    row: int
+    name: str
+    box: np.ndarray
+    points: np.ndarray
+
+
+class DRCPO(Transform):
+    """DR.CPO: iterative construction, random placement and HPR occlusion (Shin et al. 2023).
+
+    Per call:
+
+    1. **Sample** ``sample[class]`` source objects per class, without replacement, among the
+       objects that the candidate index covers and that have at least ``min_points`` points.
+    2. **Place** (``partition`` mode, before any construction, so that rejected objects cost
+       nothing): a random heading and position, the box bottom on the frame's ground estimate
+       (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
+       any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
+       the box); see :mod:`drcpo.placement`. In ``whole`` mode the box grows during
+       construction, so objects are constructed first and placed with their final size.
+    3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
+    4. **s-HPR**: hidden point removal per object from the sensor origin with
+       ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
+       is dropped (``self_occlusion``).
+    5. **Insert**: frame points inside the accepted boxes are removed, the objects' points added.
+    6. **e-HPR** from the detector preset's viewpoint: scope ``inserted`` removes only inserted
+       points and original points that are hidden after the insertion but visible without it,
+       and computes visibility only in the azimuth sectors the inserted boxes cover; scope
+       ``frame`` (the paper) removes every hidden point of the frame.
+    7. **Labels**: a box left with fewer than ``min_points_after`` points is dropped, unless it
+       already had fewer before (a dropped inserted object also loses its remaining points;
+       reason ``external_occlusion``).
+
+    Args:
+        database: the ground-truth database (canonical points).
+        index: its :class:`~drcpo.index.CandidateIndex`.
+        config: a :class:`~drcpo.config.DRCPOConfig` (the paper defaults when ``None``) or a
+            mapping of its keys.
+
+    The transform holds only read-only state (database, index, config, per-class row pools),
+    so it is safe to share with forked workers.
+    """
+
+    name = "drcpo"
+
+    def __init__(
+        self,
+        database: GroundTruthDatabase,
+        index: Any,
+        config: DRCPOConfig | Mapping[str, Any] | None = None,
+    ) -> None:
+        if isinstance(config, Mapping) or config is None:
+            config = from_dict(DRCPOConfig, config, "drcpo")
+        if not isinstance(config, DRCPOConfig):
+            raise TypeError(f"config must be a DRCPOConfig or a mapping, got {type(config)}")
+        self.config: DRCPOConfig = config
+        self.database = database
+        self.index = index
+        self._construction = construction.ConstructionConfig(
+            mode=config.construction.mode,
+            coverage=config.construction.coverage,
+            max_iterations=config.construction.max_iterations,
+            margin=config.construction.margin,
+            mirrored_classes=tuple(config.construction.mirror),
+            grids={k: tuple(v) for k, v in config.construction.grids.items()},
+        )
+        self._placement = {fov: self._placement_config(fov) for fov in (False, True)}
+        classes = [name for name, count in config.sample.items() if count > 0]
+        self._check_index(classes)
+        from drcpo.index import indexed_mask
+
+        indexed = indexed_mask(database, index.config)
+        self._pools = {
+            name: pool[indexed[pool]]
+            for name, pool in _sampling_pools(
+                database, classes, config.min_points, config.exclude_difficulty
+            ).items()
+        }
+        for pool in self._pools.values():
+            pool.setflags(write=False)
+
+    def _placement_config(self, fov_only: bool) -> placement.PlacementConfig:
+        p = self.config.placement
+        return placement.PlacementConfig(
+            x_range=tuple(p.x_range),
+            y_range=tuple(p.y_range),
+            fov_only=fov_only,
+            height_mode=p.height,
+            max_nonground_points=p.max_non_ground_points,
+            ground_tolerance=p.ground_tolerance,
+            max_tries=p.attempts,
+        )
+
+    def _check_index(self, classes: Sequence[str]) -> None:
+        """The index must partition and mirror each class as construction does."""
+        if len(self.index.candidates) != len(self.database):
+            raise ConfigError(
+                f"the candidate index covers {len(self.index.candidates)} objects but the "
+                f"database has {len(self.database)}; rebuild it with `drcpo index`"
+            )
+        mirrored_in_index = set(self.index.config.mirrored)
+        for name in classes:
+            if name not in self.index.grids:
+                continue  # no indexed object of this class: it is never sampled
+            grid = self._construction.grid(name)
+            if tuple(self.index.grids[name]) != tuple(grid):
+                raise ConfigError(
+                    f"drcpo.construction.grids.{name} = {list(grid)} but the candidate index "
+                    f"was built with {list(self.index.grids[name])}; use the same grid"
+                )
+            if (name in self._construction.mirrored_classes) != (name in mirrored_in_index):
+                raise ConfigError(
+                    f"drcpo.construction.mirror and the candidate index disagree on whether "
+                    f"{name} is mirrored; use the same classes"
+                )
+
+    @classmethod
+    def from_config(
+        cls,
+        data: Mapping[str, Any],
+        database: GroundTruthDatabase | None = None,
+        index: Any = None,
+        **_: Any,
+    ) -> DRCPO:
+        if database is None or index is None:
+            raise ConfigError("DRCPO.from_config needs database=... and index=...")
+        body = _config_body(data, cls.__name__)
+        body.pop("enabled", None)
+        return cls(database, index, from_dict(DRCPOConfig, body, "DRCPO"))
+
+    def to_config(self) -> dict[str, Any]:
+        body = to_dict(self.config)
+        body.pop("enabled")
+        return {"type": type(self).__name__, **body}
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (
+            f"DRCPO({self.database!r}, sample={c.sample}, "
+            f"construction={c.construction.mode!r}, height={c.placement.height!r}, "
+            f"e_hpr={c.external_occlusion.mode}:{c.external_occlusion.preset}:"
+            f"{c.external_occlusion.scope})"
+        )
+
+    # The steps ------------------------------------------------------------------------------
+    def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
+        with stats.stage("drcpo.sample", len(frame)):
+            rows = self._sample(rng, stats)
+        objects: list[Any] = []
+        if self.config.construction.mode == "partition":
+            with stats.stage("drcpo.placement", len(frame)):
+                boxes, accepted = self._place(frame, rows, None, rng, stats)
+                rows = rows[accepted]
+            with stats.stage("drcpo.construction", 0) as record:
+                objects = self._construct(rows, rng, stats)
+                record["points_out"] = sum(len(o.points) for o in objects)
+        else:  # whole: the box grows while constructing, so place with the final size
+            with stats.stage("drcpo.construction", 0) as record:
+                objects = self._construct(rows, rng, stats)
+                record["points_out"] = sum(len(o.points) for o in objects)
+            with stats.stage("drcpo.placement", len(frame)):
+                dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
+                boxes, accepted = self._place(frame, rows, dims, rng, stats)
+                rows, objects = rows[accepted], [objects[i] for i in accepted]
+        with stats.stage("drcpo.self_occlusion", sum(len(o.points) for o in objects)) as record:
+            insertions = self._self_occlusion(frame, rows, boxes, objects, stats)
+            record["points_out"] = sum(len(i.points) for i in insertions)
+        with stats.stage("drcpo.insert", len(frame)) as record:
+            out, owner = self._insert(frame, insertions)
+            record["points_out"] = len(out)
+        with stats.stage("drcpo.external_occlusion", len(out)) as record:
+            keep = self._external_occlusion(out.points, owner, [i.box for i in insertions])
+            out, owner = out.replace(points=out.points[keep]), owner[keep]
+            record["points_out"] = len(out)
+        with stats.stage("drcpo.labels", len(out)) as record:
+            out = self._filter_labels(frame, out, owner, insertions, stats)
+            record["points_out"] = len(out)
+        return out
+
+    def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
+        """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
+        chosen = []
+        for name, count in self.config.sample.items():
+            pool = self._pools.get(name)
+            size = min(int(count), 0 if pool is None else len(pool))
+            if size == 0:
+                continue
+            chosen.append(rng.choice(pool, size=size, replace=False))
+            stats.tried(self.name, name, size)
+        return np.concatenate(chosen).astype(np.int64) if chosen else np.zeros(0, np.int64)
+
+    def _place(
+        self,
+        frame: Frame,
+        rows: np.ndarray,
+        dims: np.ndarray | None,
+        rng: np.random.Generator,
+        stats: Stats,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects."""
+        if len(rows) == 0:
+            return np.zeros((0, 7)), np.zeros(0, np.int64)
+        source = np.asarray(self.database.boxes[rows], dtype=np.float64)
+        dims = source[:, 3:6] if dims is None else dims
+        camera = self.config.placement.camera_fov
+        fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
+        result = placement.place_objects(
+            frame, dims, source, rng, self._placement[fov], frame_ground(frame)
+        )
+        names = self.database.names[rows]
+        for i in np.flatnonzero(result.reasons != ""):
+            stats.rejected(self.name, names[i], str(result.reasons[i]))
+        return result.boxes, result.accepted
+
+    def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
+        objects = []
+        for row in rows:
+            name = str(self.database.names[row])
+            built = construction.construct_object(
+                self.database,
+                int(row),
+                self.index.candidates[row],
+                rng,
+                self._construction,
+                self.index.max_counts.get(name),
+            )
+            stats.construction(name, built.iterations)
+            objects.append(built)
+        return objects
+
+    def _self_occlusion(
+        self,
+        frame: Frame,
+        rows: np.ndarray,
+        boxes: np.ndarray,
+        objects: Sequence[Any],
+        stats: Stats,
+    ) -> list[_Insertion]:
+        """Placed points of each object after s-HPR; objects left too sparse are dropped."""
+        from drcpo import occlusion
+
+        settings = self.config.self_occlusion
+        dim = frame.points.shape[1]
+        insertions = []
+        for row, box, built in zip(rows, boxes, objects, strict=True):
+            name = str(self.database.names[row])
+            placed = match_features(from_canonical(built.points, box), dim)
+            if settings.enabled and len(placed):
+                placed = placed[occlusion.self_occlusion(placed, box, settings.radius_factor)]
+            if len(placed) < settings.min_points:
+                stats.rejected(self.name, name, "self_occlusion")
+                continue
+            insertions.append(_Insertion(int(row), name, box, placed))
+        return insertions
+
+    def _insert(self, frame: Frame, insertions: Sequence[_Insertion]) -> tuple[Frame, np.ndarray]:
+        """The frame with the objects inserted, and each point's owner (-1: original, else the
+        insertion's number)."""
+        if not insertions:
+            return frame, np.full(len(frame), -1, dtype=np.int64)
+        boxes = np.array([i.box for i in insertions])
+        keep = ~BoxQuery(frame.points).inside_any(boxes)
+        points = np.concatenate([frame.points[keep], *(i.points for i in insertions)])
+        owner = np.concatenate(
+            [np.full(int(keep.sum()), -1)]
+            + [np.full(len(i.points), j) for j, i in enumerate(insertions)]
+        ).astype(np.int64)
+        out = frame.replace(
+            points=points,
+            boxes=np.concatenate([frame.boxes, boxes]),
+            names=np.concatenate([frame.names, [i.name for i in insertions]]),
+            metadata=update_box_metadata(frame.metadata, len(frame.boxes), added=len(insertions)),
+        )
+        return out, owner
+
+    def _external_occlusion(
+        self, points: np.ndarray, owner: np.ndarray, boxes: Sequence[np.ndarray]
+    ) -> np.ndarray:
+        """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule."""
+        settings = self.config.external_occlusion
+        keep = np.ones(len(points), dtype=bool)
+        if not settings.enabled or len(points) == 0:
+            return keep
+        if settings.scope == "frame":
+            return self._visible(points)
+        if not len(boxes):
+            return keep
+        focus = np.flatnonzero(_in_sectors(points, np.asarray(boxes), _SECTOR_MARGIN))
+        inserted = owner[focus] >= 0
+        visible = self._visible(points[focus])
+        keep[focus[inserted & ~visible]] = False
+        hidden_original = focus[~inserted & ~visible]
+        if len(hidden_original):
+            # Original points already hidden without the inserted objects stay: HPR's own
+            # errors must not delete real points.
+            original = focus[~inserted]
+            visible_before = np.zeros(len(points), dtype=bool)
+            visible_before[original] = self._visible(points[original])
+            keep[hidden_original[visible_before[hidden_original]]] = False
+        return keep
+
+    def _visible(self, points: np.ndarray) -> np.ndarray:
+        from drcpo import occlusion
+
+        settings = self.config.external_occlusion
+        return occlusion.external_occlusion(
+            points,
+            preset=settings.preset,
+            mode=settings.mode,
+            radius=settings.radius,
+            viewpoint_z=settings.viewpoint_z,
+        )
+
+    def _filter_labels(
+        self,
+        before: Frame,
+        out: Frame,
+        owner: np.ndarray,
+        insertions: Sequence[_Insertion],
+        stats: Stats,
+    ) -> Frame:
+        """Drop boxes left with too few points (unless they had too few before)."""
+        minimum = self.config.min_points_after
+        counts_before = BoxQuery(before.points).counts(before.boxes)
+        counts_after = BoxQuery(out.points).counts(before.boxes)
+        drop_original = (counts_after < minimum) & (counts_before >= minimum)
+        per_insertion = np.bincount(owner[owner >= 0], minlength=len(insertions))
+        drop_inserted = per_insertion < minimum
+        for insertion, dropped in zip(insertions, drop_inserted, strict=True):
+            if dropped:
+                stats.rejected(self.name, insertion.name, "external_occlusion")
+            else:
+                stats.added(self.name, insertion.name)
+        if not drop_original.any() and not drop_inserted.any():
+            return out
+        keep_boxes = np.flatnonzero(~np.concatenate([drop_original, drop_inserted]))
+        gone = np.flatnonzero(drop_inserted)
+        keep_points = ~np.isin(owner, gone)
+        metadata = update_box_metadata(out.metadata, len(out.boxes), keep=keep_boxes)
+        for name in before.names[drop_original]:
+            stats.label_dropped(str(name))
+        return out.replace(
+            points=out.points[keep_points],
+            boxes=out.boxes[keep_boxes],
+            names=out.names[keep_boxes],
+            metadata=metadata,
+        )
+
+
+_SECTOR_MARGIN = float(np.deg2rad(2.0))  # radians of context around inserted boxes for e-HPR
+
+
+def _in_sectors(points: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
+    """``bool (N,)``: points whose azimuth (about the z axis) lies within ``margin`` radians of
+    the azimuth interval some box's BEV footprint covers."""
+    azimuth = np.arctan2(points[:, 1], points[:, 0]).astype(np.float64)
+    corners = bev_corners(boxes)  # (M, 4, 2)
+    centre = np.arctan2(boxes[:, 1], boxes[:, 0])
+    spread = wrap_angle(np.arctan2(corners[..., 1], corners[..., 0]) - centre[:, None])
+    low, high = spread.min(axis=1) - margin, spread.max(axis=1) + margin
+    around_sensor = _contains_origin(corners)
+    mask = np.zeros(len(points), dtype=bool)
+    for m in range(len(boxes)):
+        if around_sensor[m]:
+            return np.ones(len(points), dtype=bool)
+        offset = wrap_angle(azimuth - centre[m])
+        mask |= (offset >= low[m]) & (offset <= high[m])
+    return mask
+
+
+def _contains_origin(corners: np.ndarray) -> np.ndarray:
+    """``bool (M,)``: BEV footprints ``(M, 4, 2)`` (counter-clockwise) containing (0, 0)."""
+    edges = np.roll(corners, -1, axis=1) - corners
+    cross = edges[..., 0] * (-corners[..., 1]) - edges[..., 1] * (-corners[..., 0])
+    return (cross >= 0).all(axis=1)
+
+
+def frame_ground(frame: Frame) -> GroundModel:
+    """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
+
+    Uses a fixed RANSAC seed, so a frame always gets the same ground.
+    """
+    plane, calib = frame.metadata.get("plane"), frame.metadata.get("calib")
+    if plane is not None and calib is not None:
+        return GroundModel.from_points(frame.points, plane=plane, calib=calib)
+    return GroundModel.from_points(frame.points)
+
+
+# --------------------------------------------------------------------------------------------
 # Building transforms from configs
 # --------------------------------------------------------------------------------------------
 TRANSFORMS: dict[str, type[Transform]] = {
@@ -635,6 +1039,7 @@ TRANSFORMS: dict[str, type[Transform]] = {
     "GlobalRotation": GlobalRotation,
     "GlobalScaling": GlobalScaling,
     "GroundTruthSampling": GroundTruthSampling,
+    "DRCPO": DRCPO,
 }
 
 
@@ -653,48 +1058,12 @@ def transform_from_config(
 # --------------------------------------------------------------------------------------------
 # Offline generation: augmented frames in KITTI layout
 # --------------------------------------------------------------------------------------------
-def kitti_label_lines(frame: Frame, image_shape: tuple[int, int] | None = None) -> list[str]:
-    """KITTI ``label_2`` lines of a frame's boxes, through its ``metadata["calib"]``.
-
-    Boxes go to the camera frame with :func:`drcpo.datasets.kitti.lidar_boxes_to_camera`;
-    ``alpha`` is OpenPCDet's ``-arctan2(-y, x) + ry``; the 2D box is the projection of the
-    eight corners clipped to the image. Truncation and occlusion come from the frame's per-box
-    metadata when known, else 0.00 and 3 ("unknown", as KITTI defines it).
-    """
-    from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, lidar_boxes_to_camera
-
-    calib = frame.metadata.get("calib")
-    if calib is None:
-        raise DataError(f"frame {frame.frame_id!r}: writing KITTI labels needs metadata['calib']")
-    if len(frame.boxes) == 0:
-        return []
-    height, width = image_shape or frame.metadata.get("image_shape") or DEFAULT_IMAGE_SHAPE
-    camera = lidar_boxes_to_camera(frame.boxes, calib)
-    alpha = wrap_angle(-np.arctan2(-frame.boxes[:, 1], frame.boxes[:, 0]) + camera[:, 6])
-    corners = box_corners(frame.boxes).reshape(-1, 3)
-    pixels, _ = calib.rect_to_image(calib.lidar_to_rect(corners))
-    pixels = pixels.reshape(-1, 8, 2)
-    left_top = np.clip(pixels.min(axis=1), 0, [width - 1, height - 1])
-    right_bottom = np.clip(pixels.max(axis=1), 0, [width - 1, height - 1])
-    count = len(frame.boxes)
-    truncation = np.asarray(frame.metadata.get("truncation", np.full(count, np.nan)), float)
-    occlusion = np.asarray(frame.metadata.get("occlusion", np.full(count, -1)), float)
-    if truncation.shape != (count,):
-        truncation = np.full(count, np.nan)
-    if occlusion.shape != (count,):
-        occlusion = np.full(count, -1.0)
-    truncation = np.where(np.isfinite(truncation), np.clip(truncation, 0, 1), 0.0)
-    occlusion = np.where((occlusion >= 0) & (occlusion <= 3), occlusion, 3).astype(int)
-    lines = []
-    for i in range(count):
-        x, y, z, length, h, w, ry = camera[i]
-        lines.append(
-            f"{frame.names[i]} {truncation[i]:.2f} {occlusion[i]:d} {alpha[i]:.2f} "
-            f"{left_top[i, 0]:.2f} {left_top[i, 1]:.2f} {right_bottom[i, 0]:.2f} "
-            f"{right_bottom[i, 1]:.2f} {h:.2f} {w:.2f} {length:.2f} {x:.2f} {y:.2f} {z:.2f} "
-            f"{wrap_angle(ry):.2f}"
-        )
-    return lines
+def _known_occlusion(frame: Frame) -> np.ndarray:
+    """KITTI occlusion levels of the frame's boxes: known levels kept, unknown ones 3."""
+    levels = np.asarray(frame.metadata.get("occlusion", ()), dtype=np.int64)
+    if levels.shape != (len(frame.boxes),):
+        levels = np.full(len(frame.boxes), 3)
+    return np.where((levels >= 0) & (levels <= 3), levels, 3)
 
 
 def frame_seed(seed: int, index: int) -> np.random.Generator:
@@ -717,7 +1086,10 @@ def augment_kitti(
     """Augment frames of a KITTI split and write them in KITTI layout under ``out``.
 
     Writes ``training/velodyne/*.bin`` (float32, the frame's point columns),
-    ``training/label_2/*.txt`` (:func:`kitti_label_lines`), ``training/calib/*.txt`` (copied),
+    ``training/label_2/*.txt`` (:func:`drcpo.datasets.kitti_writer.label_lines` through the
+    frame's calibration; truncation and 2D boxes from the projection of the augmented boxes,
+    occlusion levels of original boxes kept, 3 "unknown" for inserted ones),
+    ``training/calib/*.txt`` (copied),
     ``ImageSets/<split>.txt`` and ``stats.jsonl`` (one JSON object per frame: ``frame_id``,
     ``points``, ``boxes`` per class and the transform's statistics). Everything is written to a
     temporary directory renamed to ``out`` at the end, so an interrupted run leaves nothing.
@@ -733,6 +1105,7 @@ def augment_kitti(
     Returns a summary: frames written, points and boxes per class over all frames, mean ms.
     """
     from drcpo.database import atomic_directory
+    from drcpo.datasets import kitti_writer
     from drcpo.datasets.kitti import KittiDataset, fov_mask
 
     dataset = KittiDataset(root, split)
@@ -758,11 +1131,15 @@ def augment_kitti(
                 start = time.perf_counter()
                 result = transform(frame, frame_seed(seed, number))
                 elapsed = (time.perf_counter() - start) * 1000.0
-                np.ascontiguousarray(result.points, np.float32).tofile(
-                    base / "velodyne" / f"{frame_id}.bin"
+                kitti_writer.write_points(base / "velodyne" / f"{frame_id}.bin", result.points)
+                lines = kitti_writer.label_lines(
+                    result.boxes,
+                    result.names,
+                    result.metadata["calib"],
+                    occlusion=_known_occlusion(result),
+                    image_shape=dataset.image_shape(frame_id),
                 )
-                lines = kitti_label_lines(result)
-                (base / "label_2" / f"{frame_id}.txt").write_text("".join(f"{x}\n" for x in lines))
+                kitti_writer.write_labels(base / "label_2" / f"{frame_id}.txt", lines)
                 shutil.copyfile(dataset.path("calib", frame_id), base / "calib" / f"{frame_id}.txt")
                 names, counts = np.unique(result.names, return_counts=True)
                 per_class = {str(n): int(c) for n, c in zip(names, counts, strict=True)}
@@ -788,3 +1165,51 @@ def augment_kitti(
     summary["median_ms"] = float(np.median(summary["ms"])) if summary["ms"] else 0.0
     del summary["ms"]
     return summary
+
+
+def build_pipeline(
+    config: Any = None,
+    database: GroundTruthDatabase | None = None,
+    index: Any = None,
+    kind: str | None = None,
+) -> Compose:
+    """The augmentation pipeline a configuration describes.
+
+    Args:
+        config: an :class:`~drcpo.config.AugmentConfig`, a mapping, a YAML path or a preset name
+            (anything :func:`drcpo.config.load_config` reads); ``None``: the paper defaults.
+        database: the ground-truth database (needed by ground-truth sampling and DR.CPO).
+        index: its candidate index; loaded from ``database.path / "index"`` when ``None`` and
+            DR.CPO is enabled.
+        kind: ``"drcpo"`` (ground-truth sampling, DR.CPO, global augmentation: the paper's
+            reference configuration) or ``"cda"`` (the conventional baseline: ground-truth
+            sampling, global augmentation); default: the config's ``pipeline`` key.
+
+    Stages whose ``enabled`` key is false are left out.
+    """
+    from drcpo.config import PIPELINES, load_config
+
+    config = load_config(config)
+    kind = kind or config.pipeline
+    if kind not in PIPELINES:
+        raise ConfigError(f"pipeline {kind!r} is unknown; choose one of: {', '.join(PIPELINES)}")
+    needs_db = config.gt_sampling.enabled or (kind == "drcpo" and config.drcpo.enabled)
+    if needs_db and database is None:
+        raise ConfigError(f"the {kind} pipeline needs a ground-truth database")
+    transforms: list[Transform] = []
+    if config.gt_sampling.enabled:
+        transforms.append(GroundTruthSampling.from_settings(config.gt_sampling, database))
+    if kind == "drcpo" and config.drcpo.enabled:
+        if index is None:
+            from drcpo.index import load_index
+
+            index = load_index(database)
+        transforms.append(DRCPO(database, index, config.drcpo))
+    aug = config.global_augmentation
+    if aug.enabled:
+        transforms += [
+            GlobalFlip(aug.flip.probability, aug.flip.axes),
+            GlobalRotation(aug.rotation.range),
+            GlobalScaling(aug.scaling.range),
+        ]
+    return Compose(transforms)
