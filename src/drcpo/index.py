@@ -1,0 +1,955 @@
+"""Candidate index (DR.CPO pre-processing): for every object, the K best objects to fill it.
+
+For each class, every *indexed* object i (enough points, difficulty not excluded) gets up to K
+candidates among the indexed objects of its class, chosen in two stages:
+
+1. **Similar boxes.** The best ``2K`` objects by 3D IoU of the canonical boxes,
+   ``prod(min dims) / (vol_i + vol_j - prod(min dims))`` (never i itself), ranked by IoU
+   (descending), then database row (ascending).
+2. **Filling.** Of those, the best K by how much density they bring to i's low-density
+   partitions: a partition of i is *low* when its density is below ``alpha`` times the mean of
+   i's non-empty partition densities (all partitions when i has no points); the score of a
+   candidate is the sum of its densities over i's low partitions. Ranked by score (descending),
+   then stage-1 rank. A class with fewer objects gives each object all the others.
+
+**Densities.** Partition p of object i has density ``count_i[p] / max_j count_j[p]`` where the
+maximum runs over the class's indexed objects and counts use the cell rule of
+:mod:`drcpo.partitions` (mirrored classes count each point and its mirror image); 0 where the
+maximum is 0. Objects of an indexed class that are not themselves indexed still get densities
+(with the same maxima, so they may exceed 1).
+
+**Exact top-2K without an N x N matrix.** With ``u = log(dims)`` and ``p``/``q`` the sums of the
+positive/negative parts of ``u_i - u_j``, the IoU is exactly ``1 / (exp(p) + exp(q) - 1)``. The
+objects are bucketed in a uniform grid over u-space; each object searches the cells around its
+own in rings of growing Chebyshev radius, keeping its best 2K in a bounded heap, skips every cell
+whose lower bounds on p and q already make the IoU smaller than the heap's worst, and stops once a
+whole ring is out of reach (``IoU <= exp(-L_inf distance)``). The result equals the brute-force
+ranking, ties included (tested). Objects are processed in blocks, in cell order, by ``workers``
+threads running numba kernels that release the GIL; blocks write disjoint rows, so the result does
+not depend on the number of workers.
+
+**Approximate mode** (classes with more than ``approximate_above`` indexed objects): the
+``approx_factor x 2K`` nearest neighbours in u-space by L1 distance (``scipy.spatial.cKDTree``)
+are re-ranked by exact IoU and the best 2K kept. Stage 2 is unchanged. Its recall against the
+exact top-2K is measured by ``benchmarks/bench_index.py`` (``approx_recall``) and
+:func:`similarity_recall`.
+
+**Arithmetic.** IoUs are computed in float64 as in :func:`drcpo.geometry.canonical_iou3d`.
+Scores and means are float64 sums of float32 densities, which are exact (so independent of the
+summation order) as long as no partition maximum exceeds about 10^6 points.
+
+On disk (``DB/index/``, written atomically)::
+
+    candidates.npy   int32   (N, K)      database rows, best first; -1 pads
+    densities.npy    float32 (N, P_max)  partition densities; 0 pads and non-indexed classes
+    manifest.json    format, version, parameters, database checksum, per-class grids/maxima/stats
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numba as nb
+import numpy as np
+
+from drcpo.database import GroundTruthDatabase, atomic_directory
+from drcpo.errors import ConfigError, DataError
+from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for, num_partitions
+
+FORMAT_NAME = "drcpo-candidate-index"
+FORMAT_VERSION = 1
+INDEX_DIRNAME = "index"
+
+#: ``progress(class_name, objects_done, objects_total)``, called from the calling thread.
+Progress = Callable[[str, int, int], None]
+
+_BOUND_SLACK = 1e-9  # relative safety margin on IoU upper bounds against rounding
+_MAX_CELLS = 1 << 22  # cap on the u-space grid (the cell table costs 8 bytes per cell)
+_CHUNK_POINTS = 1 << 20  # points per chunk when counting partition occupancy
+
+
+# --------------------------------------------------------------------------------------------
+# Configuration
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class IndexConfig:
+    """Parameters of the candidate index (paper defaults).
+
+    Attributes:
+        k: candidates kept per object (the first stage keeps ``2 k``).
+        alpha: a partition is low-density below ``alpha`` x the mean non-empty density.
+        min_points: objects with fewer points are neither indexed nor candidates.
+        grids: partition grid overrides ``{class: (nx, ny, nz)}`` (key ``"default"`` for
+            classes without their own grid); see :data:`drcpo.partitions.DEFAULT_GRIDS`.
+        mirrored: classes whose points are mirrored across the x axis before counting.
+        exclude_difficulties: difficulty codes never indexed (e.g. ``(-1,)`` for unknown).
+        classes: classes to index (``None``: every class in the database).
+        approximate_above: classes with more indexed objects use the approximate first stage
+            (``None``: always exact).
+        approx_factor: the approximate mode re-ranks ``approx_factor x 2k`` nearest neighbours.
+        workers: threads (``None``: all cores).
+        block_size: objects per work item.
+    """
+
+    k: int = 400
+    alpha: float = 0.8
+    min_points: int = 5
+    grids: Mapping[str, Grid] = field(default_factory=dict)
+    mirrored: tuple[str, ...] = DEFAULT_MIRRORED
+    exclude_difficulties: tuple[int, ...] = ()
+    classes: tuple[str, ...] | None = None
+    approximate_above: int | None = 200_000
+    approx_factor: float = 2.0
+    workers: int | None = None
+    block_size: int = 512
+
+    def __post_init__(self) -> None:
+        _require(isinstance(self.k, int | np.integer) and self.k >= 1, "k", self.k, ">= 1")
+        _require(
+            isinstance(self.alpha, int | float) and 0 < self.alpha < math.inf,
+            "alpha",
+            self.alpha,
+            "in (0, inf)",
+        )
+        _require(
+            isinstance(self.min_points, int | np.integer) and self.min_points >= 0,
+            "min_points",
+            self.min_points,
+            ">= 0",
+        )
+        _require(
+            self.approximate_above is None or self.approximate_above >= 0,
+            "approximate_above",
+            self.approximate_above,
+            ">= 0 or None",
+        )
+        _require(self.approx_factor >= 1, "approx_factor", self.approx_factor, ">= 1")
+        _require(self.workers is None or self.workers >= 1, "workers", self.workers, ">= 1 or None")
+        _require(self.block_size >= 1, "block_size", self.block_size, ">= 1")
+        for name in self.grids:
+            grid_for(name, self.grids)  # raises ConfigError on a malformed grid
+        object.__setattr__(self, "mirrored", tuple(self.mirrored))
+        object.__setattr__(self, "exclude_difficulties", tuple(self.exclude_difficulties))
+        if self.classes is not None:
+            object.__setattr__(self, "classes", tuple(self.classes))
+
+    def grid(self, name: str) -> Grid:
+        return grid_for(name, self.grids)
+
+    def resolved_workers(self) -> int:
+        return self.workers or os.cpu_count() or 1
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able parameters (what the manifest stores)."""
+        out = asdict(self)
+        out["grids"] = {name: list(grid) for name, grid in self.grids.items()}
+        for key in ("mirrored", "exclude_difficulties", "classes"):
+            out[key] = None if out[key] is None else list(out[key])
+        return out
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> IndexConfig:
+        known = set(cls.__dataclass_fields__)
+        unknown = set(values) - known
+        if unknown:
+            raise ConfigError(f"unknown index parameters {sorted(unknown)}; known: {sorted(known)}")
+        values = dict(values)
+        if "grids" in values:
+            values["grids"] = {n: tuple(g) for n, g in values["grids"].items()}
+        for key in ("mirrored", "exclude_difficulties", "classes"):
+            if values.get(key) is not None:
+                values[key] = tuple(values[key])
+        return cls(**values)
+
+
+def _require(ok: bool, key: str, value: Any, allowed: str) -> None:
+    if not ok:
+        raise ConfigError(f"index config {key} = {value!r} is out of range (allowed: {allowed})")
+
+
+# --------------------------------------------------------------------------------------------
+# The index
+# --------------------------------------------------------------------------------------------
+@dataclass
+class CandidateIndex:
+    """Candidates and partition densities of every object of a database.
+
+    Attributes:
+        candidates: ``int32 (N, K)`` database rows, best first, ``-1`` padded.
+        densities: ``float32 (N, P_max)`` partition densities, zero padded.
+        grids: partition grid of each indexed class.
+        max_counts: per indexed class, the largest count of each partition (the normalisers).
+        config: the parameters it was built with.
+        database_checksum: checksum of the database it was built from.
+        classes: per class ``{"objects", "indexed", "mean_candidates", "mode"}``.
+    """
+
+    candidates: np.ndarray
+    densities: np.ndarray
+    grids: dict[str, Grid]
+    max_counts: dict[str, np.ndarray]
+    config: IndexConfig
+    database_checksum: str
+    classes: dict[str, dict[str, Any]]
+
+    @property
+    def k(self) -> int:
+        return int(self.candidates.shape[1])
+
+    def num_partitions(self, name: str) -> int:
+        return num_partitions(self.grids[name])
+
+    def candidates_of(self, row: int) -> np.ndarray:
+        """Database rows of object ``row``'s candidates, best first (no padding)."""
+        line = self.candidates[row]
+        return line[line >= 0]
+
+    def densities_of(self, row: int, name: str) -> np.ndarray:
+        """Partition densities ``float32 (P,)`` of object ``row`` of class ``name``."""
+        return self.densities[row, : self.num_partitions(name)]
+
+    # Persistence --------------------------------------------------------------------------
+    def manifest(self) -> dict[str, Any]:
+        return {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "database_checksum": self.database_checksum,
+            "num_objects": int(self.candidates.shape[0]),
+            "k": self.k,
+            "p_max": int(self.densities.shape[1]),
+            "parameters": self.config.to_dict(),
+            "classes": {
+                name: {
+                    **stats,
+                    "grid": list(self.grids[name]),
+                    "max_counts": self.max_counts[name].tolist(),
+                }
+                for name, stats in self.classes.items()
+            },
+        }
+
+    def save(self, db_dir: str | os.PathLike, overwrite: bool = False) -> Path:
+        """Write ``db_dir/index/`` atomically (temporary directory, then rename)."""
+        manifest = self.manifest()
+
+        def write(tmp: Path) -> None:
+            np.save(tmp / "candidates.npy", np.ascontiguousarray(self.candidates, np.int32))
+            np.save(tmp / "densities.npy", np.ascontiguousarray(self.densities, np.float32))
+            (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+
+        return atomic_directory(Path(db_dir) / INDEX_DIRNAME, write, overwrite=overwrite)
+
+    @classmethod
+    def load(
+        cls,
+        database: GroundTruthDatabase,
+        path: str | os.PathLike | None = None,
+        mmap: bool = True,
+    ) -> CandidateIndex:
+        """Load the index of ``database`` (default ``database.path / "index"``).
+
+        Raises :class:`DataError` when the index is missing, malformed, or was built from a
+        different database (checksum mismatch).
+        """
+        if path is None:
+            if database.path is None:
+                raise DataError("an in-memory database has no index directory; pass path=")
+            path = Path(database.path) / INDEX_DIRNAME
+        path = Path(path)
+        manifest = _read_manifest(path)
+        expected = database.checksum
+        if manifest.get("database_checksum") != expected:
+            raise DataError(
+                f"{path}: index was built for database checksum "
+                f"{manifest.get('database_checksum')!r}, but this database has {expected!r}; "
+                "rebuild it with `drcpo index DB --overwrite`"
+            )
+        candidates = _load_array(path / "candidates.npy", mmap)
+        densities = _load_array(path / "densities.npy", mmap)
+        n = len(database)
+        if candidates.ndim != 2 or candidates.shape[0] != n or candidates.dtype != np.int32:
+            raise DataError(
+                f"{path / 'candidates.npy'}: expected int32 ({n}, K), "
+                f"got {candidates.dtype} {candidates.shape}"
+            )
+        if densities.ndim != 2 or densities.shape[0] != n or densities.dtype != np.float32:
+            raise DataError(
+                f"{path / 'densities.npy'}: expected float32 ({n}, P), "
+                f"got {densities.dtype} {densities.shape}"
+            )
+        try:
+            config = IndexConfig.from_dict(manifest["parameters"])
+            classes = manifest["classes"]
+            grids = {name: tuple(int(v) for v in c["grid"]) for name, c in classes.items()}
+            max_counts = {
+                name: np.asarray(c["max_counts"], np.int64) for name, c in classes.items()
+            }
+            stats = {
+                name: {k: v for k, v in c.items() if k not in ("grid", "max_counts")}
+                for name, c in classes.items()
+            }
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataError(f"{path / 'manifest.json'}: malformed manifest ({exc!r})") from exc
+        return cls(candidates, densities, grids, max_counts, config, expected, stats)
+
+
+def load_index(
+    database: GroundTruthDatabase, path: str | os.PathLike | None = None, mmap: bool = True
+) -> CandidateIndex:
+    """Shorthand for :meth:`CandidateIndex.load`."""
+    return CandidateIndex.load(database, path, mmap=mmap)
+
+
+def _read_manifest(path: Path) -> dict[str, Any]:
+    manifest_path = path / "manifest.json"
+    if not manifest_path.is_file():
+        raise DataError(f"{path}: no candidate index (missing manifest.json); run `drcpo index`")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
+    if manifest.get("format") != FORMAT_NAME:
+        raise DataError(
+            f"{manifest_path}: format is {manifest.get('format')!r}, expected {FORMAT_NAME!r}"
+        )
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise DataError(
+            f"{manifest_path}: format_version {manifest.get('format_version')} is not supported "
+            f"(this drcpo reads {FORMAT_VERSION})"
+        )
+    return manifest
+
+
+def _load_array(path: Path, mmap: bool) -> np.ndarray:
+    if not path.is_file():
+        raise DataError(f"{path}: missing index file")
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DataError(f"{path}: unreadable array ({exc})") from exc
+
+
+# --------------------------------------------------------------------------------------------
+# Building
+# --------------------------------------------------------------------------------------------
+def indexed_mask(database: GroundTruthDatabase, config: IndexConfig) -> np.ndarray:
+    """``bool (N,)``: objects that are indexed and may be candidates."""
+    keep = database.num_points >= config.min_points
+    if config.exclude_difficulties:
+        keep &= ~np.isin(database.difficulty, np.asarray(config.exclude_difficulties))
+    if config.classes is not None:
+        keep &= np.isin(database.names, np.asarray(config.classes, dtype=str))
+    return keep
+
+
+def build_index(
+    database: GroundTruthDatabase,
+    config: IndexConfig | None = None,
+    progress: Progress | None = None,
+) -> CandidateIndex:
+    """Build the candidate index of ``database`` (see the module docstring for the method)."""
+    config = config or IndexConfig()
+    names = database.names
+    present = set(names.tolist())
+    classes = sorted(present if config.classes is None else present & set(config.classes))
+    grids = {name: config.grid(name) for name in classes}
+    p_max = max((num_partitions(g) for g in grids.values()), default=1)
+    keep = indexed_mask(database, config)
+
+    counts = partition_occupancy(database, grids, config.mirrored, p_max)
+    n = len(database)
+    densities = np.zeros((n, p_max), np.float32)
+    candidates = np.full((n, config.k), -1, np.int32)
+    max_counts: dict[str, np.ndarray] = {}
+    stats: dict[str, dict[str, Any]] = {}
+    for name in classes:
+        p = num_partitions(grids[name])
+        rows = np.flatnonzero(names == name)
+        indexed = rows[keep[rows]]
+        class_max = counts[indexed, :p].max(axis=0) if len(indexed) else np.zeros(p, np.int64)
+        max_counts[name] = class_max.astype(np.int64)
+        densities[rows, :p] = normalise_counts(counts[rows, :p], class_max)
+        mode = _mode_for(len(indexed), config)
+        if len(indexed) > 1:
+            local = rank_candidates(
+                database.boxes[indexed, 3:6],
+                densities[indexed, :p],
+                config,
+                mode=mode,
+                progress=None if progress is None else _named(progress, name),
+            )
+            candidates[indexed, : local.shape[1]] = np.where(
+                local >= 0, indexed[np.maximum(local, 0)], -1
+            )
+        elif progress is not None:
+            progress(name, len(indexed), len(indexed))
+        per_object = (candidates[indexed] >= 0).sum(axis=1)
+        stats[name] = {
+            "objects": len(rows),
+            "indexed": len(indexed),
+            "mean_candidates": float(per_object.mean()) if len(indexed) else 0.0,
+            "mode": mode,
+        }
+    del counts
+    return CandidateIndex(
+        candidates, densities, grids, max_counts, config, database.checksum, stats
+    )
+
+
+def _named(progress: Progress, name: str) -> Callable[[int, int], None]:
+    return lambda done, total: progress(name, done, total)
+
+
+def _mode_for(num_indexed: int, config: IndexConfig) -> str:
+    above = config.approximate_above
+    return "approximate" if above is not None and num_indexed > above else "exact"
+
+
+def normalise_counts(counts: np.ndarray, max_counts: np.ndarray) -> np.ndarray:
+    """Densities ``float32 (M, P)``: ``counts / max_counts`` per column, 0 where the max is 0."""
+    counts = np.asarray(counts, np.float64)
+    scale = np.asarray(max_counts, np.float64)
+    out = np.divide(counts, scale, out=np.zeros_like(counts), where=scale > 0)
+    return out.astype(np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Partition occupancy of many objects at once
+# --------------------------------------------------------------------------------------------
+def partition_occupancy(
+    database: GroundTruthDatabase,
+    grids: Mapping[str, Grid],
+    mirrored: Iterable[str],
+    p_max: int | None = None,
+    chunk_points: int = _CHUNK_POINTS,
+) -> np.ndarray:
+    """Points per partition ``int32 (N, P_max)`` of every object of the classes in ``grids``.
+
+    Same cell rule as :func:`drcpo.partitions.partition_index`, computed for all objects at
+    once over the concatenated points, in chunks of about ``chunk_points`` points. Objects of
+    mirrored classes count each point twice (as itself and mirrored, y -> -y). Rows of classes
+    not in ``grids`` stay 0.
+
+    Raises :class:`DataError` if a box of an included object has a non-positive or non-finite size.
+    """
+    n = len(database)
+    p_max = p_max or max((num_partitions(g) for g in grids.values()), default=1)
+    grid_of = np.zeros((n, 3), np.int64)
+    is_mirrored = np.zeros(n, bool)
+    mirrored = set(mirrored)
+    for name, grid in grids.items():
+        rows = database.names == name
+        grid_of[rows] = grid
+        is_mirrored[rows] = name in mirrored
+    included = grid_of[:, 0] > 0
+    dims = np.asarray(database.boxes[:, 3:6], np.float64)
+    bad = included & ~(np.isfinite(dims).all(axis=1) & (dims > 0).all(axis=1))
+    if bad.any():
+        row = int(np.flatnonzero(bad)[0])
+        raise DataError(
+            f"{database.path or '<memory>'}: object {row} ({database.names[row]}) has box size "
+            f"{dims[row].tolist()}; sizes must be positive and finite"
+        )
+    counts = np.zeros((n, p_max), np.int32)
+    offsets = np.asarray(database.offsets)
+    start = 0
+    while start < n:
+        stop = int(np.searchsorted(offsets, offsets[start] + chunk_points, side="right")) - 1
+        stop = min(max(stop, start + 1), n)
+        sel = slice(start, stop)
+        counts[sel] = _chunk_occupancy(
+            database.points[offsets[start] : offsets[stop], :3],
+            np.diff(offsets[start : stop + 1]),
+            dims[sel],
+            grid_of[sel],
+            is_mirrored[sel],
+            p_max,
+        )
+        start = stop
+    return counts
+
+
+def _chunk_occupancy(
+    xyz: np.ndarray,
+    sizes: np.ndarray,
+    dims: np.ndarray,
+    grid: np.ndarray,
+    mirrored: np.ndarray,
+    p_max: int,
+) -> np.ndarray:
+    m = len(sizes)
+    owner = np.repeat(np.arange(m), sizes)
+    use = grid[owner, 0] > 0
+    owner = owner[use]
+    xyz = np.asarray(xyz, np.float64)[use]
+    d = np.where(grid[:, :1] > 0, dims, 1.0)[owner]
+    g = grid[owner]
+    base = owner * p_max
+    cell = _cells(xyz, d, g)
+    flat = base + (cell[:, 0] * g[:, 1] + cell[:, 1]) * g[:, 2] + cell[:, 2]
+    out = np.bincount(flat, minlength=m * p_max)
+    twin = mirrored[owner]
+    if twin.any():
+        # The mirror image (y -> -y) only changes the y cell.
+        y = -xyz[twin, 1]
+        cy = _axis_cell(y, d[twin, 1], g[twin, 1])
+        flat = base[twin] + (cell[twin, 0] * g[twin, 1] + cy) * g[twin, 2] + cell[twin, 2]
+        out += np.bincount(flat, minlength=m * p_max)
+    return out.reshape(m, p_max).astype(np.int32)
+
+
+def _cells(xyz: np.ndarray, dims: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    # Same arithmetic as partitions.partition_index, so cells agree bit for bit.
+    cell = np.floor((xyz + dims / 2.0) / dims * grid).astype(np.int64)
+    return np.clip(cell, 0, grid - 1, out=cell)
+
+
+def _axis_cell(c: np.ndarray, d: np.ndarray, n: np.ndarray) -> np.ndarray:
+    cell = np.floor((c + d / 2.0) / d * n).astype(np.int64)
+    return np.clip(cell, 0, n - 1, out=cell)
+
+
+# --------------------------------------------------------------------------------------------
+# Ranking (both stages) for one class
+# --------------------------------------------------------------------------------------------
+def rank_candidates(
+    dims: np.ndarray,
+    densities: np.ndarray,
+    config: IndexConfig,
+    mode: str = "exact",
+    progress: Callable[[int, int], None] | None = None,
+) -> np.ndarray:
+    """Candidates of every object of one class, as local ids ``int32 (M, min(k, M - 1))``.
+
+    Args:
+        dims: ``(M, 3)`` box sizes (m) of the class's indexed objects, in database-row order
+            (so local id order is row order, which breaks ties).
+        densities: ``float32 (M, P)`` their partition densities.
+        config: ``k``, ``alpha``, ``approx_factor``, ``workers``, ``block_size``.
+        mode: ``"exact"`` or ``"approximate"`` first stage.
+    """
+    dims = np.ascontiguousarray(dims, np.float64)
+    densities = np.ascontiguousarray(densities, np.float32)
+    m = len(dims)
+    s = min(2 * config.k, m - 1)
+    k = min(config.k, m - 1)
+    out = np.full((m, k), -1, np.int32)
+    if k <= 0:
+        return out
+    search = SimilaritySearch(dims, s, mode=mode, approx_factor=config.approx_factor)
+
+    def work(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ids, _ = search.top(block)
+        return block, _fill_rank(ids, densities, block, float(config.alpha), k)
+
+    for block, ranked in _map_blocks(work, search.order, config, progress):
+        out[block] = ranked
+    return out
+
+
+def _map_blocks(
+    work: Callable[[np.ndarray], Any],
+    order: np.ndarray,
+    config: IndexConfig,
+    progress: Callable[[int, int], None] | None,
+) -> Iterable[Any]:
+    """Apply ``work`` to consecutive blocks of ``order``, in order, on ``workers`` threads."""
+    blocks = [order[i : i + config.block_size] for i in range(0, len(order), config.block_size)]
+    workers = min(config.resolved_workers(), len(blocks))
+    done = 0
+    if workers <= 1:
+        results: Iterable[Any] = map(work, blocks)
+    else:
+        pool = ThreadPoolExecutor(workers)
+        # Bounded look-ahead keeps memory flat while both threads stay busy.
+        results = _bounded_map(pool, work, blocks, 4 * workers)
+    try:
+        for block, result in zip(blocks, results, strict=True):
+            done += len(block)
+            if progress is not None:
+                progress(done, len(order))
+            yield result
+    finally:
+        if workers > 1:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _bounded_map(pool: ThreadPoolExecutor, fn: Callable, items: list, ahead: int) -> Iterable:
+    pending = [pool.submit(fn, item) for item in items[:ahead]]
+    nxt = len(pending)
+    while pending:
+        result = pending.pop(0).result()
+        if nxt < len(items):
+            pending.append(pool.submit(fn, items[nxt]))
+            nxt += 1
+        yield result
+
+
+# --------------------------------------------------------------------------------------------
+# First stage: the best ``s`` objects by canonical IoU
+# --------------------------------------------------------------------------------------------
+class SimilaritySearch:
+    """Top-``s`` canonical-IoU neighbours of objects of one class (see the module docstring).
+
+    Args:
+        dims: ``(M, 3)`` positive box sizes (m); local id = row of ``dims``.
+        s: neighbours per object (``<= M - 1``).
+        mode: ``"exact"`` (grid search) or ``"approximate"`` (L1 nearest neighbours in log-size
+            space, re-ranked by IoU).
+        approx_factor: the approximate mode re-ranks ``ceil(approx_factor * s)`` neighbours.
+    """
+
+    def __init__(
+        self, dims: np.ndarray, s: int, mode: str = "exact", approx_factor: float = 2.0
+    ) -> None:
+        if mode not in ("exact", "approximate"):
+            raise ConfigError(f"similarity mode must be 'exact' or 'approximate', got {mode!r}")
+        self.dims = np.ascontiguousarray(dims, np.float64)
+        m = len(self.dims)
+        if not 0 <= s <= max(m - 1, 0):
+            raise ValueError(f"s = {s} neighbours requested among {m} objects")
+        self.s = int(s)
+        self.mode = mode
+        self.vol = (self.dims[:, 0] * self.dims[:, 1]) * self.dims[:, 2]
+        self.u = np.log(self.dims)
+        self._build_grid()
+        if mode == "approximate":
+            from scipy.spatial import cKDTree
+
+            self.tree = cKDTree(self.u)
+            self.neighbours = min(m, math.ceil(approx_factor * self.s) + 1)
+
+    def _build_grid(self) -> None:
+        m = len(self.u)
+        lo = np.quantile(self.u, 0.001, axis=0) if m else np.zeros(3)
+        hi = np.quantile(self.u, 0.999, axis=0) if m else np.zeros(3)
+        extent = np.maximum(hi - lo, 1e-12)
+        if m <= 16 * self.s + 256:
+            # Scanning everything is cheap here; one cell avoids visiting empty ones.
+            self.h = float(extent.max()) * 2 + 1.0
+        else:
+            self.h = _cell_size(self.u, lo, extent, self.s)
+        shape = np.maximum(np.ceil(extent / self.h).astype(np.int64), 1)
+        # More cells than objects only adds empty cells to visit.
+        while shape.prod() > min(_MAX_CELLS, 2 * m):
+            self.h *= 1.25
+            shape = np.maximum(np.ceil(extent / self.h).astype(np.int64), 1)
+        self.origin = lo
+        self.shape = shape
+        cells = np.floor((self.u - lo) / self.h).astype(np.int64)
+        np.clip(cells, 0, shape - 1, out=cells)
+        self.cells = cells
+        flat = (cells[:, 0] * shape[1] + cells[:, 1]) * shape[2] + cells[:, 2]
+        # Processing and storage in cell order keeps each block's memory accesses local.
+        self.order = np.argsort(flat, kind="stable").astype(np.int64)
+        self.cell_start = np.zeros(int(shape.prod()) + 1, np.int64)
+        np.cumsum(np.bincount(flat, minlength=int(shape.prod())), out=self.cell_start[1:])
+        self.sorted_ids = self.order.astype(np.int32)
+        self.sorted_dims = np.ascontiguousarray(self.dims[self.order])
+        self.sorted_vol = np.ascontiguousarray(self.vol[self.order])
+
+    def top(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Local ids ``int32 (B, s)`` and IoUs ``float64 (B, s)`` of the queries' neighbours,
+        ranked by IoU (descending), then id (ascending)."""
+        queries = np.ascontiguousarray(queries, np.int64)
+        if self.mode == "approximate":
+            _, near = self.tree.query(self.u[queries], k=self.neighbours, p=1, workers=1)
+            near = np.asarray(near, np.int64).reshape(len(queries), -1)
+            return _rerank(queries, near, self.dims, self.vol, self.s)
+        return _grid_search(
+            queries,
+            self.u,
+            self.dims,
+            self.vol,
+            self.cells,
+            self.origin,
+            float(self.h),
+            self.shape,
+            self.cell_start,
+            self.sorted_ids,
+            self.sorted_dims,
+            self.sorted_vol,
+            self.s,
+        )
+
+
+def _cell_size(u: np.ndarray, lo: np.ndarray, extent: np.ndarray, s: int) -> float:
+    """Cell edge (in log-size units) giving about ``s / 48`` objects in a typical object's cell.
+
+    Smaller cells mean more, cheaper cell visits; larger ones more IoU evaluations. The typical
+    occupancy is measured (on a sample for large classes) rather than assumed, because sizes of
+    real classes are strongly clustered.
+    """
+    m = len(u)
+    target = max(s / 48.0, 1.0)
+    sample = u if m <= 50_000 else u[np.linspace(0, m - 1, 50_000).astype(np.int64)]
+    scale = m / len(sample)
+
+    def occupancy(h: float) -> float:
+        cells = np.floor((sample - lo) / h).astype(np.int64)
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        return float(counts[inverse.ravel()].mean()) * scale
+
+    low, high = 1e-6, float(extent.max()) * 2 + 1e-6
+    if occupancy(high) <= target:
+        return high
+    for _ in range(30):
+        mid = math.sqrt(low * high)
+        if occupancy(mid) < target:
+            low = mid
+        else:
+            high = mid
+        if high / low < 1.2:
+            break
+    return high
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _ranks_after(iou_a: float, id_a: int, iou_b: float, id_b: int) -> bool:
+    """True when (iou_a, id_a) ranks after (iou_b, id_b): lower IoU, then higher id."""
+    return iou_a < iou_b or (iou_a == iou_b and id_a > id_b)
+
+
+@nb.njit(cache=True, nogil=True)
+def _heap_push(h_iou, h_id, size, iou, idx):  # pragma: no cover - numba
+    """Insert into a heap whose root ranks last; returns the new size."""
+    pos = size
+    while pos > 0:
+        parent = (pos - 1) >> 1
+        if _ranks_after(iou, idx, h_iou[parent], h_id[parent]):
+            h_iou[pos] = h_iou[parent]
+            h_id[pos] = h_id[parent]
+            pos = parent
+        else:
+            break
+    h_iou[pos] = iou
+    h_id[pos] = idx
+    return size + 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _heap_sift_down(h_iou, h_id, size, iou, idx):  # pragma: no cover - numba
+    """Put (iou, idx) at the root of a heap of ``size`` items and restore the order."""
+    pos = 0
+    while True:
+        child = 2 * pos + 1
+        if child >= size:
+            break
+        right = child + 1
+        if right < size and _ranks_after(h_iou[right], h_id[right], h_iou[child], h_id[child]):
+            child = right
+        if _ranks_after(h_iou[child], h_id[child], iou, idx):
+            h_iou[pos] = h_iou[child]
+            h_id[pos] = h_id[child]
+            pos = child
+        else:
+            break
+    h_iou[pos] = iou
+    h_id[pos] = idx
+
+
+@nb.njit(cache=True, nogil=True)
+def _heap_offer(h_iou, h_id, size, cap, iou, idx):  # pragma: no cover - numba
+    if size < cap:
+        return _heap_push(h_iou, h_id, size, iou, idx)
+    if _ranks_after(h_iou[0], h_id[0], iou, idx):
+        _heap_sift_down(h_iou, h_id, size, iou, idx)
+    return size
+
+
+@nb.njit(cache=True, nogil=True)
+def _heap_drain(h_iou, h_id, size, out_iou, out_id):  # pragma: no cover - numba
+    """Write the heap's items best first (pops the worst into the last free slot)."""
+    for last in range(size - 1, -1, -1):
+        out_iou[last] = h_iou[0]
+        out_id[last] = h_id[0]
+        if last > 0:
+            _heap_sift_down(h_iou, h_id, last, h_iou[last], h_id[last])
+
+
+@nb.njit(cache=True, nogil=True)
+def _grid_search(
+    queries, u, dims, vol, cells, origin, h, shape, cell_start, s_ids, s_dims, s_vol, s
+):  # pragma: no cover - numba
+    nq = len(queries)
+    out_id = np.empty((nq, s), np.int32)
+    out_iou = np.empty((nq, s), np.float64)
+    h_iou = np.empty(s, np.float64)
+    h_id = np.empty(s, np.int32)
+    gx, gy, gz = shape[0], shape[1], shape[2]
+    slack = 1.0 + _BOUND_SLACK
+    below = np.empty(3, np.float64)  # gap from u_i down to its cell's lower face
+    above = np.empty(3, np.float64)  # gap from u_i up to its cell's upper face
+    for b in range(nq):
+        q = queries[b]
+        d0, d1, d2 = dims[q, 0], dims[q, 1], dims[q, 2]
+        vq = vol[q]
+        c0, c1, c2 = cells[q, 0], cells[q, 1], cells[q, 2]
+        for a in range(3):
+            face = origin[a] + cells[q, a] * h
+            below[a] = max(u[q, a] - face, 0.0)
+            above[a] = max(face + h - u[q, a], 0.0)
+        rmax = max(c0, gx - 1 - c0, c1, gy - 1 - c1, c2, gz - 1 - c2)
+        size = 0
+        for r in range(rmax + 1):
+            # Every object in ring r or beyond differs from q by more than (r - 1) h in
+            # some log size, so its IoU is at most exp(-(r - 1) h).
+            if size == s and r >= 1 and math.exp(-(r - 1) * h) * slack < h_iou[0]:
+                break
+            for x in range(max(c0 - r, 0), min(c0 + r, gx - 1) + 1):
+                dx = abs(x - c0)
+                for y in range(max(c1 - r, 0), min(c1 + r, gy - 1) + 1):
+                    dy = abs(y - c1)
+                    on_ring = max(dx, dy) == r
+                    zstep = 1 if on_ring else 2 * r
+                    if zstep == 0:
+                        zstep = 1
+                    z = c2 - r
+                    while z <= c2 + r:
+                        if 0 <= z < gz:
+                            # Lower bounds on p (q larger) and q-part (q smaller), per axis.
+                            p_lb = 0.0
+                            q_lb = 0.0
+                            if x < c0:
+                                p_lb += below[0] + (c0 - x - 1) * h
+                            elif x > c0:
+                                q_lb += above[0] + (x - c0 - 1) * h
+                            if y < c1:
+                                p_lb += below[1] + (c1 - y - 1) * h
+                            elif y > c1:
+                                q_lb += above[1] + (y - c1 - 1) * h
+                            if z < c2:
+                                p_lb += below[2] + (c2 - z - 1) * h
+                            elif z > c2:
+                                q_lb += above[2] + (z - c2 - 1) * h
+                            skip = False
+                            if size == s and (p_lb > 0.0 or q_lb > 0.0):
+                                bound = 1.0 / (math.exp(p_lb) + math.exp(q_lb) - 1.0)
+                                skip = bound * slack < h_iou[0]
+                            if not skip:
+                                cell = (x * gy + y) * gz + z
+                                for t in range(cell_start[cell], cell_start[cell + 1]):
+                                    j = s_ids[t]
+                                    if j == q:
+                                        continue
+                                    inter = (min(d0, s_dims[t, 0]) * min(d1, s_dims[t, 1])) * min(
+                                        d2, s_dims[t, 2]
+                                    )
+                                    iou = inter / ((vq + s_vol[t]) - inter)
+                                    size = _heap_offer(h_iou, h_id, size, s, iou, j)
+                        z += zstep
+        _heap_drain(h_iou, h_id, size, out_iou[b], out_id[b])
+    return out_id, out_iou
+
+
+@nb.njit(cache=True, nogil=True)
+def _rerank(queries, near, dims, vol, s):  # pragma: no cover - numba
+    nq = len(queries)
+    m = len(dims)
+    out_id = np.empty((nq, s), np.int32)
+    out_iou = np.empty((nq, s), np.float64)
+    h_iou = np.empty(s, np.float64)
+    h_id = np.empty(s, np.int32)
+    for b in range(nq):
+        q = queries[b]
+        size = 0
+        for c in range(near.shape[1]):
+            j = near[b, c]
+            if j == q or j >= m:
+                continue
+            inter = (min(dims[q, 0], dims[j, 0]) * min(dims[q, 1], dims[j, 1])) * min(
+                dims[q, 2], dims[j, 2]
+            )
+            iou = inter / ((vol[q] + vol[j]) - inter)
+            size = _heap_offer(h_iou, h_id, size, s, iou, j)
+        _heap_drain(h_iou, h_id, size, out_iou[b], out_id[b])
+        for c in range(size, s):
+            out_iou[b, c] = -1.0
+            out_id[b, c] = -1
+    return out_id, out_iou
+
+
+# --------------------------------------------------------------------------------------------
+# Second stage: the best ``k`` of those by density filled in
+# --------------------------------------------------------------------------------------------
+@nb.njit(cache=True, nogil=True)
+def _fill_rank(ids, densities, queries, alpha, k):  # pragma: no cover - numba
+    """Best ``k`` of each row of ``ids`` (ranked list, -1 padded) by fill score, then rank."""
+    nq, s = ids.shape
+    p = densities.shape[1]
+    out = np.full((nq, k), -1, np.int32)
+    low = np.empty(p, np.int64)
+    score = np.empty(s, np.float64)
+    for b in range(nq):
+        d = densities[queries[b]]
+        total = 0.0
+        filled = 0
+        for c in range(p):
+            if d[c] > 0:
+                total += np.float64(d[c])
+                filled += 1
+        n_low = 0
+        if filled == 0:
+            for c in range(p):
+                low[n_low] = c
+                n_low += 1
+        else:
+            threshold = alpha * (total / filled)
+            for c in range(p):
+                if np.float64(d[c]) < threshold:
+                    low[n_low] = c
+                    n_low += 1
+        n = s
+        for c in range(s):
+            j = ids[b, c]
+            if j < 0:
+                n = c
+                break
+            acc = 0.0
+            for e in range(n_low):
+                acc += np.float64(densities[j, low[e]])
+            score[c] = -acc
+        # A stable sort of the negated scores keeps equal scores in first-stage order.
+        order = np.argsort(score[:n], kind="mergesort")
+        for c in range(min(k, n)):
+            out[b, c] = ids[b, order[c]]
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Approximate-mode quality
+# --------------------------------------------------------------------------------------------
+def similarity_recall(
+    dims: np.ndarray,
+    s: int,
+    sample: np.ndarray,
+    approx_factor: float = 2.0,
+    workers: int | None = None,
+) -> float:
+    """Mean share of each sampled object's exact top-``s`` that the approximate mode finds.
+
+    Args:
+        dims: ``(M, 3)`` box sizes of one class.
+        s: neighbours (``2 k``).
+        sample: local ids to check.
+    """
+    exact = SimilaritySearch(dims, s, mode="exact")
+    approx = SimilaritySearch(dims, s, mode="approximate", approx_factor=approx_factor)
+    config = IndexConfig(workers=workers, block_size=256)
+    sample = np.asarray(sample, np.int64)
+    found = 0
+    for truth, guess in zip(
+        _map_blocks(lambda b: exact.top(b)[0], sample, config, None),
+        _map_blocks(lambda b: approx.top(b)[0], sample, config, None),
+        strict=True,
+    ):
+        for t_row, g_row in zip(truth, guess, strict=True):
+            found += len(np.intersect1d(t_row, g_row, assume_unique=True))
+    return found / max(len(sample) * s, 1)

@@ -1,0 +1,294 @@
+import json
+
+import numpy as np
+import pytest
+
+from drcpo.database import GroundTruthDatabase
+from drcpo.errors import ConfigError, DataError
+from drcpo.geometry import canonical_iou3d
+from drcpo.index import (
+    CandidateIndex,
+    IndexConfig,
+    SimilaritySearch,
+    build_index,
+    indexed_mask,
+    load_index,
+    partition_occupancy,
+    similarity_recall,
+)
+from drcpo.partitions import grid_for, mirror_points, num_partitions, partition_counts
+
+CLASSES = ("Car", "Pedestrian", "Cyclist", "Van")
+
+
+def random_database(rng, n, classes=CLASSES, step=0.25, max_points=60, point_dim=4):
+    """Objects with sizes on a coarse lattice (many exact IoU ties) and points partly outside."""
+    names = rng.choice(np.asarray(classes), n)
+    base = {"Car": (3.9, 1.6, 1.5), "Pedestrian": (0.8, 0.6, 1.7), "Cyclist": (1.7, 0.6, 1.7)}
+    dims = np.array([base.get(str(c), (2.0, 1.0, 1.0)) for c in names])
+    dims = dims * rng.uniform(0.6, 1.4, (n, 3))
+    dims = np.maximum(np.round(dims / step) * step, step)
+    sizes = rng.integers(0, max_points, n)
+    sizes[rng.random(n) < 0.1] = 0
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    owner = np.repeat(np.arange(n), sizes)
+    xyz = rng.uniform(-0.6, 0.6, (len(owner), 3)) * dims[owner]
+    # Points exactly on inner cell boundaries and on the faces exercise the cell rule.
+    snap = rng.random(len(owner)) < 0.2
+    xyz[snap] = np.round(xyz[snap] / (dims[owner][snap] / 4)) * (dims[owner][snap] / 4)
+    points = np.column_stack([xyz, rng.random((len(owner), point_dim - 3))]).astype(np.float32)
+    boxes = np.column_stack([rng.normal(size=(n, 3)), dims, rng.uniform(-3, 3, n)])
+    difficulty = rng.integers(-1, 3, n).astype(np.int8)
+    return GroundTruthDatabase.from_arrays(points, offsets, names, boxes, difficulty=difficulty)
+
+
+def reference_index(db, config):
+    """Brute force: full N x N IoU matrices and per-object partition counts."""
+    n = len(db)
+    keep = indexed_mask(db, config)
+    classes = sorted(set(db.names.tolist()))
+    p_max = max(num_partitions(grid_for(c, config.grids)) for c in classes)
+    counts = np.zeros((n, p_max), np.int64)
+    for i in range(n):
+        name = str(db.names[i])
+        grid = grid_for(name, config.grids)
+        pts = db.object_points(i)
+        if name in config.mirrored:
+            pts = mirror_points(pts)
+        counts[i, : num_partitions(grid)] = partition_counts(pts, db.boxes[i, 3:6], grid)
+    densities = np.zeros((n, p_max), np.float32)
+    candidates = np.full((n, config.k), -1, np.int32)
+    for name in classes:
+        p = num_partitions(grid_for(name, config.grids))
+        rows = np.flatnonzero(db.names == name)
+        idx = rows[keep[rows]]
+        top = counts[idx, :p].max(axis=0) if len(idx) else np.zeros(p)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            densities[rows, :p] = np.where(top > 0, counts[rows, :p] / top, 0.0)
+        dims = db.boxes[idx, 3:6]
+        iou = canonical_iou3d(dims[:, None, :], dims[None, :, :])
+        dens = densities[idx, :p].astype(np.float64)
+        for a, row in enumerate(idx):
+            others = np.flatnonzero(np.arange(len(idx)) != a)
+            first = others[np.lexsort((idx[others], -iou[a, others]))][: 2 * config.k]
+            d = dens[a]
+            filled = d > 0
+            low = d < config.alpha * (d[filled].sum() / filled.sum()) if filled.any() else ~filled
+            score = dens[first][:, low].sum(axis=1)
+            second = first[np.lexsort((np.arange(len(first)), -score))][: config.k]
+            candidates[row, : len(second)] = idx[second]
+    return candidates, densities
+
+
+@pytest.mark.parametrize(
+    ("seed", "n", "k", "extra"),
+    [
+        (0, 300, 5, {}),
+        (1, 400, 40, {"exclude_difficulties": (-1,), "min_points": 10}),
+        (2, 250, 400, {}),  # every class smaller than K: all candidates
+        (3, 500, 12, {"grids": {"Van": (3, 3, 2)}, "mirrored": ("Pedestrian",), "alpha": 1.0}),
+    ],
+)
+def test_matches_brute_force(seed, n, k, extra):
+    db = random_database(np.random.default_rng(seed), n)
+    config = IndexConfig(k=k, workers=2, block_size=37, **extra)
+    index = build_index(db, config)
+    ref_candidates, ref_densities = reference_index(db, config)
+    np.testing.assert_array_equal(index.densities, ref_densities)
+    np.testing.assert_array_equal(index.candidates, ref_candidates)
+
+
+def test_large_class_with_many_ties_matches_brute_force():
+    # Coarse sizes: thousands of objects share a handful of boxes, so IoU ties are everywhere.
+    db = random_database(np.random.default_rng(7), 2500, classes=("Car",), step=0.2)
+    config = IndexConfig(k=30, workers=2)
+    index = build_index(db, config)
+    ref_candidates, ref_densities = reference_index(db, config)
+    np.testing.assert_array_equal(index.densities, ref_densities)
+    np.testing.assert_array_equal(index.candidates, ref_candidates)
+
+
+def test_grid_search_first_stage_is_exact_on_continuous_sizes(rng):
+    dims = np.exp(rng.normal([1.36, 0.48, 0.42], [0.11, 0.06, 0.09], (3000, 3)))
+    dims[::10] = dims[1::10]  # exact duplicates
+    search = SimilaritySearch(dims, 64)
+    assert search.shape.prod() > 1
+    queries = np.arange(0, 3000, 7)
+    ids, ious = search.top(queries)
+    iou = canonical_iou3d(dims[queries][:, None], dims[None])
+    for b, q in enumerate(queries):
+        iou[b, q] = -1
+        expected = np.lexsort((np.arange(len(dims)), -iou[b]))[:64]
+        np.testing.assert_array_equal(ids[b], expected)
+        np.testing.assert_array_equal(ious[b], iou[b, expected])
+
+
+def test_workers_and_blocks_do_not_change_the_result():
+    db = random_database(np.random.default_rng(4), 600)
+    one = build_index(db, IndexConfig(k=20, workers=1, block_size=1000))
+    two = build_index(db, IndexConfig(k=20, workers=2, block_size=16))
+    np.testing.assert_array_equal(one.candidates, two.candidates)
+
+
+def test_objects_below_min_points_or_excluded_are_never_candidates():
+    db = random_database(np.random.default_rng(5), 400)
+    config = IndexConfig(k=50, min_points=20, exclude_difficulties=(0,))
+    index = build_index(db, config)
+    keep = indexed_mask(db, config)
+    assert (index.candidates[~keep] == -1).all()
+    used = index.candidates[index.candidates >= 0]
+    assert keep[used].all()
+    assert (db.num_points[used] >= 20).all()
+    assert not np.isin(db.difficulty[used], [0]).any()
+    for row in np.flatnonzero(keep)[:50]:
+        cands = index.candidates_of(row)
+        assert row not in cands
+        assert (db.names[cands] == db.names[row]).all()
+        assert len(set(cands.tolist())) == len(cands)
+
+
+def test_small_class_gets_all_it_has():
+    db = random_database(np.random.default_rng(6), 200, classes=("Car", "Tram"))
+    index = build_index(db, IndexConfig(k=400, min_points=0))
+    for name in ("Car", "Tram"):
+        rows = db.rows_of_class(name)
+        for row in rows:
+            cands = index.candidates_of(row)
+            assert sorted(cands.tolist()) == sorted(set(rows.tolist()) - {row})
+        assert index.classes[name]["mean_candidates"] == len(rows) - 1
+
+
+def test_single_object_class_and_empty_objects():
+    rng = np.random.default_rng(8)
+    points = rng.uniform(-0.4, 0.4, (10, 4)).astype(np.float32)
+    db = GroundTruthDatabase.from_arrays(
+        points,
+        [0, 10, 10],
+        ["Car", "Pedestrian"],
+        np.array([[0, 0, 0, 4, 2, 1.5, 0], [0, 0, 0, 1, 1, 2, 0]], float),
+    )
+    index = build_index(db, IndexConfig(k=3, min_points=0))
+    assert (index.candidates == -1).all()
+    assert index.densities[1].max() == 0  # no points, no density
+    assert index.densities[0].max() == 1  # its own maxima
+
+
+def test_partition_occupancy_matches_per_object_counts():
+    db = random_database(np.random.default_rng(9), 300, point_dim=5)
+    grids = {c: grid_for(c) for c in CLASSES}
+    counts = partition_occupancy(db, grids, ("Car", "Cyclist"), chunk_points=97)
+    for i in range(len(db)):
+        name = str(db.names[i])
+        pts = db.object_points(i)
+        if name in ("Car", "Cyclist"):
+            pts = mirror_points(pts)
+        expected = partition_counts(pts, db.boxes[i, 3:6], grids[name])
+        np.testing.assert_array_equal(counts[i, : len(expected)], expected)
+        assert not counts[i, len(expected) :].any()
+
+
+def test_degenerate_box_is_reported():
+    db = random_database(np.random.default_rng(10), 20)
+    boxes = db.boxes.copy()
+    boxes[3, 4] = 0.0
+    bad = GroundTruthDatabase.from_arrays(db.points, db.offsets, db.names, boxes)
+    with pytest.raises(DataError, match="object 3"):
+        build_index(bad)
+
+
+def test_save_load_round_trip(tmp_path):
+    db = random_database(np.random.default_rng(11), 300)
+    db.save(tmp_path / "db")
+    opened = GroundTruthDatabase.open(tmp_path / "db")
+    config = IndexConfig(k=16, grids={"Van": (2, 2, 2)})
+    index = build_index(opened, config)
+    index.save(tmp_path / "db")
+    assert sorted(p.name for p in (tmp_path / "db" / "index").iterdir()) == [
+        "candidates.npy",
+        "densities.npy",
+        "manifest.json",
+    ]
+    loaded = load_index(opened)
+    np.testing.assert_array_equal(loaded.candidates, index.candidates)
+    np.testing.assert_array_equal(loaded.densities, index.densities)
+    assert loaded.config == config
+    assert loaded.grids == index.grids
+    assert loaded.classes == index.classes
+    for name in index.max_counts:
+        np.testing.assert_array_equal(loaded.max_counts[name], index.max_counts[name])
+    manifest = json.loads((tmp_path / "db" / "index" / "manifest.json").read_text())
+    assert manifest["database_checksum"] == opened.checksum
+    assert manifest["format_version"] == 1
+    with pytest.raises(FileExistsError):
+        index.save(tmp_path / "db")
+    index.save(tmp_path / "db", overwrite=True)
+
+
+def test_index_of_another_database_is_refused(tmp_path):
+    rng = np.random.default_rng(12)
+    db = random_database(rng, 100)
+    db.save(tmp_path / "a")
+    build_index(db, IndexConfig(k=4)).save(tmp_path / "a")
+    other = random_database(rng, 100)
+    with pytest.raises(DataError, match="checksum"):
+        CandidateIndex.load(other, tmp_path / "a" / "index")
+    with pytest.raises(DataError, match="no candidate index"):
+        load_index(GroundTruthDatabase.open(tmp_path / "a"), tmp_path / "missing")
+
+
+def test_corrupt_index_files_are_reported(tmp_path):
+    db = random_database(np.random.default_rng(13), 50)
+    db.save(tmp_path / "db")
+    opened = GroundTruthDatabase.open(tmp_path / "db")
+    build_index(opened, IndexConfig(k=4)).save(tmp_path / "db")
+    np.save(tmp_path / "db" / "index" / "candidates.npy", np.zeros((3, 4), np.int32))
+    with pytest.raises(DataError, match=r"candidates\.npy"):
+        load_index(opened)
+
+
+def test_failed_save_leaves_nothing(tmp_path, monkeypatch):
+    db = random_database(np.random.default_rng(14), 50)
+    index = build_index(db, IndexConfig(k=4))
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "save", broken)
+    with pytest.raises(OSError, match="disk full"):
+        index.save(tmp_path / "db")
+    assert not (tmp_path / "db" / "index").exists()
+    assert not list((tmp_path / "db").iterdir())
+
+
+def test_approximate_mode_recall_and_validity():
+    rng = np.random.default_rng(15)
+    dims = np.round(np.exp(rng.normal([1.36, 0.48, 0.42], [0.11, 0.06, 0.09], (4000, 3))), 2)
+    recall = similarity_recall(dims, 100, np.arange(0, 4000, 13), approx_factor=2.0)
+    assert 0.95 <= recall <= 1.0
+    n = len(dims)
+    db = GroundTruthDatabase.from_arrays(
+        np.zeros((5 * n, 4), np.float32),
+        np.arange(0, 5 * n + 1, 5),
+        ["Car"] * n,
+        np.column_stack([np.zeros((n, 3)), dims, np.zeros(n)]),
+    )
+    index = build_index(db, IndexConfig(k=50, approximate_above=1000))
+    assert index.classes["Car"]["mode"] == "approximate"
+    assert (index.candidates >= 0).all()
+    assert not (index.candidates == np.arange(n)[:, None]).any()
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [{"k": 0}, {"alpha": 0}, {"min_points": -1}, {"workers": 0}, {"grids": {"Car": (1, 0, 2)}}],
+)
+def test_bad_config_is_refused(bad):
+    with pytest.raises(ConfigError):
+        IndexConfig(**bad)
+
+
+def test_config_round_trip():
+    config = IndexConfig(k=7, grids={"Van": (1, 2, 3)}, classes=("Car",), exclude_difficulties=[2])
+    assert IndexConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    with pytest.raises(ConfigError, match="unknown"):
+        IndexConfig.from_dict({"kk": 3})
