@@ -150,6 +150,50 @@ def info(
 
 
 @app.command()
+def augment(
+    kitti: Annotated[Path, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")],
+    db: Annotated[Path, typer.Option("--db", help="Ground-truth database (with index/).")],
+    out: Annotated[Path, typer.Option("--out", help="Output directory (KITTI layout).")],
+    split: Annotated[str, typer.Option(help="Split: frames of ImageSets/<split>.txt.")] = "train",
+    config: Annotated[
+        str,
+        typer.Option(help="YAML config file, or a preset: default, second, pointrcnn, ..."),
+    ] = "default",
+    pipeline: Annotated[
+        str | None, typer.Option(help="Override the config's pipeline: drcpo or cda.")
+    ] = None,
+    frames: Annotated[
+        int | None, typer.Option(min=0, help="Augment the first N frames (default: all).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Random seed (frame i uses (seed, i)).")] = 0,
+    fov: Annotated[bool, typer.Option(help="Cut frames to the camera field of view first.")] = True,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
+) -> None:
+    """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame."""
+    from drcpo.config import load_config
+    from drcpo.database import GroundTruthDatabase
+    from drcpo.pipeline import augment_kitti, build_pipeline
+
+    try:
+        settings = load_config(config)
+        database = GroundTruthDatabase.open(db)
+        transform = build_pipeline(settings, database, kind=pipeline)
+        with progress_bar(f"frames of {split}") as progress:
+            summary = augment_kitti(
+                kitti, split, transform, out, frames, seed, fov, overwrite, progress
+            )
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
+    table = Table(title=f"{out}: {summary['frames']} frames, {summary['points']} points")
+    table.add_column("class")
+    table.add_column("boxes", justify="right")
+    for name, count in sorted(summary["boxes"].items()):
+        table.add_row(name, str(count))
+    table.add_row("[bold]ms per frame (median)", f"{summary['median_ms']:.1f}")
+    Console().print(table)
+
+
+@app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("drcpo_demo"),
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
