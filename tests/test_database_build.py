@@ -14,12 +14,14 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.database_build import (
     DEFAULT_CLASSES,
     build_database,
+    frame_records,
     import_openpcdet,
     points_in_boxes_openpcdet,
 )
 from drcpo.datasets.kitti import KittiDataset, fov_mask
 from drcpo.errors import ConfigError, DataError
-from drcpo.geometry import points_in_boxes, rotate_points_z, wrap_angle
+from drcpo.frame import Frame
+from drcpo.geometry import from_canonical, points_in_boxes, rotate_points_z, wrap_angle
 
 
 def _mirror(kitti_sample, tmp_path):
@@ -236,6 +238,22 @@ def test_import_checks_point_counts_and_keys(kitti_sample, tmp_path):
     with pytest.raises(DataError, match=r"dbinfos\.pkl: Car\[0\]: missing key\(s\) box3d_lidar"):
         import_openpcdet(root / "dbinfos.pkl", tmp_path / "db")
     _no_database_left(tmp_path)
+
+
+def test_frame_records_of_a_plain_frame(rng):
+    boxes = np.array([[5.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.7], [-5.0, 3.0, 0.0, 1.0, 1.0, 1.8, 0.0]])
+    points = np.column_stack([rng.uniform(-8, 8, (5000, 3)), rng.uniform(0, 1, 5000)])
+    frame = Frame(points, boxes, np.array(["Car", "Pedestrian"]), {"frame_id": "synthetic"})
+    (record,) = frame_records(frame, classes=("Pedestrian",))
+    assert (record.name, record.frame_id, record.index_in_frame) == ("Pedestrian", "synthetic", 1)
+    assert (record.difficulty, record.occlusion) == (-1, -1) and np.isnan(record.truncation)
+    inside = points_in_boxes_openpcdet(frame.points, boxes[1:])[:, 0]
+    np.testing.assert_allclose(
+        from_canonical(record.points, boxes[1]), frame.points[inside], atol=1e-5
+    )
+    bad = frame.replace(metadata={"frame_id": "x", "difficulty": np.zeros(3)})
+    with pytest.raises(DataError, match="frame x: metadata 'difficulty' has shape"):
+        frame_records(bad)
 
 
 # The inside rule ------------------------------------------------------------------------------

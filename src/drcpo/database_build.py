@@ -69,33 +69,46 @@ def points_in_boxes_openpcdet(points: np.ndarray, boxes: np.ndarray) -> np.ndarr
 
 
 def frame_records(frame: Frame, classes: Sequence[str] | None = None) -> list[ObjectRecord]:
-    """Cut the labelled objects of the chosen ``classes`` (``None``: all) out of a KITTI frame.
+    """Cut the labelled objects of the chosen ``classes`` (``None``: all) out of a frame.
 
-    ``frame`` comes from :class:`~drcpo.datasets.kitti.KittiDataset` (its metadata holds the
-    labels). Each record's ``index_in_frame`` is the object's row among the frame's
-    non-``DontCare`` labels, OpenPCDet's ``gt_idx``.
+    Per-box ``difficulty``, ``occlusion`` and ``truncation`` come from the frame's metadata
+    (as :class:`~drcpo.datasets.kitti.KittiDataset` fills it) and are unknown when absent.
+    Each record's ``index_in_frame`` is the object's row in ``frame.boxes``: for KITTI frames
+    its row among the non-``DontCare`` labels, OpenPCDet's ``gt_idx``.
     """
-    labels: KittiLabels | None = frame.metadata.get("labels")
     keep = [i for i, name in enumerate(frame.names) if classes is None or name in classes]
     if not keep:
         return []
+    difficulty = _per_box(frame, "difficulty", -1)
+    occlusion = _per_box(frame, "occlusion", -1)
+    truncation = _per_box(frame, "truncation", np.nan)
     inside = points_in_boxes_openpcdet(frame.points, frame.boxes[keep])
-    records = []
-    for column, i in enumerate(keep):
-        box = frame.boxes[i]
-        records.append(
-            ObjectRecord(
-                points=to_canonical(frame.points[inside[:, column]], box),
-                name=str(frame.names[i]),
-                box=box,
-                frame_id=str(frame.frame_id),
-                index_in_frame=i,
-                difficulty=int(labels.difficulty[i]) if labels is not None else -1,
-                occlusion=int(labels.occlusion[i]) if labels is not None else -1,
-                truncation=float(labels.truncation[i]) if labels is not None else float("nan"),
-            )
+    return [
+        ObjectRecord(
+            points=to_canonical(frame.points[inside[:, column]], frame.boxes[i]),
+            name=str(frame.names[i]),
+            box=frame.boxes[i],
+            frame_id=str(frame.frame_id),
+            index_in_frame=i,
+            difficulty=int(difficulty[i]),
+            occlusion=int(occlusion[i]),
+            truncation=float(truncation[i]),
         )
-    return records
+        for column, i in enumerate(keep)
+    ]
+
+
+def _per_box(frame: Frame, key: str, unknown: float) -> np.ndarray:
+    values = frame.metadata.get(key)
+    if values is None:
+        return np.full(len(frame.boxes), unknown)
+    values = np.asarray(values)
+    if values.shape != (len(frame.boxes),):
+        raise DataError(
+            f"frame {frame.frame_id}: metadata {key!r} has shape {values.shape}, "
+            f"expected ({len(frame.boxes)},)"
+        )
+    return values
 
 
 def build_database(
