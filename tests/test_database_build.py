@@ -242,12 +242,14 @@ def test_import_checks_point_counts_and_keys(kitti_sample, tmp_path):
 
 def test_frame_records_of_a_plain_frame(rng):
     boxes = np.array([[5.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.7], [-5.0, 3.0, 0.0, 1.0, 1.0, 1.8, 0.0]])
-    points = np.column_stack([rng.uniform(-8, 8, (5000, 3)), rng.uniform(0, 1, 5000)])
+    xyz = rng.uniform([-8, -8, -1], [8, 8, 1], (5000, 3))
+    points = np.column_stack([xyz, rng.uniform(0, 1, 5000)])
     frame = Frame(points, boxes, np.array(["Car", "Pedestrian"]), {"frame_id": "synthetic"})
     (record,) = frame_records(frame, classes=("Pedestrian",))
     assert (record.name, record.frame_id, record.index_in_frame) == ("Pedestrian", "synthetic", 1)
     assert (record.difficulty, record.occlusion) == (-1, -1) and np.isnan(record.truncation)
     inside = points_in_boxes_openpcdet(frame.points, boxes[1:])[:, 0]
+    assert len(record.points) == inside.sum() > 10
     np.testing.assert_allclose(
         from_canonical(record.points, boxes[1]), frame.points[inside], atol=1e-5
     )
