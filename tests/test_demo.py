@@ -1,0 +1,100 @@
+"""``drcpo demo`` from a clean environment, at a tiny size, as the README runs it."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+
+from drcpo.demo import inserted_mask, optional
+from drcpo.frame import Frame
+
+
+def _drcpo_command() -> list[str]:
+    script = Path(sys.executable).with_name("drcpo")
+    if script.is_file():
+        return [str(script)]
+    found = shutil.which("drcpo")
+    return [found] if found else [sys.executable, "-m", "drcpo.cli"]
+
+
+def _run_demo(out: Path, home: Path) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("MPL", "DRCPO", "PYTHONPATH"))}
+    env.update(HOME=str(home), MPLCONFIGDIR=str(home / "mpl"))  # no user matplotlib settings
+    command = [
+        *_drcpo_command(),
+        "demo",
+        "--out",
+        str(out),
+        "--frames",
+        "2",
+        "--augment-frames",
+        "1",
+    ]
+    return subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+
+
+def _assert_not_blank(path: Path) -> None:
+    image = imread(path)
+    assert image.shape[0] >= 200 and image.shape[1] >= 200
+    grey = image[..., :3].mean(axis=2)
+    assert grey.std() > 0.03, path
+    assert (grey < 0.5).mean() > 0.001, path
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    base = tmp_path_factory.mktemp("demo")
+    (base / "home").mkdir()
+    first = _run_demo(base / "out", base / "home")
+    second = _run_demo(base / "out", base / "home")
+    return base / "out", first, second
+
+
+def test_demo_writes_non_blank_figures(demo_run):
+    out, first, _ = demo_run
+    assert first.returncode == 0, first.stdout + first.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert {"bev", "density"} <= set(summary["figures"])
+    for path in summary["figures"].values():
+        _assert_not_blank(Path(path))
+    assert "points per frame" in first.stdout and "milliseconds per stage" in first.stdout
+    for stage, reason in summary["skipped"].items():
+        assert "not available" in reason or "skipped" in reason, (stage, reason)
+        assert f"skipped {stage}" in first.stderr.replace("\n", " ")
+    assert summary["points_per_frame"]["original"] > 1000
+    assert (out / "kitti" / "training" / "velodyne" / "000001.bin").is_file()
+
+
+def test_demo_reuses_its_synthetic_frames(demo_run):
+    _, first, second = demo_run
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert "reusing synthetic frames" in second.stderr
+    assert "reusing" not in first.stderr
+
+
+def test_optional_reports_what_is_missing():
+    value, reason = optional("drcpo.geometry", "box_corners")
+    assert callable(value) and reason is None
+    value, reason = optional("drcpo.geometry", "no_such_function")
+    assert value is None and "no_such_function" in reason
+    value, reason = optional("drcpo.no_such_module", "anything")
+    assert value is None and "drcpo.no_such_module" in reason
+
+
+def test_inserted_mask_finds_new_boxes():
+    original = Frame(np.zeros((1, 4)), np.array([[1, 2, 3, 4, 2, 1.5, 0.1]]), np.array(["Car"]))
+    new_box = [5, 5, -1, 0.8, 0.6, 1.7, 0.0]
+    augmented = Frame(
+        np.zeros((1, 4)), np.vstack([new_box, original.boxes]), np.array(["Pedestrian", "Car"])
+    )
+    np.testing.assert_array_equal(inserted_mask(original, augmented), [True, False])
+    empty = Frame(np.zeros((1, 4)))
+    np.testing.assert_array_equal(inserted_mask(empty, augmented), [True, True])
