@@ -317,3 +317,21 @@ def test_scan_with_custom_sensor_changes_the_density():
     coarse = scan(world, np.random.default_rng(0), LidarConfig(azimuth_step_deg=0.4))
     fine = scan(world, np.random.default_rng(0), LidarConfig(azimuth_step_deg=0.2))
     assert 1.7 < len(fine.points) / len(coarse.points) < 2.3
+
+
+def test_synth_command_writes_a_kitti_root(tmp_path):
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+
+    root = tmp_path / "kitti"
+    result = CliRunner().invoke(
+        app, ["synth", "--out", str(root), "--frames", "2", "--seed", "4", "--azimuth-step", "0.4"]
+    )
+    assert result.exit_code == 0, result.output
+    assert "points per frame" in result.output
+    assert read_split(root, "train") == ["000000"] and read_split(root, "val") == ["000001"]
+    for kind, suffix in (("velodyne", ".bin"), ("label_2", ".txt"), ("calib", ".txt")):
+        assert (root / "training" / kind / f"000001{suffix}").is_file()
+    again = CliRunner().invoke(app, ["synth", "--out", str(root), "--frames", "1"])
+    assert again.exit_code == 1 and "already exists" in again.output

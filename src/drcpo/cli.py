@@ -194,15 +194,57 @@ def augment(
 
 
 @app.command()
+def synth(
+    out: Annotated[Path, typer.Option("--out", help="KITTI root to create.")],
+    frames: Annotated[int, typer.Option(min=1, help="Frames to generate.")] = 10,
+    seed: Annotated[int, typer.Option(help="Random seed (frame i uses (seed, i)).")] = 0,
+    val_fraction: Annotated[
+        float, typer.Option(min=0.0, max=0.99, help="Share of frames listed in val.txt.")
+    ] = 0.5,
+    azimuth_step: Annotated[
+        float, typer.Option(min=0.01, max=10.0, help="LiDAR azimuth step, degrees.")
+    ] = 0.17,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
+) -> None:
+    """Generate a synthetic KITTI data set: a ray-cast HDL-64E in procedural streets."""
+    from drcpo.synth import LidarConfig, write_synthetic_kitti
+
+    try:
+        lidar = LidarConfig(azimuth_step_deg=azimuth_step)
+        with progress_bar("synthetic frames") as progress:
+            summary = write_synthetic_kitti(
+                out, frames, seed, None, lidar, val_fraction, overwrite, progress
+            )
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
+    points = summary["points"]
+    table = Table(title=f"{out}: {frames} frames")
+    table.add_column("")
+    table.add_column("value", justify="right")
+    spread = f"{min(points):,} / {sum(points) / len(points):,.0f} / {max(points):,}"
+    table.add_row("points per frame (min / mean / max)", spread)
+    for name, count in sorted(summary["objects"].items()):
+        table.add_row(f"labelled {name}", str(count))
+    for level, count in sorted(summary["occlusion"].items()):
+        table.add_row(f"occlusion level {level}", str(count))
+    table.add_row("ms per frame", f"{summary['ms_per_frame']:.0f}")
+    Console().print(table)
+
+
+@app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("drcpo_demo"),
+    frames: Annotated[int, typer.Option(min=1, help="Synthetic frames (cached in OUT/kitti).")] = 8,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    augment_frames: Annotated[int, typer.Option(min=1, help="Frames to augment.")] = 3,
 ) -> None:
-    """Run every available stage on built-in data and print what it made."""
+    """Run every available stage on the built-in synthetic world; writes figures and a summary."""
     from drcpo.demo import run_demo
 
-    database = run_demo(out, seed=seed)
-    Console().print(class_table(database.summary(), f"demo database {database.path}"))
+    try:
+        run_demo(out, frames=frames, seed=seed, augment_frames=augment_frames)
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
 
 
 def main() -> None:
