@@ -50,7 +50,6 @@ from drcpo.geometry import (
     bev_corners,
     bev_overlap_area,
     from_canonical,
-    points_in_boxes,
     wrap_angle,
 )
 from drcpo.ground import GroundModel
@@ -391,19 +390,32 @@ class BoxQuery:
 
     def inside(self, box: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """Indices ``int64 (k,)`` of the points in one ``(7,)`` box grown by ``margin``."""
-        cos, sin = abs(math.cos(box[6])), abs(math.sin(box[6]))
-        length, width = box[3] + 2.0 * margin, box[4] + 2.0 * margin
-        half_x = (length * cos + width * sin) / 2.0 + self._SLACK
-        half_y = (length * sin + width * cos) / 2.0 + self._SLACK
+        box = np.asarray(box, dtype=np.float64)
+        cx, cy, dx, dy, heading = (float(box[i]) for i in (0, 1, 3, 4, 6))
+        cos, sin = math.cos(heading), math.sin(heading)
+        length, width = dx + 2.0 * margin, dy + 2.0 * margin
+        half_x = (length * abs(cos) + width * abs(sin)) / 2.0 + self._SLACK
+        half_y = (length * abs(sin) + width * abs(cos)) / 2.0 + self._SLACK
+        # Python floats compare with the float32 columns without converting them to float64.
         near = np.flatnonzero(
-            (self.x >= box[0] - half_x)
-            & (self.x <= box[0] + half_x)
-            & (self.y >= box[1] - half_y)
-            & (self.y <= box[1] + half_y)
+            (self.x >= cx - half_x)
+            & (self.x <= cx + half_x)
+            & (self.y >= cy - half_y)
+            & (self.y <= cy + half_y)
         )
         if len(near) == 0:
             return near
-        return near[points_in_boxes(self.points[near], box[None], margin)[:, 0]]
+        # The same float64 arithmetic as drcpo.geometry.points_in_boxes, so the same answer.
+        delta = self.points[near, :3].astype(np.float64) - box[:3]
+        half = box[3:6] / 2.0 + margin
+        local_x = delta[:, 0] * cos + delta[:, 1] * sin
+        local_y = -delta[:, 0] * sin + delta[:, 1] * cos
+        inside = (
+            (np.abs(local_x) <= half[0])
+            & (np.abs(local_y) <= half[1])
+            & (np.abs(delta[:, 2]) <= half[2])
+        )
+        return near[inside]
 
     def inside_any(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``bool (N,)``: points in at least one of the ``(M, 7)`` boxes."""

@@ -1,0 +1,197 @@
+"""Time the conventional baseline (CDA) and the full DR.CPO pipeline on the same frames.
+
+CDA = ground-truth sampling + global augmentation; DR.CPO = ground-truth sampling + DR.CPO +
+global augmentation (the paper's reference configuration), both with the paper defaults. The
+database is synthetic and KITTI-sized (Car 14,357, Pedestrian 2,207, Cyclist 734 objects, points
+on the faces a sensor would see), indexed with K = 400. Frames are the real KITTI sample in
+``../shared/data/kitti_sample`` cut to the camera's field of view, as OpenPCDet trains KITTI,
+when present, else frames of the built-in synthetic world.
+
+Each frame is augmented ``--repeats`` times by each pipeline, alternating, with the same seeds;
+the medians of the per-frame milliseconds are reported. The last stdout line is one JSON object::
+
+    {"cda_ms": a, "drcpo_ms": b, "ratio": b / a, "stages_ms": {stage: median ms}, ...}
+
+Usage: ``python benchmarks/bench_augment.py [--quick] [--work DIR]`` (``--work`` keeps the
+database and its index between runs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drcpo.database import GroundTruthDatabase, ObjectRecord
+from drcpo.frame import Frame
+from drcpo.index import IndexConfig, build_index, load_index
+from drcpo.pipeline import build_pipeline
+
+KITTI_SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_sample"
+KITTI_COUNTS = {"Car": 14357, "Pedestrian": 2207, "Cyclist": 734}
+QUICK_COUNTS = {"Car": 600, "Pedestrian": 150, "Cyclist": 80}
+# Mean size (l, w, h) and the spread of each class (KITTI statistics, rounded).
+SIZES = {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)}
+SENSOR_HEIGHT = 1.73
+
+
+def synthetic_object(rng: np.random.Generator, name: str) -> ObjectRecord:
+    """One object: points on the faces of its box that a sensor at a random distance sees.
+
+    Points per object are log-normal (median about 150, clipped to [5, 3000]), like KITTI's.
+    """
+    dims = np.asarray(SIZES[name]) * rng.normal(1.0, 0.08, 3).clip(0.75, 1.3)
+    distance = rng.uniform(5.0, 60.0)
+    azimuth = rng.uniform(-np.pi, np.pi)  # direction of the sensor in the object's frame
+    count = int(np.clip(rng.lognormal(np.log(150.0), 0.9), 5, 3000))
+    toward = np.array([np.cos(azimuth), np.sin(azimuth)])
+    # Faces seen: the two side faces facing the sensor (weighted by how squarely) and the top.
+    weights = np.array(
+        [max(toward[0], 0), max(-toward[0], 0), max(toward[1], 0), max(-toward[1], 0), 0.15]
+    )
+    face = rng.choice(5, size=count, p=weights / weights.sum())
+    local = rng.uniform(-0.5, 0.5, (count, 3))
+    axis = np.array([0, 0, 1, 1, 2])[face]
+    sign = np.array([0.5, -0.5, 0.5, -0.5, 0.5])[face]
+    local[np.arange(count), axis] = sign
+    xyz = local * dims + rng.normal(0.0, 0.02, (count, 3))
+    intensity = rng.uniform(0.0, 1.0, count)
+    box = np.array(
+        [
+            distance * np.cos(azimuth),
+            distance * np.sin(azimuth),
+            -SENSOR_HEIGHT + dims[2] / 2,
+            *dims,
+            rng.uniform(-np.pi, np.pi),
+        ]
+    )
+    points = np.column_stack([xyz, intensity]).astype(np.float32)
+    difficulty = int(rng.integers(0, 3))
+    return ObjectRecord(points, name, box, frame_id="synthetic", difficulty=difficulty)
+
+
+def database_and_index(counts: dict[str, int], k: int, work: Path, seed: int = 0):
+    """The synthetic database and its index under ``work`` (built once, then reused)."""
+    db_dir = work / f"db_{'_'.join(f'{n}{c}' for n, c in counts.items())}_k{k}"
+    if (db_dir / "index" / "manifest.json").is_file():
+        database = GroundTruthDatabase.open(db_dir)
+        return database, load_index(database), 0.0
+    rng = np.random.default_rng(seed)
+    records = [synthetic_object(rng, name) for name, n in counts.items() for _ in range(n)]
+    database = GroundTruthDatabase.from_records(records)
+    database.save(db_dir, overwrite=True)
+    database = GroundTruthDatabase.open(db_dir)
+    start = time.perf_counter()
+    index = build_index(database, IndexConfig(k=k))
+    seconds = time.perf_counter() - start
+    index.save(db_dir, overwrite=True)
+    return database, load_index(database), seconds
+
+
+def kitti_frames(limit: int) -> list[Frame]:
+    from drcpo.datasets.kitti import KittiDataset, fov_mask
+
+    dataset = KittiDataset(KITTI_SAMPLE, "train")
+    frames = []
+    for frame_id in dataset.frame_ids[:limit]:
+        frame = dataset.frame(frame_id)
+        keep = fov_mask(frame.points, frame.metadata["calib"], dataset.image_shape(frame_id))
+        frames.append(
+            frame.replace(points=frame.points[keep], metadata={**frame.metadata, "fov_only": True})
+        )
+    return frames
+
+
+def synthetic_frames(limit: int, seed: int = 0) -> list[Frame]:
+    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_writer import reference_calibration
+    from drcpo.synth import frame_rng, synthesize_frame
+
+    calib = reference_calibration()
+    frames = []
+    for i in range(limit):
+        made = synthesize_frame(frame_rng(seed, i), calib=calib)
+        points = np.asarray(made.sweep.points, dtype=np.float32)
+        keep = fov_mask(points, calib)
+        metadata = {"frame_id": f"synth{i:03d}", "calib": calib, "fov_only": True}
+        frames.append(Frame(points[keep], made.boxes, made.names, metadata))
+    return frames
+
+
+def time_call(transform, frame: Frame, seed: int) -> tuple[float, dict]:
+    start = time.perf_counter()
+    out = transform(frame, np.random.default_rng(seed))
+    return (time.perf_counter() - start) * 1000.0, out.metadata["augment_stats"]
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small database, 2 frames")
+    parser.add_argument("--work", type=Path, help="keep the database and index here")
+    parser.add_argument("--frames", type=int, help="frames to use (default 6, quick 2)")
+    parser.add_argument("--repeats", type=int, help="runs per frame and pipeline (default 5)")
+    parser.add_argument("--source", choices=("auto", "kitti", "synth"), default="auto")
+    args = parser.parse_args(argv)
+    counts = QUICK_COUNTS if args.quick else KITTI_COUNTS
+    k = 100 if args.quick else 400
+    n_frames = args.frames or (2 if args.quick else 6)
+    repeats = args.repeats or (2 if args.quick else 5)
+
+    with tempfile.TemporaryDirectory(prefix="bench_augment_") as scratch:
+        work = args.work or Path(scratch)
+        work.mkdir(parents=True, exist_ok=True)
+        database, index, index_s = database_and_index(counts, k, work)
+        use_kitti = args.source == "kitti" or (
+            args.source == "auto" and (KITTI_SAMPLE / "training" / "velodyne").is_dir()
+        )
+        frames = kitti_frames(n_frames) if use_kitti else synthetic_frames(n_frames)
+        cda = build_pipeline("default", database, index, kind="cda")
+        drcpo = build_pipeline("default", database, index, kind="drcpo")
+        # Warm-up: numba compilation and first-touch of the memory-mapped database.
+        time_call(cda, frames[0], 0)
+        time_call(drcpo, frames[0], 0)
+        cda_ms, drcpo_ms, stages, added = [], [], {}, []
+        for f, frame in enumerate(frames):
+            for r in range(repeats):
+                seed = 1000 * f + r
+                cda_ms.append(time_call(cda, frame, seed)[0])
+                elapsed, stats = time_call(drcpo, frame, seed)
+                drcpo_ms.append(elapsed)
+                for name, stage in stats["stages"].items():
+                    stages.setdefault(name, []).append(stage["ms"])
+                added.append(sum(c["added"] for c in stats["objects"].get("drcpo", {}).values()))
+    result = {
+        "cda_ms": statistics.median(cda_ms),
+        "drcpo_ms": statistics.median(drcpo_ms),
+    }
+    result["ratio"] = result["drcpo_ms"] / result["cda_ms"]
+    result["stages_ms"] = {name: statistics.median(v) for name, v in stages.items()}
+    result.update(
+        frames=len(frames),
+        source="kitti_sample" if use_kitti else "synthetic_world",
+        points_per_frame=int(np.median([len(f) for f in frames])),
+        runs_per_pipeline=len(drcpo_ms),
+        database_objects=len(database),
+        k=k,
+        index_build_s=round(index_s, 1),
+        drcpo_objects_added_mean=float(np.mean(added)),
+    )
+    print(
+        f"{result['frames']} frames ({result['source']}, ~{result['points_per_frame']} points), "
+        f"database {len(database)} objects, K={k}",
+        file=sys.stderr,
+    )
+    for name, ms in result["stages_ms"].items():
+        print(f"  {name:28s} {ms:8.2f} ms", file=sys.stderr)
+    print(json.dumps(result))
+    return result
+
+
+if __name__ == "__main__":
+    main()
