@@ -1,0 +1,250 @@
+import numpy as np
+import pytest
+
+from drcpo.errors import ConfigError, DataError
+from drcpo.frame import Frame
+from drcpo.geometry import bev_corners, bev_overlap_area, points_in_boxes
+from drcpo.ground import GroundModel
+from drcpo.placement import (
+    REASONS,
+    PlacementConfig,
+    _Obstacles,
+    place_objects,
+    sample_poses,
+)
+
+AREA = PlacementConfig()
+SIZES = np.array([[3.9, 1.6, 1.5], [0.8, 0.6, 1.7], [1.8, 0.6, 1.7]])
+
+
+def uneven(xy):
+    return (
+        -1.7
+        + 0.03 * xy[:, 0]
+        - 0.02 * xy[:, 1]
+        + 0.25 * np.sin(xy[:, 0] / 5.0) * np.cos(xy[:, 1] / 6.0)
+    )
+
+
+def ground_cloud(rng, n=30000, extent=((-5, 75), (-45, 45)), surface=uneven):
+    xy = np.column_stack([rng.uniform(*extent[0], n), rng.uniform(*extent[1], n)])
+    return np.column_stack([xy, surface(xy) + rng.normal(0, 0.02, n), rng.uniform(0, 1, n)])
+
+
+def wall(rng, x0, x1, y0, y1, height=3.0, n=4000, surface=uneven):
+    """A block of non-ground points (a building, bushes) standing on the ground."""
+    xy = np.column_stack([rng.uniform(x0, x1, n), rng.uniform(y0, y1, n)])
+    z = surface(xy) + rng.uniform(0.1, height, n)
+    return np.column_stack([xy, z, rng.uniform(0, 1, n)])
+
+
+def scene(rng, boxes=None, extra=()):
+    points = np.concatenate([ground_cloud(rng), *extra]).astype(np.float32)
+    boxes = np.zeros((0, 7)) if boxes is None else np.asarray(boxes, dtype=np.float64)
+    return Frame(points, boxes, np.array(["Car"] * len(boxes)))
+
+
+def existing_boxes():
+    xy = np.array([[10, 0], [20, 5], [30, -8], [15, -15], [45, 12], [60, -30], [8, 25], [50, 0]])
+    out = np.column_stack([xy, uneven(xy.astype(float)) + 0.75, np.tile([3.9, 1.6, 1.5], (8, 1))])
+    return np.column_stack([out, np.linspace(-3, 3, 8)])
+
+
+def sizes(count):
+    return np.tile(SIZES, (count // 3 + 1, 1))[:count]
+
+
+def nonground_counts(frame, ground, boxes, tolerance=0.2):
+    above = frame.points[~ground.is_ground(frame.points, tolerance)]
+    return points_in_boxes(above, boxes).sum(axis=0)
+
+
+def test_no_two_boxes_overlap_and_footprints_stay_in_the_area(rng):
+    frame = scene(rng, existing_boxes())
+    config = PlacementConfig(max_tries=3)
+    result = place_objects(frame, sizes(60), None, rng, config)
+    assert len(result.accepted) >= 30
+    everything = np.concatenate([frame.boxes, result.boxes])
+    overlap = bev_overlap_area(everything)
+    np.fill_diagonal(overlap, 0)
+    assert (overlap == 0).all()
+    corners = bev_corners(result.boxes)
+    assert (corners[..., 0] >= 0 - 1e-9).all() and (corners[..., 0] <= 70.4 + 1e-9).all()
+    assert (np.abs(corners[..., 1]) <= 40 + 1e-9).all()
+    np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(60)[result.accepted])
+    assert ((result.boxes[:, 6] >= -np.pi) & (result.boxes[:, 6] < np.pi)).all()
+
+
+def test_boxes_stand_on_sloped_uneven_ground(rng):
+    frame = scene(rng)
+    ground = GroundModel.from_points(frame.points)
+    result = place_objects(frame, sizes(30), None, rng, None, ground)
+    assert len(result.accepted) >= 20
+    bottom = result.boxes[:, 2] - result.boxes[:, 5] / 2
+    np.testing.assert_allclose(bottom, ground.height_at(result.boxes[:, :2]), atol=1e-9)
+    assert np.abs(bottom - uneven(result.boxes[:, :2])).max() < 0.3
+    # Built internally from the frame's own points when no model is given.
+    again = place_objects(frame, sizes(30), None, np.random.default_rng(1))
+    bottom = again.boxes[:, 2] - again.boxes[:, 5] / 2
+    assert np.abs(bottom - uneven(again.boxes[:, :2])).max() < 0.3
+
+
+def test_no_box_holds_more_than_the_allowed_nonground_points(rng):
+    blocks = [wall(rng, 5, 35, -40, -5, n=20000), wall(rng, 40, 70, 10, 40, height=1.0, n=8000)]
+    frame = scene(rng, extra=blocks)
+    ground = GroundModel.from_points(frame.points)
+    for limit in (0, 10):
+        config = PlacementConfig(max_nonground_points=limit, max_tries=2)
+        result = place_objects(frame, sizes(40), None, rng, config, ground)
+        assert result.rejected["obstacle"] > 0
+        assert len(result.accepted) > 0
+        assert (nonground_counts(frame, ground, result.boxes) <= limit).all()
+
+
+def test_obstacle_counts_match_brute_force(rng):
+    frame = scene(rng, extra=[wall(rng, 10, 50, -20, 20, n=20000)])
+    ground = GroundModel.from_points(frame.points)
+    boxes = sample_poses(sizes(50), rng)
+    boxes[:, 2] = ground.height_at(boxes[:, :2]) + boxes[:, 5] / 2
+    obstacles = _Obstacles(frame.points, ground, AREA, sizes(50))
+    expected = nonground_counts(frame, ground, boxes)
+    np.testing.assert_array_equal(obstacles.count(boxes), expected)
+    assert expected.max() > 10
+
+
+def test_every_rejection_reason(rng):
+    frame = scene(rng)
+    too_big = place_objects(frame, [[120.0, 2.0, 2.0], [2.0, 150.0, 2.0]], None, rng)
+    assert too_big.rejected == {"out_of_range": 2, "collision": 0, "obstacle": 0}
+    assert too_big.reasons.tolist() == ["out_of_range", "out_of_range"]
+    assert len(too_big.accepted) == 0 and too_big.boxes.shape == (0, 7)
+
+    blocker = np.array([[35.2, 0.0, -1.0, 70.4, 80.0, 2.0, 0.0]])
+    blocked = place_objects(scene(rng, blocker), sizes(5), None, rng)
+    assert blocked.rejected["collision"] == 5 and len(blocked.accepted) == 0
+
+    crowded = place_objects(frame, sizes(40), None, rng, PlacementConfig(x_range=(0, 12)))
+    assert crowded.rejected["collision"] > 0
+    assert set(crowded.reasons.tolist()) <= {"", "collision", "obstacle"}
+
+    forest = scene(rng, extra=[wall(rng, -2, 22, -12, 12, height=2.0, n=40000)])
+    small = PlacementConfig(x_range=(0, 20), y_range=(-10, 10))
+    dense = place_objects(forest, sizes(6), None, rng, small)
+    assert dense.rejected["obstacle"] == 6 and len(dense.accepted) == 0
+    assert set(dense.rejected) == set(REASONS)
+
+
+def test_retries_place_more_objects_and_count_attempts(rng):
+    frame = scene(rng)
+    config = PlacementConfig(x_range=(0, 15), y_range=(-8, 8))
+    once = place_objects(frame, sizes(30), None, np.random.default_rng(3), config)
+    tries = PlacementConfig(x_range=(0, 15), y_range=(-8, 8), max_tries=6)
+    more = place_objects(frame, sizes(30), None, np.random.default_rng(3), tries)
+    assert len(more.accepted) > len(once.accepted)
+    for result in (once, more):
+        assert result.attempts == len(result.accepted) + sum(result.rejected.values())
+        assert (result.reasons[result.accepted] == "").all()
+        assert np.all(np.diff(result.accepted) > 0)
+    assert once.attempts == 30
+
+
+def test_source_height_mode_keeps_the_source_z(rng):
+    frame = scene(rng)
+    source = np.column_stack([np.zeros((9, 2)), np.linspace(-3, 1, 9), sizes(9), np.zeros(9)])
+    config = PlacementConfig(height_mode="source", max_nonground_points=10**6)
+    result = place_objects(frame, sizes(9), source, rng, config)
+    assert len(result.accepted) > 0
+    np.testing.assert_array_equal(result.boxes[:, 2], source[result.accepted, 2])
+    with pytest.raises(DataError, match="source boxes"):
+        place_objects(frame, sizes(9), None, rng, config)
+
+
+def test_field_of_view_only(rng):
+    config = PlacementConfig(fov_only=True)
+    boxes = sample_poses(sizes(300), rng, config)
+    corners = bev_corners(boxes)
+    azimuth = np.abs(np.arctan2(corners[..., 1], corners[..., 0]))
+    assert (azimuth <= config.fov_half_angle + 1e-9).all()
+    assert np.isfinite(boxes).all()
+    narrow = sample_poses(sizes(3), rng, PlacementConfig(fov_only=True, fov_half_angle=1e-4))
+    assert np.isnan(narrow[:, 0]).all()
+    frame = scene(rng)
+    placed = place_objects(frame, sizes(30), None, rng, config)
+    corners = bev_corners(placed.boxes)
+    assert (np.abs(np.arctan2(corners[..., 1], corners[..., 0])) <= config.fov_half_angle).all()
+
+
+def test_sample_poses_cover_the_area_uniformly(rng):
+    boxes = sample_poses(np.tile([[1.0, 1.0, 1.0]], (4000, 1)), rng)
+    assert np.abs(boxes[:, 0].mean() - 35.2) < 1.0 and np.abs(boxes[:, 1].mean()) < 1.2
+    assert boxes[:, 0].min() < 3 and boxes[:, 0].max() > 67
+    assert np.abs(np.histogram(boxes[:, 6], bins=4, range=(-np.pi, np.pi))[0] - 1000).max() < 120
+    np.testing.assert_array_equal(boxes[:, 2], 0.5)
+
+
+def test_same_seed_same_placement(rng):
+    frame = scene(rng, existing_boxes())
+    a = place_objects(frame, sizes(20), None, np.random.default_rng(9))
+    b = place_objects(frame, sizes(20), None, np.random.default_rng(9))
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+    np.testing.assert_array_equal(a.accepted, b.accepted)
+    assert a.rejected == b.rejected
+
+
+def test_dict_frames_empty_frames_and_empty_samples(rng):
+    frame = scene(rng, existing_boxes())
+    as_dict = place_objects(frame.to_dict(), sizes(10), None, np.random.default_rng(2))
+    as_frame = place_objects(frame, sizes(10), None, np.random.default_rng(2))
+    np.testing.assert_array_equal(as_dict.boxes, as_frame.boxes)
+    empty = place_objects(Frame(np.zeros((0, 4), np.float32)), sizes(4), None, rng)
+    assert len(empty.accepted) == 4
+    np.testing.assert_allclose(empty.boxes[:, 2] - empty.boxes[:, 5] / 2, -1.73)
+    nothing = place_objects(frame, np.zeros((0, 3)), None, rng)
+    assert nothing.boxes.shape == (0, 7) and nothing.attempts == 0
+
+
+def test_bad_input_is_rejected(rng):
+    frame = scene(rng)
+    with pytest.raises(DataError, match=r"dims\[1\]"):
+        place_objects(frame, [[1.0, 1.0, 1.0], [1.0, -1.0, 1.0]], None, rng)
+    with pytest.raises(DataError, match="shape"):
+        place_objects(frame, [1.0, 1.0, 1.0], None, rng)
+    with pytest.raises(ConfigError, match="placement.x_range"):
+        PlacementConfig(x_range=(5, 5))
+    with pytest.raises(ConfigError, match="placement.height_mode"):
+        PlacementConfig(height_mode="air")
+    with pytest.raises(ConfigError, match="placement.max_tries"):
+        PlacementConfig(max_tries=0)
+    with pytest.raises(ConfigError, match="placement.fov_half_angle"):
+        PlacementConfig(fov_half_angle=4.0)
+    with pytest.raises(ConfigError, match="placement.max_nonground_points"):
+        PlacementConfig(max_nonground_points=-1)
+
+
+def test_real_kitti_frames(kitti_sample):
+    from drcpo.datasets.kitti import KittiDataset
+
+    rng = np.random.default_rng(0)
+    gaps = []
+    for frame in KittiDataset(kitti_sample, "train"):
+        ground = GroundModel.from_points(frame.points)
+        result = place_objects(frame, sizes(30), None, rng, PlacementConfig(), ground)
+        assert len(result.accepted) > 0, frame.frame_id
+        everything = np.concatenate([frame.boxes, result.boxes])
+        overlap = bev_overlap_area(everything)
+        np.fill_diagonal(overlap, 0)
+        assert (overlap == 0).all(), frame.frame_id
+        assert (nonground_counts(frame, ground, result.boxes) <= 10).all(), frame.frame_id
+        bottom = result.boxes[:, 2] - result.boxes[:, 5] / 2
+        np.testing.assert_allclose(bottom, ground.height_at(result.boxes[:, :2]), atol=1e-9)
+        # Where the frame shows the ground under a placed box, the box stands on it: the lowest
+        # tenth of the points in its (slightly grown) footprint, up to its top, lies at its bottom.
+        columns = result.boxes.copy()
+        columns[:, 5] += 10.0
+        columns[:, 2] -= 5.0
+        inside = points_in_boxes(frame.points, columns, margin=0.3)
+        for j in np.flatnonzero(inside.sum(axis=0) >= 10):
+            gaps.append(np.percentile(frame.points[inside[:, j], 2], 10) - bottom[j])
+    gaps = np.abs(gaps)
+    assert len(gaps) >= 12
+    assert np.mean(gaps < 0.3) >= 0.75, np.round(gaps, 2)
