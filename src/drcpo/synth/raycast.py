@@ -4,7 +4,7 @@ Every ray starts at the origin. Solids are binned by the azimuth interval they c
 a bin, sorted by their nearest horizontal distance, so a ray tests only the solids in its
 direction and stops as soon as the next solid cannot be nearer than its current hit. The ground
 is a smooth height field ``z = base + sum_k a_k sin(kx_k x + ky_k y + phi_k)``, hit by marching the
-ray through the height band the field can occupy and bisecting the first crossing.
+ray through the height band the field can occupy and refining the first crossing.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import numpy as np
 from drcpo.synth.solids import BOX, ELLIPSOID, Solids
 
 MISS, GROUND = -2, -1  # hit codes besides solid rows
-_GROUND_STEP = 0.5  # metres between height-field tests along a ray
-_BISECTIONS = 30
+_MIN_GROUND_STEP = 0.02  # metres; smallest step of the height-field march
+_REFINE_ITERATIONS = 40
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,30 +162,54 @@ def _ground_z(x, y, base, amp, kx, ky, ph):
 
 @numba.njit(cache=True)
 def _ground_hit(dx, dy, dz, t_max, base, amp, kx, ky, ph):
+    """First crossing of the ray with the height field, by Lipschitz-safe marching.
+
+    ``f(t) = ray height - ground height`` changes at most ``|dz| + G |d_xy|`` per metre (G: the
+    field's largest slope), so a step of ``f / L`` cannot pass the crossing; near it the step
+    falls to ``_MIN_GROUND_STEP`` and the bracketed crossing is refined by the Illinois method.
+    """
     if dz >= 0.0:
         return np.inf
-    bound = 0.0
+    bound, slope = 0.0, 0.0
     for k in range(amp.shape[0]):
         bound += abs(amp[k])
+        slope += abs(amp[k]) * np.sqrt(kx[k] * kx[k] + ky[k] * ky[k])
     t_lo = (base + bound) / dz
     if t_lo >= t_max:
         return np.inf
     t_hi = min((base - bound) / dz, t_max)
-    steps = max(1, int(np.ceil((t_hi - t_lo) / _GROUND_STEP)))
-    step = (t_hi - t_lo) / steps
+    lipschitz = -dz + slope * np.sqrt(dx * dx + dy * dy)
     a = t_lo
-    for i in range(1, steps + 1):
-        b = t_lo + i * step
-        if b * dz - _ground_z(b * dx, b * dy, base, amp, kx, ky, ph) <= 0.0:
-            for _ in range(_BISECTIONS):
-                m = 0.5 * (a + b)
-                if m * dz - _ground_z(m * dx, m * dy, base, amp, kx, ky, ph) <= 0.0:
-                    b = m
-                else:
-                    a = m
-            return b if b < t_max else np.inf
-        a = b
+    fa = a * dz - _ground_z(a * dx, a * dy, base, amp, kx, ky, ph)
+    while a < t_hi:
+        b = min(a + max(fa / lipschitz, _MIN_GROUND_STEP), t_hi)
+        fb = b * dz - _ground_z(b * dx, b * dy, base, amp, kx, ky, ph)
+        if fb <= 0.0:
+            return _refine_crossing(a, fa, b, fb, dx, dy, dz, base, amp, kx, ky, ph, t_max)
+        a, fa = b, fb
     return np.inf
+
+
+@numba.njit(cache=True)
+def _refine_crossing(a, fa, b, fb, dx, dy, dz, base, amp, kx, ky, ph, t_max):
+    """Illinois regula falsi on a bracket with ``fa > 0 >= fb``; returns the crossing distance."""
+    side = 0
+    for _ in range(_REFINE_ITERATIONS):
+        if b - a < 1e-9 or fb == 0.0:
+            break
+        m = (a * fb - b * fa) / (fb - fa)
+        fm = m * dz - _ground_z(m * dx, m * dy, base, amp, kx, ky, ph)
+        if fm <= 0.0:
+            b, fb = m, fm
+            if side == -1:
+                fa *= 0.5
+            side = -1
+        else:
+            a, fa = m, fm
+            if side == 1:
+                fb *= 0.5
+            side = 1
+    return b if b < t_max else np.inf
 
 
 @numba.njit(cache=True)
