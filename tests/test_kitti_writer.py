@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import stat
+
 import numpy as np
 import pytest
 
@@ -153,3 +156,12 @@ def test_write_frame_reads_back_through_the_dataset(tmp_path, rng):
     np.testing.assert_array_equal(frame.metadata["occlusion"], [0, 1, 2, 0, 1])
     leftovers = [p for p in tmp_path.rglob("*") if p.name.startswith(".")]
     assert leftovers == []
+
+
+def test_written_files_get_the_usual_permissions(tmp_path, rng):
+    umask = os.umask(0o022)
+    try:
+        path = write_points(tmp_path / "000000.bin", rng.normal(size=(10, 4)).astype(np.float32))
+    finally:
+        os.umask(umask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644

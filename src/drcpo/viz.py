@@ -22,6 +22,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon, Rectangle
 
+from drcpo.datasets.kitti_writer import default_mode
 from drcpo.geometry import bev_corners
 
 CLASS_COLOURS: dict[str, str] = {
@@ -87,6 +88,7 @@ def _save(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
     os.close(handle)
     try:
         fig.savefig(tmp, dpi=dpi, format="png")
+        os.chmod(tmp, default_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -101,6 +101,17 @@ def calibration_matrices(
     return matrices
 
 
+def default_mode(mode: int = 0o666) -> int:
+    """``mode`` filtered by the process umask: the mode ``open`` would give a new file.
+
+    ``tempfile`` creates private (0600 / 0700) files and directories; renamed into place they
+    would otherwise keep those modes.
+    """
+    umask = os.umask(0)
+    os.umask(umask)
+    return mode & ~umask
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same directory, then rename."""
     path = Path(path)
@@ -109,6 +120,7 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     try:
         with os.fdopen(handle, "wb") as file:
             file.write(data)
+        os.chmod(tmp, default_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

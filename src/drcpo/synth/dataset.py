@@ -22,6 +22,7 @@ from drcpo.database import atomic_directory
 from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, Calibration
 from drcpo.datasets.kitti_writer import (
     REFERENCE_CALIB,
+    default_mode,
     project_boxes,
     reference_calibration,
     write_frame,
@@ -132,6 +133,7 @@ def write_synthetic_kitti(
     timings: list[float] = []
 
     def write(tmp: Path) -> None:
+        tmp.chmod(default_mode(0o777))
         for number, frame_id in enumerate(ids):
             start = time.perf_counter()
             frame = synthesize_frame(frame_rng(seed, number), world_config, lidar_config)
