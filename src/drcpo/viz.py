@@ -102,18 +102,12 @@ def _draw_bev(ax, panel: BevPanel, extent: tuple[float, float, float, float]) ->
     keep = (points[:, 0] >= x_lo) & (points[:, 0] <= x_hi)
     keep &= (points[:, 1] >= y_lo) & (points[:, 1] <= y_hi)
     shown = points[keep]
-    # Height colouring separates ground from objects and walls at a glance.
-    ax.scatter(
-        shown[:, 1],
-        shown[:, 0],
-        s=0.3,
-        c=np.clip(shown[:, 2], -2.5, 1.0),
-        cmap="Greys",
-        vmin=-3.5,
-        vmax=0.5,
-        linewidths=0,
-        rasterized=True,
-    )
+    # Points well above the ground (objects, walls, poles) are drawn darker and larger than the
+    # ground rings; the ground level is a low percentile of the heights shown.
+    ground = np.percentile(shown[:, 2], 5) if len(shown) else 0.0
+    raised = shown[:, 2] > ground + 0.35
+    for mask, size, colour in ((~raised, 0.2, "#b0b0b0"), (raised, 0.9, "#303030")):
+        ax.scatter(shown[mask, 1], shown[mask, 0], s=size, c=colour, linewidths=0, rasterized=True)
     boxes = np.asarray(panel.boxes, dtype=np.float64).reshape(-1, 7)
     inserted = (
         np.zeros(len(boxes), bool) if panel.inserted is None else np.asarray(panel.inserted, bool)
@@ -124,13 +118,15 @@ def _draw_bev(ax, panel: BevPanel, extent: tuple[float, float, float, float]) ->
             Polygon(
                 corners[:, ::-1],
                 closed=True,
-                fill=bool(new),
-                facecolor=INSERTED_COLOUR if new else "none",
-                alpha=0.9 if new else 1.0,
+                fill=False,
                 edgecolor=colour,
-                linewidth=1.6 if new else 1.0,
+                linewidth=1.0,
             )
         )
+        if new:
+            ax.add_patch(
+                Polygon(corners[:, ::-1], closed=True, facecolor=INSERTED_COLOUR, alpha=0.45)
+            )
     ax.plot([0], [0], marker="^", color="black", markersize=7, zorder=5)
     ax.set_xlim(y_hi, y_lo)  # y points left in the LiDAR frame, so it grows to the left
     ax.set_ylim(x_lo, x_hi)
@@ -161,7 +157,7 @@ def bev_figure(
     handles = [
         Rectangle((0, 0), 1, 1, fill=False, edgecolor=c, label=n) for n, c in CLASS_COLOURS.items()
     ]
-    handles.append(Rectangle((0, 0), 1, 1, facecolor=INSERTED_COLOUR, label="inserted"))
+    handles.append(Rectangle((0, 0), 1, 1, facecolor=INSERTED_COLOUR, alpha=0.45, label="inserted"))
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8)
     return _save(fig, path, dpi)
 
