@@ -254,3 +254,27 @@ def test_config_grids_and_padded_class_maxima(database, rng):
     out = construct_object(database, 1, candidates_of(database, 1), rng, config, scale)
     assert out.coverage >= out.coverage_initial
     hash(config)  # frozen and hashable, so it can key caches
+
+
+def test_real_kitti_database_with_its_index(kitti_sample, tmp_path):
+    from drcpo.database_build import build_database
+    from drcpo.index import IndexConfig, build_index
+
+    database = build_database(kitti_sample, "train", tmp_path / "db", classes="all")
+    index = build_index(database, IndexConfig(workers=1))
+    rng = np.random.default_rng(0)
+    constructed = 0
+    for row in range(len(database)):
+        name = str(database.names[row])
+        if name not in index.max_counts or database.num_points[row] < 5:
+            continue
+        cands = index.candidates_of(row)
+        for mode in ("partition", "whole"):
+            config = ConstructionConfig(mode=mode)
+            out = construct_object(database, row, cands, rng, config, index.max_counts[name])
+            assert set(out.added_from.tolist()) <= set(cands.tolist())
+            assert out.coverage >= out.coverage_initial
+            assert (np.abs(out.points[:, :3]) <= out.dims / 2 + config.margin + 1e-6).all()
+            assert out.points.shape[1] == database.points.shape[1]
+            constructed += 1
+    assert constructed >= 4
