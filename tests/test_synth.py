@@ -17,6 +17,7 @@ from drcpo.synth import (
     Solids,
     WorldConfig,
     frame_rng,
+    free_pose,
     generate_world,
     hdl64e_elevations,
     make_actor,
@@ -335,3 +336,18 @@ def test_synth_command_writes_a_kitti_root(tmp_path):
         assert (root / "training" / kind / f"000001{suffix}").is_file()
     again = CliRunner().invoke(app, ["synth", "--out", str(root), "--frames", "1"])
     assert again.exit_code == 1 and "already exists" in again.output
+
+
+def test_free_pose_stands_on_the_ground_clear_of_everything(frames):
+    world = frames[1].world
+    rng = np.random.default_rng(8)
+    for name in CLASSES:
+        actor = make_actor(name, rng)
+        box = free_pose(world, actor, rng)
+        assert box is not None
+        bottom = box[2] - box[5] / 2
+        assert bottom == pytest.approx(float(world.support_height(box[0], box[1])))
+        taken = np.concatenate([world.boxes, world.obstacles])
+        assert bev_overlap_area(box[None], taken).max() == 0.0
+    crowded = free_pose(world, make_actor("Car", rng), rng, x_range=(-1, 1), y_range=(-1, 1))
+    assert crowded is None  # the recording car sits there

@@ -20,7 +20,7 @@ from drcpo.synth.raycast import Ground, RayHits, Scene
 from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
 from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, ray_grid
 from drcpo.synth.solids import Solids
-from drcpo.synth.truth import PlacedObjectTruth, place_object, visible_points
+from drcpo.synth.truth import PlacedObjectTruth, free_pose, place_object, visible_points
 from drcpo.synth.world import World, WorldConfig, generate_world
 
 __all__ = [
@@ -40,6 +40,7 @@ __all__ = [
     "WorldConfig",
     "actor_visibility",
     "frame_rng",
+    "free_pose",
     "generate_world",
     "hdl64e_elevations",
     "make_actor",

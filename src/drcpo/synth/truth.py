@@ -64,3 +64,22 @@ def place_object(
     self_visible = visible_points(Scene(solids, None, num_bins=64), points, tolerance)
     visible = visible_points(world.with_extra(solids), points, tolerance)
     return PlacedObjectTruth(points, self_visible, visible, solids)
+
+
+def free_pose(
+    world: World,
+    actor: Actor,
+    rng: np.random.Generator,
+    x_range: tuple[float, float] = (5.0, 60.0),
+    y_range: tuple[float, float] = (-20.0, 20.0),
+    margin: float = 0.2,
+    tries: int = 100,
+) -> np.ndarray | None:
+    """A random box ``(7,)`` for ``actor`` standing on the world's ground (or a sidewalk) inside
+    the ranges (metres), overlapping no actor or obstacle; ``None`` after ``tries`` misses."""
+    for _ in range(tries):
+        x, y = rng.uniform(*x_range), rng.uniform(*y_range)
+        box = actor.box(x, y, float(world.support_height(x, y)), rng.uniform(-np.pi, np.pi))
+        if world.free(box[None], margin)[0]:
+            return box
+    return None

@@ -8,7 +8,7 @@ and the sensor in a lane at ``(0, sensor_v)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -120,6 +120,20 @@ class World:
     actors: tuple[Actor, ...]
     boxes: np.ndarray
     names: np.ndarray
+    sidewalks: Solids = field(default_factory=Solids.empty)
+    obstacles: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+
+    def support_height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Height (metres) of what stands at ``x, y``: a sidewalk's top, else the ground."""
+        return support_height(self.ground, self.sidewalks, x, y)
+
+    def free(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """``bool (B,)``: boxes ``(B, 7)`` whose footprint (grown by ``margin``) overlaps no
+        actor's box and no obstacle (walls, poles, trunks, clutter)."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7).copy()
+        boxes[:, 3:5] += 2 * margin
+        taken = np.concatenate([_ActorPlacer.EGO, self.obstacles, self.boxes])
+        return ~(bev_overlap_area(boxes, taken) > 0).any(axis=1)
 
     @cached_property
     def solids(self) -> Solids:
@@ -160,7 +174,7 @@ def generate_world(
     buildings = builder.buildings(rng, config)
     poles, trees, clutter = builder.poles(rng), builder.trees(rng, config), builder.clutter(rng)
     static = Solids.concatenate([slabs, buildings, poles, trees, clutter])
-    obstacles = _footprints(Solids.concatenate([buildings, poles, trees, clutter]))
+    obstacles = footprints(Solids.concatenate([buildings, poles, trees, clutter]))
     placer = _ActorPlacer(rng, street, ground, slabs, obstacles)
     placer.place_all(config)
     return World(
@@ -170,7 +184,26 @@ def generate_world(
         actors=tuple(placer.actors),
         boxes=np.array(placer.boxes, dtype=np.float64).reshape(-1, 7),
         names=np.array([a.name for a in placer.actors], dtype=str),
+        sidewalks=slabs,
+        obstacles=obstacles,
     )
+
+
+def support_height(ground: Ground, sidewalks: Solids, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Height (metres) at ``x, y`` of a sidewalk slab's top where one is, else of the ground."""
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    z = ground.height(x, y)
+    s = sidewalks
+    if len(s) == 0:
+        return z
+    dx = x[..., None] - s.centre[:, 0]
+    dy = y[..., None] - s.centre[:, 1]
+    cos, sin = np.cos(s.yaw), np.sin(s.yaw)
+    under = (np.abs(cos * dx + sin * dy) <= s.half[:, 0]) & (
+        np.abs(-sin * dx + cos * dy) <= s.half[:, 1]
+    )
+    top = np.where(under, s.centre[:, 2] + s.half[:, 2], -np.inf).max(axis=-1)
+    return np.maximum(z, top)
 
 
 def _random_ground(rng: np.random.Generator, config: WorldConfig, mount_height: float) -> Ground:
@@ -369,7 +402,7 @@ class _StaticBuilder:
         return make_solids(rows)
 
 
-def _footprints(solids: Solids) -> np.ndarray:
+def footprints(solids: Solids) -> np.ndarray:
     """BEV boxes ``(S, 7)`` covering each solid's footprint (tree crowns by their trunks' box).
 
     Foliage is skipped: objects may stand under tree crowns but not in trunks, poles or walls.
@@ -391,29 +424,14 @@ class _ActorPlacer:
         self.actors: list[Actor] = []
         self.boxes: list[np.ndarray] = []
 
-    def support_height(self, x: float, y: float) -> float:
-        """Height of what an object at (x, y) stands on: a sidewalk slab's top, else the ground."""
-        z = float(self.ground.height(x, y))
-        s = self.slabs
-        if len(s):
-            top = s.centre[:, 2] + s.half[:, 2]
-            probe = np.array([[x, y, 0.0]])
-            local = probe[:, :2] - s.centre[:, :2]
-            cos, sin = np.cos(s.yaw), np.sin(s.yaw)
-            lu = cos * local[:, 0] + sin * local[:, 1]
-            lv = -sin * local[:, 0] + cos * local[:, 1]
-            under = (np.abs(lu) <= s.half[:, 0]) & (np.abs(lv) <= s.half[:, 1])
-            if under.any():
-                z = max(z, float(top[under].max()))
-        return z
-
     def try_place(self, name: str, u: float, v: float, heading_uv: float, margin: float) -> bool:
         actor = make_actor(name, self.rng)
         x, y = self.street.to_lidar(u, v)
         heading = float(
             np.arctan2(np.sin(heading_uv + self.street.yaw), np.cos(heading_uv + self.street.yaw))
         )
-        box = actor.box(float(x), float(y), self.support_height(float(x), float(y)), heading)
+        ground_z = float(support_height(self.ground, self.slabs, x, y))
+        box = actor.box(float(x), float(y), ground_z, heading)
         grown = box.copy()
         grown[3:5] += 2 * margin
         others = np.concatenate([self.blocked, np.array(self.boxes).reshape(-1, 7)])
