@@ -108,6 +108,17 @@ def test_large_class_with_many_ties_matches_brute_force():
     np.testing.assert_array_equal(index.candidates, ref_candidates)
 
 
+def test_many_identical_boxes_match_brute_force(rng):
+    # Only the lowest rows of each group of identical boxes are searchable; the result must
+    # not change.
+    db = random_database(rng, 3000, classes=("Car",), step=1.0)
+    assert len(np.unique(db.boxes[:, 3:6], axis=0)) < 30
+    config = IndexConfig(k=20)
+    index = build_index(db, config)
+    ref_candidates, _ = reference_index(db, config)
+    np.testing.assert_array_equal(index.candidates, ref_candidates)
+
+
 def test_grid_search_first_stage_is_exact_on_continuous_sizes(rng):
     dims = np.exp(rng.normal([1.36, 0.48, 0.42], [0.11, 0.06, 0.09], (3000, 3)))
     dims[::10] = dims[1::10]  # exact duplicates
