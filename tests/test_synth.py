@@ -351,3 +351,28 @@ def test_free_pose_stands_on_the_ground_clear_of_everything(frames):
         assert bev_overlap_area(box[None], taken).max() == 0.0
     crowded = free_pose(world, make_actor("Car", rng), rng, x_range=(-1, 1), y_range=(-1, 1))
     assert crowded is None  # the recording car sits there
+
+
+def test_visibility_counts_rays_across_the_azimuth_seam():
+    from drcpo.synth import World, actor_visibility
+    from drcpo.synth.world import Street
+
+    rng = np.random.default_rng(2)
+    actors = (make_actor("Car", rng), make_actor("Pedestrian", rng))
+    boxes = np.array([actors[0].box(-10.0, 0.0, -1.73, 0.3), actors[1].box(-6.0, 0.3, -1.73, 0.0)])
+    world = World(
+        Ground.flat(-1.73),
+        Street(0.0, -2.0, 5.0, 3.0, 0.15),
+        Solids.empty(),
+        actors,
+        boxes,
+        np.array(["Car", "Pedestrian"]),
+    )
+    config = LidarConfig(azimuth_step_deg=0.5)
+    sweep = scan(world, np.random.default_rng(0), config)
+    visibility = actor_visibility(world, sweep, config)
+    assert visibility.reachable[0] > 100 and visibility.reachable[1] > 20
+    assert visibility.seen[1] == visibility.reachable[1]  # nothing stands in front of it
+    assert 0 < visibility.seen[0] < visibility.reachable[0]  # the pedestrian hides part of it
+    rays_on_car = int((sweep.ray_owner == 0).sum())
+    assert visibility.seen[0] == rays_on_car
