@@ -74,40 +74,20 @@ def _car(dims: np.ndarray, rng: np.random.Generator) -> Solids:
     cabin_len = length * rng.uniform(0.45, 0.55)
     cabin_x = -length * rng.uniform(0.02, 0.1)
     cabin_half_w = width / 2 - 0.1
-    rows = [
-        (
-            BOX,
-            (0, 0, (body_bottom + body_top) / 2),
-            (length / 2, width / 2, (body_top - body_bottom) / 2),
-            0,
-            paint,
-        ),
-        (
-            BOX,
-            (cabin_x, 0, (body_top + height - roof) / 2),
-            (cabin_len / 2, cabin_half_w, (height - roof - body_top) / 2),
-            0,
-            "glass",
-        ),
-        (
-            BOX,
-            (cabin_x, 0, height - roof / 2),
-            (cabin_len / 2 - 0.05, cabin_half_w - 0.03, roof / 2),
-            0,
-            paint,
-        ),
+    body = (
+        (0, 0, (body_bottom + body_top) / 2),
+        (length / 2, width / 2, (body_top - body_bottom) / 2),
+    )
+    cabin_z = (body_top + height - roof) / 2
+    cabin = ((cabin_x, 0, cabin_z), (cabin_len / 2, cabin_half_w, (height - roof - body_top) / 2))
+    top = ((cabin_x, 0, height - roof / 2), (cabin_len / 2 - 0.05, cabin_half_w - 0.03, roof / 2))
+    wheel = (wheel_r, wheel_half_w, wheel_r)
+    rows = [(BOX, *body, 0, paint), (BOX, *cabin, 0, "glass"), (BOX, *top, 0, paint)]
+    rows += [
+        (ELLIPSOID, (sx * axle_x, sy * axle_y, wheel_r), wheel, 0, "tyre")
+        for sx in (-1, 1)
+        for sy in (-1, 1)
     ]
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            rows.append(
-                (
-                    ELLIPSOID,
-                    (sx * axle_x, sy * axle_y, wheel_r),
-                    (wheel_r, wheel_half_w, wheel_r),
-                    0,
-                    "tyre",
-                )
-            )
     return make_solids(rows)
 
 
@@ -137,27 +117,23 @@ def _cyclist(dims: np.ndarray, rng: np.random.Generator) -> Solids:
     length, width, height = dims
     wheel_r = float(np.clip(0.17 * length + 0.04, 0.28, 0.38))
     wheel_x = length / 2 - wheel_r
-    scale = height / 1.73
-    rider = "cloth"
+    s = height / 1.73  # rider scale
+    lean = rng.uniform(-0.05, 0.1)  # upright to leaning over the handlebar
+    thigh = (0.065, 0.065, 0.28 * s)
+    arm = (wheel_x * 0.5, 0.04, 0.04)
+    head = (0.11 * s, 0.095, 0.11 * s)
     rows = [
         (ELLIPSOID, (wheel_x, 0, wheel_r), (wheel_r, 0.03, wheel_r), 0, "tyre"),
         (ELLIPSOID, (-wheel_x, 0, wheel_r), (wheel_r, 0.03, wheel_r), 0, "tyre"),
         (BOX, (0, 0, wheel_r + 0.2), (wheel_x * 0.8, 0.03, 0.15), 0, "metal"),
-        (BOX, (wheel_x - 0.12, 0, 1.0 * scale), (0.03, width / 2, 0.03), 0, "metal"),
-        (CYLINDER, (-0.1, 0.12, 0.35 + 0.28 * scale), (0.065, 0.065, 0.28 * scale), 0, rider),
-        (CYLINDER, (-0.1, -0.12, 0.35 + 0.28 * scale), (0.065, 0.065, 0.28 * scale), 0, rider),
-        (ELLIPSOID, (0.0, 0, 1.2 * scale), (0.28, 0.18, 0.3 * scale), 0, rider),
-        (BOX, (wheel_x * 0.5 - 0.05, 0.2, 1.15 * scale), (wheel_x * 0.5, 0.04, 0.04), 0, rider),
-        (BOX, (wheel_x * 0.5 - 0.05, -0.2, 1.15 * scale), (wheel_x * 0.5, 0.04, 0.04), 0, rider),
-        (
-            ELLIPSOID,
-            (0.12, 0, height - 0.11 * scale),
-            (0.11 * scale, 0.095, 0.11 * scale),
-            0,
-            "skin",
-        ),
+        (BOX, (wheel_x - 0.12, 0, 1.0 * s), (0.03, width / 2, 0.03), 0, "metal"),
+        (CYLINDER, (-0.1, 0.12, 0.35 + 0.28 * s), thigh, 0, "cloth"),
+        (CYLINDER, (-0.1, -0.12, 0.35 + 0.28 * s), thigh, 0, "cloth"),
+        (ELLIPSOID, (lean, 0, 1.2 * s), (0.28, 0.18, 0.3 * s), 0, "cloth"),
+        (BOX, (wheel_x * 0.5 - 0.05 + lean / 2, 0.2, 1.15 * s), arm, 0, "cloth"),
+        (BOX, (wheel_x * 0.5 - 0.05 + lean / 2, -0.2, 1.15 * s), arm, 0, "cloth"),
+        (ELLIPSOID, (0.12 + lean, 0, height - 0.11 * s), head, 0, "skin"),
     ]
-    del rng
     return make_solids(rows)
 
 
