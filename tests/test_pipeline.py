@@ -7,6 +7,7 @@ from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_overlap_area, box_corners, from_canonical, points_in_boxes
 from drcpo.pipeline import (
+    DRCPO,
     BoxQuery,
     Compose,
     GlobalFlip,
@@ -14,9 +15,12 @@ from drcpo.pipeline import (
     GlobalScaling,
     GroundTruthSampling,
     Stats,
+    build_pipeline,
+    frame_ground,
     match_features,
     road_plane_heights,
     transform_from_config,
+    view_windows,
 )
 
 SIZES = {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)}
@@ -421,3 +425,351 @@ def test_box_query_equals_points_in_boxes(rng):
         np.testing.assert_array_equal(query.inside_any(boxes, margin), reference.any(axis=1))
         np.testing.assert_array_equal(query.counts(boxes, margin), reference.sum(axis=0))
     assert query.inside_any(np.zeros((0, 7))).sum() == 0
+
+
+# --------------------------------------------------------------------------------------------
+# DR.CPO
+# --------------------------------------------------------------------------------------------
+MIN_POINTS = 5
+
+
+@pytest.fixture(scope="module")
+def synthetic_world():
+    """A synthetic database of object surfaces, its index, and two ray-cast frames (camera FOV)."""
+    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_writer import reference_calibration
+    from drcpo.index import IndexConfig, build_index
+    from drcpo.synth import frame_rng, synthesize_frame
+
+    db = synthetic_database(
+        np.random.default_rng(11), {"Car": 120, "Pedestrian": 50, "Cyclist": 30}, 3, 400
+    )
+    index = build_index(db, IndexConfig(k=20, workers=1))
+    calib = reference_calibration()
+    frames = []
+    for i in range(2):
+        made = synthesize_frame(frame_rng(3, i), calib=calib)
+        points = np.asarray(made.sweep.points, dtype=np.float32)
+        keep = fov_mask(points, calib)
+        metadata = {"frame_id": f"synth{i}", "calib": calib, "fov_only": True}
+        frames.append(Frame(points[keep], made.boxes, made.names, metadata))
+    return db, index, frames
+
+
+_KITTI_CACHE: dict = {}
+
+
+@pytest.fixture
+def kitti_world(kitti_sample, tmp_path_factory):
+    """The database built from the real KITTI sample, its index, and its frames (camera FOV)."""
+    if not _KITTI_CACHE:
+        from drcpo.database_build import build_database
+        from drcpo.datasets.kitti import KittiDataset, fov_mask
+        from drcpo.index import IndexConfig, build_index
+
+        out = tmp_path_factory.mktemp("kitti") / "db"
+        db = build_database(kitti_sample, "train", out)
+        index = build_index(db, IndexConfig(k=20, workers=1))
+        index.save(out)
+        dataset = KittiDataset(kitti_sample, "train")
+        frames = []
+        for frame_id in dataset.frame_ids:
+            frame = dataset.frame(frame_id)
+            keep = fov_mask(frame.points, frame.metadata["calib"], dataset.image_shape(frame_id))
+            metadata = {**frame.metadata, "fov_only": True}
+            frames.append(frame.replace(points=frame.points[keep], metadata=metadata))
+        _KITTI_CACHE.update(db=db, index=index, frames=frames, path=out)
+    return _KITTI_CACHE["db"], _KITTI_CACHE["index"], _KITTI_CACHE["frames"]
+
+
+def row_set(points):
+    return {row.tobytes() for row in np.ascontiguousarray(points)}
+
+
+def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
+    """Assert the issue's invariants on one DR.CPO output; return a few counts."""
+    config = transform.config
+    stats = out.metadata["augment_stats"]
+    added = sum(c["added"] for c in stats["objects"].get("drcpo", {}).values())
+    dropped = sum(stats["labels_dropped"].values())
+    kept_original = len(before.boxes) - dropped
+    assert len(out.boxes) == kept_original + added == len(out.names)
+    original, inserted = out.boxes[:kept_original], out.boxes[kept_original:]
+    # Original boxes kept are unchanged, in order.
+    before_rows = {row.tobytes(): i for i, row in enumerate(before.boxes)}
+    kept_index = np.array([before_rows[row.tobytes()] for row in original], dtype=int)
+    np.testing.assert_array_equal(out.names[:kept_original], before.names[kept_index])
+    # No inserted box overlaps any other box in BEV.
+    if added:
+        overlap = bev_overlap_area(inserted, out.boxes)
+        overlap[np.arange(added), kept_original + np.arange(added)] = 0.0
+        assert overlap.max() == 0.0
+    # Every box kept has at least 5 points, unless it already had fewer.
+    counts_after = BoxQuery(out.points).counts(out.boxes)
+    counts_before = BoxQuery(before.points).counts(before.boxes)
+    assert (counts_after[kept_original:] >= MIN_POINTS).all()
+    sparse_before = counts_before[kept_index] < MIN_POINTS
+    assert ((counts_after[:kept_original] >= MIN_POINTS) | sparse_before).all()
+    # Inserted boxes stand on the ground and hold few non-ground points of the frame.
+    ground = frame_ground(before)
+    if config.placement.height == "ground" and added:
+        bottom = inserted[:, 2] - inserted[:, 5] / 2.0
+        assert np.abs(bottom - ground.height_at(inserted[:, :2])).max() <= 0.3
+    query = BoxQuery(before.points)
+    tolerance = config.placement.ground_tolerance
+    for box in inserted:
+        members = before.points[query.inside(box)]
+        non_ground = int((~ground.is_ground(members, tolerance)).sum()) if len(members) else 0
+        assert non_ground <= config.placement.max_non_ground_points
+    # Points: every output point is an input point, bit for bit, or lies in an inserted box.
+    new_rows = row_set(out.points) - row_set(before.points)
+    in_inserted = BoxQuery(out.points).inside_any(inserted, margin=0.1)
+    assert {row.tobytes() for row in out.points[in_inserted]} >= new_rows
+    # Input points that are gone: inside an inserted box (room for it) or, with the inserted
+    # scope, hidden behind an inserted object (inside the view window of an inserted box).
+    kept_rows = row_set(out.points)
+    gone = np.array([row.tobytes() not in kept_rows for row in before.points], dtype=bool)
+    if config.external_occlusion.scope == "inserted" and gone.any():
+        cleared = BoxQuery(before.points).inside_any(inserted)
+        _, viewpoint = transform.e_hpr_setting()
+        grown = inserted.copy()
+        grown[:, 3:6] += 0.2
+        core = view_windows(before.points, grown, viewpoint)
+        assert (cleared | core)[gone].all()
+    return {"added": added, "dropped": dropped, "gone": int(gone.sum())}
+
+
+@pytest.mark.parametrize(
+    ("mode", "scope"),
+    [("partition", "inserted"), ("partition", "frame"), ("whole", "inserted"), ("whole", "frame")],
+)
+def test_drcpo_invariants_on_synthetic_world(synthetic_world, mode, scope):
+    db, index, frames = synthetic_world
+    transform = DRCPO(
+        db, index, {"construction": {"mode": mode}, "external_occlusion": {"scope": scope}}
+    )
+    totals = {"added": 0, "gone": 0}
+    for i, frame in enumerate(frames):
+        out = transform(frame, np.random.default_rng(i))
+        result = check_drcpo_frame(transform, frame, out)
+        totals = {k: totals[k] + result[k] for k in totals}
+        iterations = out.metadata["augment_stats"]["construction_iterations"]
+        assert all(0 <= n <= 20 for values in iterations.values() for n in values)
+    assert totals["added"] > 0
+
+
+@pytest.mark.parametrize("scope", ["inserted", "frame"])
+def test_drcpo_invariants_on_kitti_sample(kitti_world, scope):
+    db, index, frames = kitti_world
+    transform = DRCPO(db, index, {"external_occlusion": {"scope": scope}})
+    tried = 0
+    for i, frame in enumerate(frames):
+        out = transform(frame, np.random.default_rng(100 + i))
+        check_drcpo_frame(transform, frame, out)
+        tried += sum(c["tried"] for c in out.metadata["augment_stats"]["objects"]["drcpo"].values())
+    assert tried > 0
+
+
+def test_full_pipeline_on_kitti_sample(kitti_world):
+    db, index, frames = kitti_world
+    pipeline = build_pipeline("default", db, index)
+    assert [type(t).__name__ for t in pipeline.transforms] == [
+        "GroundTruthSampling",
+        "DRCPO",
+        "GlobalFlip",
+        "GlobalRotation",
+        "GlobalScaling",
+    ]
+    for i, frame in enumerate(frames[:3]):
+        out = pipeline(frame.to_dict(), np.random.default_rng(i))
+        assert isinstance(out, dict) and out["frame_id"] == frame.frame_id
+        boxes = out["gt_boxes"]
+        new = boxes[len(frame.boxes) :]
+        overlap = bev_overlap_area(new, boxes)
+        overlap[np.arange(len(new)), len(frame.boxes) + np.arange(len(new))] = 0.0
+        assert overlap.max(initial=0.0) == 0.0
+        assert next(iter(out["augment_stats"]["stages"])) == "gt_sampling"
+
+
+def test_untouched_points_with_nothing_inserted(synthetic_world):
+    db, index, frames = synthetic_world
+    frame = frames[0]
+    transform = DRCPO(db, index, {"sample": {}})
+    out = transform(frame, np.random.default_rng(0))
+    np.testing.assert_array_equal(out.points, frame.points)
+    np.testing.assert_array_equal(out.boxes, frame.boxes)
+
+
+def test_density_adjustment_fewer_points_farther_away(synthetic_world):
+    """The same constructed object placed 5 to 70 m away keeps fewer points after s-HPR."""
+    from scipy.stats import spearmanr
+
+    db, index, _ = synthetic_world
+    distances = np.linspace(5.0, 70.0, 14)
+    counts = []
+    for distance in distances:
+        transform = DRCPO(
+            db,
+            index,
+            {
+                "sample": {"Car": 1},
+                "placement": {"x_range": [distance - 3, distance + 3], "y_range": [-3.0, 3.0]},
+                "external_occlusion": {"enabled": False},
+                "self_occlusion": {"min_points": 0},
+                "min_points_after": 0,
+            },
+        )
+        # Same seed: same source object, heading, position in the area and construction.
+        out = transform(Frame(np.zeros((0, 4), np.float32)), np.random.default_rng(42))
+        stage = out.metadata["augment_stats"]["stages"]["drcpo.self_occlusion"]
+        counts.append(stage["points_out"])
+        assert (
+            stage["points_in"]
+            == out.metadata["augment_stats"]["stages"]["drcpo.construction"]["points_out"]
+        )
+    rho = spearmanr(distances, counts).statistic
+    assert rho <= -0.8, (counts, rho)
+    assert counts[0] > counts[-1]
+
+
+def _run_seed(seed):
+    transform, frame = _FORK_STATE["transform"], _FORK_STATE["frame"]
+    out = transform(frame, np.random.default_rng(seed))
+    return out.points, out.boxes, out.names
+
+
+_FORK_STATE: dict = {}
+
+
+def test_determinism_across_runs_and_a_forked_worker(synthetic_world):
+    import multiprocessing
+
+    db, index, frames = synthetic_world
+    pipeline = Compose([GroundTruthSampling(db), DRCPO(db, index), GlobalFlip(), GlobalRotation()])
+    _FORK_STATE.update(transform=pipeline, frame=frames[1])
+    first = _run_seed(9)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        in_worker = pool.apply(_run_seed, (9,))
+    second = _run_seed(9)
+    for a, b, c in zip(first, in_worker, second, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+    other = _run_seed(10)
+    assert not np.array_equal(other[1], first[1])
+
+
+def test_drcpo_dict_in_dict_out_and_features(synthetic_world):
+    db, index, frames = synthetic_world
+    frame = frames[0]
+    wide = np.column_stack([frame.points, np.full((len(frame), 2), 7.0, np.float32)])
+    data = {**frame.replace(points=wide).to_dict(), "extra": "kept"}
+    out = DRCPO(db, index)(data, np.random.default_rng(1))
+    assert isinstance(out, dict) and out["extra"] == "kept"
+    assert out["points"].shape[1] == 6 and out["points"].dtype == np.float32
+    inserted = ~np.isin(out["points"][:, 4], [7.0])
+    assert inserted.any()
+    assert (out["points"][inserted, 4:] == 0).all()  # database points carry no such feature
+
+
+def test_drcpo_on_an_empty_frame(synthetic_world):
+    db, index, _ = synthetic_world
+    out = DRCPO(db, index)(Frame(np.zeros((0, 4), np.float32)), np.random.default_rng(0))
+    assert len(out.boxes) > 0
+    assert (BoxQuery(out.points).counts(out.boxes) >= MIN_POINTS).all()
+
+
+def _reasons(out):
+    found = {}
+    for entry in out.metadata["augment_stats"]["objects"]["drcpo"].values():
+        for reason, count in entry["rejected"].items():
+            found[reason] = found.get(reason, 0) + count
+    return found
+
+
+def test_every_rejection_reason(synthetic_world):
+    db, index, frames = synthetic_world
+    empty = Frame(np.zeros((0, 4), np.float32))
+    rng = np.random.default_rng
+    tiny_area = DRCPO(db, index, {"placement": {"x_range": [0, 0.4], "y_range": [0, 0.4]}})
+    assert set(_reasons(tiny_area(empty, rng(0)))) == {"out_of_range"}
+    blocked = Frame(np.zeros((0, 4), np.float32), [[35.0, 0.0, -1.0, 80.0, 90.0, 2.0, 0.0]], ["X"])
+    assert set(_reasons(DRCPO(db, index)(blocked, rng(0)))) == {"collision"}
+    forest = np.random.default_rng(1).uniform([0, -40, -1.5], [70.4, 40, 2.0], (200_000, 3))
+    forest = Frame(np.column_stack([forest, np.zeros(len(forest))]).astype(np.float32))
+    reasons = _reasons(DRCPO(db, index)(forest, rng(0)))
+    assert reasons.get("obstacle", 0) >= 20, reasons
+    sparse = DRCPO(db, index, {"self_occlusion": {"min_points": 100_000}})
+    assert set(_reasons(sparse(empty, rng(0)))) == {"self_occlusion"}
+    strict = DRCPO(db, index, {"min_points_after": 100_000})
+    out = strict(frames[0], rng(0))
+    assert "external_occlusion" in _reasons(out)
+    assert len(out.boxes) <= len(frames[0].boxes)
+
+
+@pytest.mark.parametrize("scope", ["inserted", "frame"])
+def test_boxes_hidden_by_e_hpr_lose_their_label_unless_already_sparse(synthetic_world, scope):
+    db, index, _ = synthetic_world
+    rng = np.random.default_rng(5)
+    wall = np.column_stack(
+        [np.full(40_000, 10.0), rng.uniform(-8, 8, 40_000), rng.uniform(-1.7, 2.5, 40_000)]
+    )
+    ground = np.column_stack(
+        [rng.uniform(2, 9.5, 5000), rng.uniform(-8, 8, 5000), np.full(5000, -1.73)]
+    )
+    car = np.array([20.0, 0.0, -0.95, *SIZES["Car"], 0.0])
+    tiny = np.array([20.0, 5.0, -0.95, *SIZES["Pedestrian"], 0.0])
+    car_points = from_canonical(surface_points(rng, SIZES["Car"], 200)[:, :3], car)
+    tiny_points = from_canonical(surface_points(rng, SIZES["Pedestrian"], 3)[:, :3], tiny)
+    xyz = np.concatenate([wall, ground, car_points, tiny_points])
+    frame = Frame(
+        np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32),
+        np.stack([car, tiny]),
+        np.array(["Car", "Pedestrian"]),
+    )
+    transform = DRCPO(db, index, {"sample": {}, "external_occlusion": {"scope": scope}})
+    out = transform(frame, np.random.default_rng(0))
+    if scope == "frame":
+        assert out.metadata["augment_stats"]["labels_dropped"] == {"Car": 1}
+        assert out.names.tolist() == ["Pedestrian"]  # had 3 points before: kept
+    else:  # nothing inserted: nothing may change
+        assert out.metadata["augment_stats"]["labels_dropped"] == {}
+        np.testing.assert_array_equal(out.points, frame.points)
+
+
+def test_drcpo_config_round_trip_and_checks(synthetic_world):
+    db, index, _ = synthetic_world
+    transform = DRCPO(db, index, {"construction": {"mode": "whole"}, "sample": {"Car": 3}})
+    config = transform.to_config()
+    assert config["type"] == "DRCPO" and config["construction"]["mode"] == "whole"
+    rebuilt = transform_from_config(config, database=db, index=index)
+    assert rebuilt == transform and rebuilt.to_config() == config
+    assert "construction='whole'" in repr(transform)
+    with pytest.raises(ConfigError, match="index"):
+        transform_from_config(config, database=db)
+    with pytest.raises(ConfigError, match=r"grids\.Car"):
+        DRCPO(db, index, {"construction": {"grids": {"Car": [5, 2, 3]}}})
+    with pytest.raises(ConfigError, match="mirror"):
+        DRCPO(db, index, {"construction": {"mirror": ["Car"]}})
+    with pytest.raises(ConfigError, match=r"drcpo\.construction\.coverage"):
+        DRCPO(db, index, {"construction": {"coverage": 2}})
+
+
+def test_build_pipeline_kinds(synthetic_world):
+    db, index, _ = synthetic_world
+    cda = build_pipeline({"pipeline": "cda"}, db, index)
+    assert [type(t).__name__ for t in cda.transforms] == [
+        "GroundTruthSampling",
+        "GlobalFlip",
+        "GlobalRotation",
+        "GlobalScaling",
+    ]
+    drcpo = build_pipeline("second", db, index)
+    assert drcpo[1].config.external_occlusion.preset == "second"
+    off = build_pipeline(
+        {"gt_sampling": {"enabled": False}, "global_augmentation": {"enabled": False}}, db, index
+    )
+    assert [type(t).__name__ for t in off.transforms] == ["DRCPO"]
+    with pytest.raises(ConfigError, match="database"):
+        build_pipeline(None)
+    with pytest.raises(ConfigError, match="pipeline"):
+        build_pipeline(None, db, index, kind="magic")

@@ -822,14 +822,13 @@ class DRCPO(Transform):
             insertions = self._self_occlusion(frame, rows, boxes, objects, stats)
             record["points_out"] = sum(len(i.points) for i in insertions)
         with stats.stage("drcpo.insert", len(frame)) as record:
-            out, owner = self._insert(frame, insertions)
-            record["points_out"] = len(out)
-        with stats.stage("drcpo.external_occlusion", len(out)) as record:
-            keep = self._external_occlusion(out.points, owner, [i.box for i in insertions])
-            out, owner = out.replace(points=out.points[keep]), owner[keep]
-            record["points_out"] = len(out)
-        with stats.stage("drcpo.labels", len(out)) as record:
-            out = self._filter_labels(frame, out, owner, insertions, stats)
+            points, owner, cleared_by = self._insert(frame, insertions)
+            record["points_out"] = len(points)
+        with stats.stage("drcpo.external_occlusion", len(points)) as record:
+            keep = self._external_occlusion(points, owner, insertions)
+            record["points_out"] = int(keep.sum())
+        with stats.stage("drcpo.labels", int(keep.sum())) as record:
+            out = self._settle(frame, points, owner, keep, cleared_by, insertions, stats)
             record["points_out"] = len(out)
         return out
 
@@ -909,126 +908,213 @@ class DRCPO(Transform):
             insertions.append(_Insertion(int(row), name, box, placed))
         return insertions
 
-    def _insert(self, frame: Frame, insertions: Sequence[_Insertion]) -> tuple[Frame, np.ndarray]:
-        """The frame with the objects inserted, and each point's owner (-1: original, else the
-        insertion's number)."""
+    def _insert(
+        self, frame: Frame, insertions: Sequence[_Insertion]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Points after insertion (the frame's points outside the boxes, then the objects'),
+        each point's owner (-1: an original point, else the insertion's number) and, per frame
+        point, the insertion whose box it had to make room for (-1: none)."""
+        cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
-            return frame, np.full(len(frame), -1, dtype=np.int64)
-        boxes = np.array([i.box for i in insertions])
-        keep = ~BoxQuery(frame.points).inside_any(boxes)
-        points = np.concatenate([frame.points[keep], *(i.points for i in insertions)])
+            return frame.points, cleared_by.copy(), cleared_by
+        query = BoxQuery(frame.points)
+        for j, insertion in enumerate(insertions):
+            cleared_by[query.inside(insertion.box)] = j
+        original = cleared_by < 0
+        points = np.concatenate([frame.points[original], *(i.points for i in insertions)])
         owner = np.concatenate(
-            [np.full(int(keep.sum()), -1)]
+            [np.full(int(original.sum()), -1)]
             + [np.full(len(i.points), j) for j, i in enumerate(insertions)]
         ).astype(np.int64)
-        out = frame.replace(
-            points=points,
-            boxes=np.concatenate([frame.boxes, boxes]),
-            names=np.concatenate([frame.names, [i.name for i in insertions]]),
-            metadata=update_box_metadata(frame.metadata, len(frame.boxes), added=len(insertions)),
-        )
-        return out, owner
+        return points, owner, cleared_by
 
     def _external_occlusion(
-        self, points: np.ndarray, owner: np.ndarray, boxes: Sequence[np.ndarray]
+        self, points: np.ndarray, owner: np.ndarray, insertions: Sequence[_Insertion]
     ) -> np.ndarray:
-        """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule."""
+        """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule.
+
+        Scope ``frame``: every hidden point goes. Scope ``inserted``: visibility is decided only
+        for the inserted points and the original points in the view windows of the inserted
+        boxes (the directions they cover), each exactly against the whole frame; inserted
+        points hidden go, and original points hidden with the objects but visible without them.
+        """
         settings = self.config.external_occlusion
         keep = np.ones(len(points), dtype=bool)
         if not settings.enabled or len(points) == 0:
             return keep
         if settings.scope == "frame":
             return self._visible(points)
-        if not len(boxes):
+        if not insertions:
             return keep
-        focus = np.flatnonzero(_in_sectors(points, np.asarray(boxes), _SECTOR_MARGIN))
-        inserted = owner[focus] >= 0
-        visible = self._visible(points[focus])
-        keep[focus[inserted & ~visible]] = False
-        hidden_original = focus[~inserted & ~visible]
-        if len(hidden_original):
-            # Original points already hidden without the inserted objects stay: HPR's own
-            # errors must not delete real points.
-            original = focus[~inserted]
-            visible_before = np.zeros(len(points), dtype=bool)
-            visible_before[original] = self._visible(points[original])
-            keep[hidden_original[visible_before[hidden_original]]] = False
+        _, viewpoint = self.e_hpr_setting()
+        inserted = owner >= 0
+        behind = ~inserted & view_windows(points, _grown([i.box for i in insertions]), viewpoint)
+        visible = self._visible(points, query=inserted | behind)
+        keep[inserted & ~visible] = False
+        suspects = np.flatnonzero(behind & ~visible)
+        if len(suspects):
+            original = np.flatnonzero(~inserted)
+            wanted = np.zeros(len(original), dtype=bool)
+            wanted[np.searchsorted(original, suspects)] = True
+            # Original points hidden even without the inserted objects stay: HPR's own errors
+            # must not delete real points.
+            before = self._visible(points[original], query=wanted)
+            keep[original[wanted & ~before]] = False
         return keep
 
-    def _visible(self, points: np.ndarray) -> np.ndarray:
+    def e_hpr_setting(self) -> tuple[float, np.ndarray]:
+        """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
         from drcpo import occlusion
 
         settings = self.config.external_occlusion
-        return occlusion.external_occlusion(
-            points,
-            preset=settings.preset,
-            mode=settings.mode,
-            radius=settings.radius,
-            viewpoint_z=settings.viewpoint_z,
-        )
+        preset = occlusion.HPR_PRESETS[settings.preset]
+        radius = settings.radius if settings.radius is not None else preset.radius
+        height = settings.viewpoint_z if settings.viewpoint_z is not None else preset.viewpoint_z
+        return float(radius), np.array([0.0, 0.0, float(height)])
 
-    def _filter_labels(
+    def _visible(self, points: np.ndarray, query: np.ndarray | None = None) -> np.ndarray:
+        """``bool (N,)`` visibility from the e-HPR viewpoint (``True`` outside ``query``)."""
+        from drcpo import occlusion
+
+        radius, viewpoint = self.e_hpr_setting()
+        if self.config.external_occlusion.mode == "range_image":
+            visible = occlusion.range_image_occlusion(points, viewpoint)
+            return visible if query is None else visible | ~query
+        return occlusion.hidden_point_removal(points, viewpoint, radius, query=query)
+
+    def _settle(
         self,
-        before: Frame,
-        out: Frame,
+        frame: Frame,
+        points: np.ndarray,
         owner: np.ndarray,
+        keep: np.ndarray,
+        cleared_by: np.ndarray,
         insertions: Sequence[_Insertion],
         stats: Stats,
     ) -> Frame:
-        """Drop boxes left with too few points (unless they had too few before)."""
+        """The output frame: drop inserted objects and original boxes left with too few points.
+
+        An inserted object with fewer than ``min_points_after`` points after e-HPR is dropped
+        with all its points, and the frame points it displaced or (scope ``inserted``) hid
+        come back, so it leaves no trace. An original box is dropped when it lost points and
+        is left with fewer than ``min_points_after``, unless it had fewer already.
+        """
         minimum = self.config.min_points_after
-        counts_before = BoxQuery(before.points).counts(before.boxes)
-        counts_after = BoxQuery(out.points).counts(before.boxes)
-        drop_original = (counts_after < minimum) & (counts_before >= minimum)
-        per_insertion = np.bincount(owner[owner >= 0], minlength=len(insertions))
-        drop_inserted = per_insertion < minimum
-        for insertion, dropped in zip(insertions, drop_inserted, strict=True):
-            if dropped:
+        # Points in the box itself count (construction may leave some a few cm outside).
+        survivors = np.array(
+            [
+                len(BoxQuery(points[keep & (owner == j)]).inside(insertion.box))
+                for j, insertion in enumerate(insertions)
+            ],
+            dtype=np.int64,
+        )
+        dropped = survivors < minimum
+        original_rows = np.flatnonzero(cleared_by < 0)  # frame row of each original point
+        removed = cleared_by >= 0
+        removed[original_rows[~keep[: len(original_rows)]]] = True
+        kept = [i for i, gone in zip(insertions, dropped, strict=True) if not gone]
+        if dropped.any():
+            removed &= ~np.isin(cleared_by, np.flatnonzero(dropped))
+            if self.config.external_occlusion.scope == "inserted":
+                # Original points hidden only inside the view windows of dropped objects
+                # come back.
+                hidden = np.flatnonzero(removed & (cleared_by < 0))
+                _, viewpoint = self.e_hpr_setting()
+                core = view_windows(frame.points[hidden], _grown([i.box for i in kept]), viewpoint)
+                removed[hidden[~core]] = False
+        for insertion, gone in zip(insertions, dropped, strict=True):
+            if gone:
                 stats.rejected(self.name, insertion.name, "external_occlusion")
             else:
                 stats.added(self.name, insertion.name)
-        if not drop_original.any() and not drop_inserted.any():
-            return out
-        keep_boxes = np.flatnonzero(~np.concatenate([drop_original, drop_inserted]))
-        gone = np.flatnonzero(drop_inserted)
-        keep_points = ~np.isin(owner, gone)
-        metadata = update_box_metadata(out.metadata, len(out.boxes), keep=keep_boxes)
-        for name in before.names[drop_original]:
+        drop_original = self._sparse_originals(frame, removed)
+        for name in frame.names[drop_original]:
             stats.label_dropped(str(name))
-        return out.replace(
-            points=out.points[keep_points],
-            boxes=out.boxes[keep_boxes],
-            names=out.names[keep_boxes],
-            metadata=metadata,
+        inserted_keep = keep & (owner >= 0) & ~np.isin(owner, np.flatnonzero(dropped))
+        kept_boxes = np.flatnonzero(~drop_original)
+        return frame.replace(
+            points=np.concatenate([frame.points[~removed], points[inserted_keep]]),
+            boxes=np.concatenate([frame.boxes[kept_boxes], _grown([i.box for i in kept], 0.0)]),
+            names=np.concatenate([frame.names[kept_boxes], [i.name for i in kept]]),
+            metadata=update_box_metadata(
+                frame.metadata,
+                len(frame.boxes),
+                keep=kept_boxes if drop_original.any() else None,
+                added=len(kept),
+            ),
         )
 
+    def _sparse_originals(self, frame: Frame, removed: np.ndarray) -> np.ndarray:
+        """``bool (M,)``: frame boxes that lost points and now hold fewer than the minimum,
+        having held at least the minimum before. Only boxes holding removed points can have
+        lost any, so only those are counted."""
+        minimum = self.config.min_points_after
+        drop = np.zeros(len(frame.boxes), dtype=bool)
+        if not removed.any() or len(frame.boxes) == 0:
+            return drop
+        lost = BoxQuery(frame.points[removed]).counts(frame.boxes)
+        query = BoxQuery(frame.points)
+        for m in np.flatnonzero(lost):
+            had = len(query.inside(frame.boxes[m]))
+            drop[m] = had >= minimum and had - lost[m] < minimum
+        return drop
 
-_SECTOR_MARGIN = float(np.deg2rad(2.0))  # radians of context around inserted boxes for e-HPR
+
+_WINDOW_SLACK = 0.1  # metres added around inserted boxes (construction keeps points 5 cm out)
 
 
-def _in_sectors(points: np.ndarray, boxes: np.ndarray, margin: float) -> np.ndarray:
-    """``bool (N,)``: points whose azimuth (about the z axis) lies within ``margin`` radians of
-    the azimuth interval some box's BEV footprint covers."""
-    azimuth = np.arctan2(points[:, 1], points[:, 0]).astype(np.float64)
-    corners = bev_corners(boxes)  # (M, 4, 2)
-    centre = np.arctan2(boxes[:, 1], boxes[:, 0])
-    spread = wrap_angle(np.arctan2(corners[..., 1], corners[..., 0]) - centre[:, None])
-    low, high = spread.min(axis=1) - margin, spread.max(axis=1) + margin
-    around_sensor = _contains_origin(corners)
-    mask = np.zeros(len(points), dtype=bool)
-    for m in range(len(boxes)):
-        if around_sensor[m]:
+def _grown(boxes: Sequence[np.ndarray], slack: float = _WINDOW_SLACK) -> np.ndarray:
+    """Boxes ``(M, 7)`` grown by ``slack`` metres on every side (for view windows)."""
+    grown = np.array(boxes, dtype=np.float64).reshape(-1, 7)
+    grown[:, 3:6] += 2.0 * slack
+    return grown
+
+
+def view_windows(points: np.ndarray, boxes: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
+    """``bool (N,)``: points in the view window of some box seen from ``viewpoint``.
+
+    A box's view window is the range of azimuth (about z) and elevation its volume covers seen
+    from the viewpoint; a point in none of them can be neither hidden nor revealed by the box.
+    """
+    rel = points[:, :3].astype(np.float64) - viewpoint
+    azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+    elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
+    inside = np.zeros(len(points), dtype=bool)
+    for box in np.asarray(boxes, dtype=np.float64).reshape(-1, 7):
+        window = _box_window(box, viewpoint)
+        if window is None:  # the viewpoint is inside the box's footprint: every direction
             return np.ones(len(points), dtype=bool)
-        offset = wrap_angle(azimuth - centre[m])
-        mask |= (offset >= low[m]) & (offset <= high[m])
-    return mask
+        centre, az_low, az_high, el_low, el_high = window
+        offset = wrap_angle(azimuth - centre)
+        inside |= (
+            (offset >= az_low)
+            & (offset <= az_high)
+            & (elevation >= el_low)
+            & (elevation <= el_high)
+        )
+    return inside
 
 
-def _contains_origin(corners: np.ndarray) -> np.ndarray:
-    """``bool (M,)``: BEV footprints ``(M, 4, 2)`` (counter-clockwise) containing (0, 0)."""
-    edges = np.roll(corners, -1, axis=1) - corners
-    cross = edges[..., 0] * (-corners[..., 1]) - edges[..., 1] * (-corners[..., 0])
-    return (cross >= 0).all(axis=1)
+def _box_window(box: np.ndarray, viewpoint: np.ndarray) -> tuple[float, ...] | None:
+    """``(centre azimuth, azimuth low, high relative to it, elevation low, high)`` of a box
+    seen from ``viewpoint``, or ``None`` when the viewpoint lies inside its footprint."""
+    corners = bev_corners(box[None])[0] - viewpoint[:2]
+    cos, sin = math.cos(box[6]), math.sin(box[6])
+    # Nearest footprint point to the viewpoint, in the box's frame.
+    dx, dy = viewpoint[0] - box[0], viewpoint[1] - box[1]
+    local = np.array([dx * cos + dy * sin, -dx * sin + dy * cos])
+    gap = np.maximum(np.abs(local) - box[3:5] / 2.0, 0.0)
+    near = float(np.hypot(*gap))
+    if near == 0.0:
+        return None
+    far = float(np.hypot(corners[:, 0], corners[:, 1]).max())
+    centre = math.atan2(box[1] - viewpoint[1], box[0] - viewpoint[0])
+    spread = wrap_angle(np.arctan2(corners[:, 1], corners[:, 0]) - centre)
+    top = box[2] + box[5] / 2.0 - viewpoint[2]
+    bottom = box[2] - box[5] / 2.0 - viewpoint[2]
+    el_high = math.atan2(top, near if top > 0 else far)
+    el_low = math.atan2(bottom, near if bottom < 0 else far)
+    return centre, float(spread.min()), float(spread.max()), el_low, el_high
 
 
 def frame_ground(frame: Frame) -> GroundModel:
