@@ -1,0 +1,1130 @@
+"""Occlusion: Katz et al.'s hidden point removal (HPR), the paper's s-HPR / e-HPR, a range image.
+
+Hidden point removal ("Direct Visibility of Point Sets", Katz, Tal and Basri, SIGGRAPH 2007)
+---------------------------------------------------------------------------------------------
+With the viewpoint ``C`` as origin, every point ``p`` is flipped to ``p + 2 (R - |p|) p / |p|``
+(a point at range ``r`` lands on its own ray at range ``2R - r``); ``p`` is *visible* iff its
+flipped image is a vertex of the convex hull of the flipped set together with ``C``. A larger
+``R`` keeps more points. Open3D's ``PointCloud.hidden_point_removal(camera_location, radius)``
+does exactly this (``radius`` is ``R`` itself, the origin is appended, Qhull runs with ``"Qt"``),
+and DR.CPO's reference code calls it; :func:`hidden_point_removal` gives the same set.
+
+Methods (``method=``):
+
+* ``"reference"``: the plain algorithm, one Qhull hull (``scipy.spatial.ConvexHull``) of the
+  whole flipped set. Open3D's answer, point for point, on inputs in general position.
+* ``"local"``: exact and fast. A flipped point is a hull vertex iff some plane through it has
+  every other flipped point and ``C`` on one side. A plane tilted by ``alpha`` from the ray of
+  ``p`` can only be crossed by points within a known angle of its normal (all flipped points
+  lie within ``2R - r_min`` of ``C``), so each point is decided from its angular neighbours:
+  first the plane normal to the ray (a cheap pre-filter that settles most points), then a
+  two-variable linear program over the plane's tilt. A point whose feasible plane does not fit
+  its neighbourhood is retried with a wider one, at worst against every point; a handful that
+  would need that go to the reference hull instead. Written with ranges and unit vectors, it
+  never forms ``2R - r`` differences, so it stays exact for huge ``R`` where the flipped
+  coordinates (and hence Qhull and Open3D) lose precision.
+* ``"sectors"``: the reference hull split into overlapping azimuth sectors, each hull on its
+  own thread; a sector's verdict on one of its core points is used only when it is provably the
+  whole set's (hidden in a subset implies hidden; visible needs a hull facet whose danger cone
+  lies inside the sector), the rest go to ``"local"``.
+* ``"auto"`` (default): ``"reference"`` for small inputs (at most :data:`AUTO_REFERENCE_MAX`
+  points, such as one object for s-HPR) unless ``R`` is too large for the flipped coordinates,
+  else ``"local"``.
+
+Defined behaviour on awkward input (every method):
+
+* ``NaN``/``inf`` coordinates, a bad shape or viewpoint: :class:`~drcpo.errors.DataError`; a
+  radius that is not a positive finite number (or above :data:`MAX_RADIUS`), an unknown method:
+  :class:`~drcpo.errors.ConfigError`.
+* No points: an empty mask. Points at the viewpoint (closer than ``1e-9 * (1 + max range)``)
+  cannot be flipped: they are reported visible and take no part in the hull.
+* Exact duplicates share one verdict (all copies visible or all hidden); Open3D keeps one copy.
+* Fewer than four hull points, or a flat configuration (all points and the viewpoint on one
+  plane, collinear, ...): Qhull cannot build a 3-D hull; the answer is the ``"local"`` one, which
+  is the same construction within that plane or line.
+* ``R`` below half the largest range (Katz's method needs ``R`` above every range): the
+  flip is applied literally as Open3D does (points beyond ``2R`` land behind the viewpoint),
+  always through the reference hull; the result is Open3D's, not a meaningful visibility.
+* A Qhull failure never escapes: a degenerate hull falls back to ``"local"`` (or, when ``R``
+  is below half the largest range, to Qhull's joggled mode ``"QJ"`` and finally to "all
+  visible" with a :class:`RuntimeWarning`).
+
+The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
+diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
+the viewpoint height from :data:`HPR_PRESETS`). :func:`range_image_occlusion` is a z-buffer
+alternative that is *not* the paper's method.
+
+Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
+pool outlives a call, and numba kernels are compiled without a threading layer.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from drcpo.errors import ConfigError, DataError
+from drcpo.geometry import box_diagonal
+
+__all__ = [
+    "AUTO_REFERENCE_MAX",
+    "HPR_METHODS",
+    "HPR_PRESETS",
+    "MAX_RADIUS",
+    "HPRPreset",
+    "azimuth_focus",
+    "external_occlusion",
+    "hidden_point_removal",
+    "range_image_occlusion",
+    "self_occlusion",
+]
+
+
+@dataclass(frozen=True)
+class HPRPreset:
+    """e-HPR setting of one detector in the paper: radius ``R`` and viewpoint ``(0, 0, z)``.
+
+    Attributes:
+        radius: HPR radius ``R``, metres.
+        viewpoint_z: height of the viewpoint above the sensor origin, metres.
+    """
+
+    radius: float
+    viewpoint_z: float
+
+
+HPR_PRESETS: dict[str, HPRPreset] = {
+    "second": HPRPreset(radius=300000.0, viewpoint_z=2.0),
+    "pointrcnn": HPRPreset(radius=300000.0, viewpoint_z=1.0),
+    "pv_rcnn": HPRPreset(radius=100000.0, viewpoint_z=0.0),
+    "pv_rcnn_plusplus": HPRPreset(radius=100000.0, viewpoint_z=0.0),
+}
+
+HPR_METHODS: tuple[str, ...] = ("auto", "local", "sectors", "reference")
+AUTO_REFERENCE_MAX = 2000  # "auto" runs one Qhull hull up to this many points
+MAX_RADIUS = 1e150  # keeps 2R (and R squared terms) finite in float64
+# Above this R / (max range), the flipped coordinates keep too few bits of the ranges for Qhull.
+_QHULL_RATIO_MAX = 1e7
+# "auto" prefers one hull when the median point's first neighbourhood is wider than this (rad).
+_LOCAL_MAX_CONE = 0.1
+# Points this close to the viewpoint, relative to (1 + max range), count as "at the viewpoint".
+_AT_VIEWPOINT = 1e-9
+# Parallel work only pays above this many points.
+_PARALLEL_MIN = 20000
+
+# Kernel constants. The tilt box bounds the plane search to 90 deg - 1e-7 rad from the ray;
+# the slack is how far (in units of the flipped range) a point must lie below a plane to count
+# as below it, about Qhull's own roundoff, so points on a common plane are not vertices.
+_TILT_BOX = 1e7
+_SLACK = 1e-15
+_FIRST_WIDENING = 1.3  # first neighbourhood of a point the plane normal to its ray fails
+_BRUTE_ANGLE = 0.6  # radians: wider neighbourhoods scan every point
+_BRUTE_BUDGET = 64  # full scans per call before the leftovers go to the reference hull
+_STATE_HIDDEN, _STATE_VISIBLE, _STATE_UNRESOLVED = 0, 1, 2
+
+
+# ----------------------------------------------------------------------------------------------
+# Public API
+# ----------------------------------------------------------------------------------------------
+def hidden_point_removal(
+    points: np.ndarray,
+    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    radius: float = 100000.0,
+    *,
+    method: str = "auto",
+    query: np.ndarray | None = None,
+    workers: int | None = None,
+) -> np.ndarray:
+    """Katz et al.'s hidden point removal: which points are visible from ``viewpoint``.
+
+    Args:
+        points: ``(N, 3 + C)`` x, y, z (metres) then any features (ignored); any float dtype,
+            computed in float64.
+        viewpoint: ``(3,)`` viewpoint (metres), the origin of the spherical flip.
+        radius: ``R`` of the spherical flip (metres), Open3D's ``radius`` argument.
+        method: ``"auto"``, ``"local"``, ``"sectors"`` or ``"reference"`` (module docstring).
+        query: optional ``bool (N,)`` mask or integer indices of the points whose visibility is
+            wanted; the others are still potential occluders but are reported ``True`` without
+            being decided. ``None``: all points.
+        workers: threads to use (``None``: up to two of the CPUs this process may use; ``1``
+            inside data-loader workers that already share the cores).
+
+    Returns:
+        ``bool (N,)``: ``True`` for visible points (and for points outside ``query``).
+    """
+    xyz = _check_points(points)
+    center = _check_viewpoint(viewpoint)
+    radius = _check_radius(radius)
+    if method not in HPR_METHODS:
+        raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
+    wanted = _check_query(query, len(xyz))
+    workers = _check_workers(workers)
+    visible = np.ones(len(xyz), dtype=bool)
+    if len(xyz) == 0 or not wanted.any():
+        return visible
+    setup = _Setup.build(xyz, center, radius)
+    if setup.size == 0:
+        return visible
+    wanted_hull = wanted[setup.index]
+    method = _resolve_method(method, setup, int(wanted_hull.sum()))
+    if method == "reference":
+        decided = _reference(setup, wanted_hull)
+    elif method == "sectors":
+        decided = _sectors(setup, wanted_hull, workers)
+    else:
+        decided = _local(setup, wanted_hull, workers)
+    visible[setup.index] = decided | ~wanted_hull
+    return visible
+
+
+def self_occlusion(
+    points: np.ndarray,
+    box: np.ndarray,
+    radius_factor: float = 200.0,
+    *,
+    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    method: str = "auto",
+    workers: int | None = 1,
+) -> np.ndarray:
+    """s-HPR: the paper's self-occlusion of one placed object, seen from the sensor.
+
+    Args:
+        points: ``(N, 3 + C)`` the object's points in the LiDAR frame (metres).
+        box: ``(7,)`` (or ``(1, 7)``) the object's box; ``R = diagonal * radius_factor``.
+        radius_factor: the paper uses 200.
+        viewpoint: ``(3,)`` the sensor position, metres (the origin in the paper).
+        method, workers: as in :func:`hidden_point_removal` (one thread by default: objects
+            are small).
+
+    Returns:
+        ``bool (N,)``: points kept (visible).
+    """
+    diagonal = float(box_diagonal(np.asarray(box, dtype=np.float64).reshape(-1, 7))[0])
+    factor = _check_radius(radius_factor, "radius_factor")
+    if not diagonal > 0.0:
+        raise DataError(f"self_occlusion: the box has no extent (diagonal {diagonal})")
+    return hidden_point_removal(
+        points, viewpoint, diagonal * factor, method=method, workers=workers
+    )
+
+
+def external_occlusion(
+    points: np.ndarray,
+    preset: str = "pv_rcnn_plusplus",
+    *,
+    mode: str = "hpr",
+    radius: float | None = None,
+    viewpoint_z: float | None = None,
+    focus: np.ndarray | None = None,
+    focus_margin: float = float(np.deg2rad(2.0)),
+    method: str = "auto",
+    workers: int | None = None,
+    range_image: dict | None = None,
+) -> np.ndarray:
+    """e-HPR: the paper's external occlusion of a whole frame (after insertion).
+
+    Args:
+        points: ``(N, 3 + C)`` the frame's points (metres).
+        preset: detector whose ``(R, z)`` is used, a key of :data:`HPR_PRESETS`.
+        mode: ``"hpr"`` (the paper) or ``"range_image"`` (:func:`range_image_occlusion`, not the
+            paper's method; it looks from the sensor origin unless ``viewpoint_z`` is given).
+        radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
+        focus: optional ``bool (N,)`` mask (or indices) of the points that matter, e.g. inserted
+            ones. Only points in the azimuth directions of the focus points (see
+            :func:`azimuth_focus`, ``focus_margin`` radians) are decided, exactly, against the
+            whole frame; all others are reported visible.
+        focus_margin: radians added on both sides of the focus points' azimuths.
+        method, workers: as in :func:`hidden_point_removal`.
+        range_image: keyword arguments for :func:`range_image_occlusion` in that mode.
+
+    Returns:
+        ``bool (N,)``: points kept (visible).
+    """
+    if preset not in HPR_PRESETS:
+        raise ConfigError(f"unknown HPR preset {preset!r}; choose one of {', '.join(HPR_PRESETS)}")
+    setting = HPR_PRESETS[preset]
+    xyz = _check_points(points)
+    query = None if focus is None else azimuth_focus(xyz, focus, focus_margin)
+    if mode == "range_image":
+        height = 0.0 if viewpoint_z is None else float(viewpoint_z)
+        visible = range_image_occlusion(xyz, (0.0, 0.0, height), **(range_image or {}))
+        return visible if query is None else visible | ~query
+    if mode != "hpr":
+        raise ConfigError(f"external occlusion mode must be 'hpr' or 'range_image', got {mode!r}")
+    height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
+    r = setting.radius if radius is None else radius
+    return hidden_point_removal(
+        xyz, (0.0, 0.0, height), r, method=method, query=query, workers=workers
+    )
+
+
+def azimuth_focus(
+    points: np.ndarray,
+    focus: np.ndarray,
+    margin: float = float(np.deg2rad(2.0)),
+    *,
+    bin_width: float = float(np.deg2rad(0.5)),
+) -> np.ndarray:
+    """``bool (N,)``: points in the azimuth directions (about the z axis) of the focus points.
+
+    Azimuth is cut into bins of ``bin_width`` radians; a point is selected when its bin lies
+    within ``margin`` radians (rounded up to whole bins) of a bin holding a focus point. Focus
+    points themselves are always selected.
+
+    Args:
+        points: ``(N, 3 + C)`` points, metres.
+        focus: ``bool (N,)`` mask or integer indices of the focus points.
+        margin: radians of context on both sides.
+        bin_width: radians per azimuth bin.
+    """
+    xyz = _check_points(points)
+    chosen = _check_query(focus, len(xyz))
+    if not chosen.any():
+        return chosen
+    if not (math.isfinite(margin) and margin >= 0 and math.isfinite(bin_width) and bin_width > 0):
+        raise ConfigError(f"margin must be >= 0 and bin_width > 0, got {margin}, {bin_width}")
+    bins = max(1, math.ceil(2 * math.pi / bin_width))
+    azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+    index = np.floor((azimuth + np.pi) * (bins / (2 * np.pi))).astype(np.int64) % bins
+    hit = np.zeros(bins, dtype=bool)
+    hit[index[chosen]] = True
+    reach = math.ceil(margin * bins / (2 * math.pi))
+    if 2 * reach + 1 >= bins:
+        return np.ones(len(xyz), dtype=bool)
+    grown = hit.copy()
+    for shift in range(1, reach + 1):
+        grown |= np.roll(hit, shift) | np.roll(hit, -shift)
+    return grown[index] | chosen
+
+
+def range_image_occlusion(
+    points: np.ndarray,
+    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    *,
+    azimuth_resolution: float = float(np.deg2rad(0.2)),
+    elevation_resolution: float = float(np.deg2rad(0.4)),
+    beam_elevations: np.ndarray | None = None,
+    depth_tolerance: float = 0.2,
+) -> np.ndarray:
+    """Z-buffer occlusion: keep the nearest surface in each (azimuth, elevation) cell.
+
+    This is *not* the paper's method (HPR); it is a lighter alternative that mimics a spinning
+    LiDAR: points are binned by azimuth (``azimuth_resolution`` radians) and elevation (either
+    regular cells of ``elevation_resolution`` radians or the nearest of the sensor's
+    ``beam_elevations``), and a point is kept when its range is within ``depth_tolerance``
+    metres of the nearest range in its cell.
+
+    Args:
+        points: ``(N, 3 + C)`` points, metres.
+        viewpoint: ``(3,)`` sensor position, metres.
+        azimuth_resolution: radians per azimuth cell.
+        elevation_resolution: radians per elevation cell (ignored with ``beam_elevations``).
+        beam_elevations: optional ``(B,)`` beam elevation angles in radians (any order).
+        depth_tolerance: metres behind the nearest return that still count as the same surface.
+
+    Returns:
+        ``bool (N,)``: visible points. Points at the viewpoint are visible.
+    """
+    xyz = _check_points(points)
+    center = _check_viewpoint(viewpoint)
+    for name, value in (
+        ("azimuth_resolution", azimuth_resolution),
+        ("elevation_resolution", elevation_resolution),
+    ):
+        if not (math.isfinite(value) and 0 < value <= math.pi):
+            raise ConfigError(f"{name} must be in (0, pi] radians, got {value}")
+    if not (math.isfinite(depth_tolerance) and depth_tolerance >= 0):
+        raise ConfigError(f"depth_tolerance must be >= 0 metres, got {depth_tolerance}")
+    visible = np.ones(len(xyz), dtype=bool)
+    if len(xyz) == 0:
+        return visible
+    rel = xyz - center
+    rng = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+    valid = rng > 0
+    if not valid.any():
+        return visible
+    rel, rng = rel[valid], rng[valid]
+    azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+    elevation = np.arcsin(np.clip(rel[:, 2] / rng, -1.0, 1.0))
+    n_azimuth = max(1, math.ceil(2 * math.pi / azimuth_resolution))
+    column = np.floor((azimuth + np.pi) / azimuth_resolution).astype(np.int64) % n_azimuth
+    row = _elevation_rows(elevation, elevation_resolution, beam_elevations)
+    cell = row * n_azimuth + column
+    _, inverse = np.unique(cell, return_inverse=True)
+    nearest = np.full(int(inverse.max()) + 1, np.inf)
+    np.minimum.at(nearest, inverse, rng)
+    visible[valid] = rng <= nearest[inverse] + depth_tolerance
+    return visible
+
+
+def _elevation_rows(
+    elevation: np.ndarray, resolution: float, beams: np.ndarray | None
+) -> np.ndarray:
+    if beams is None:
+        return np.floor((elevation + np.pi / 2) / resolution).astype(np.int64)
+    beams = np.sort(np.asarray(beams, dtype=np.float64).ravel())
+    if beams.size == 0 or not np.isfinite(beams).all():
+        raise ConfigError("beam_elevations must be a non-empty list of finite angles (radians)")
+    middles = (beams[1:] + beams[:-1]) / 2
+    return np.searchsorted(middles, elevation).astype(np.int64)
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation
+# ----------------------------------------------------------------------------------------------
+def _check_points(points: np.ndarray) -> np.ndarray:
+    array = np.asarray(points)
+    if array.ndim != 2 or array.shape[1] < 3:
+        raise DataError(f"points must have shape (N, 3 + C), got {array.shape}")
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        raise DataError(f"points must be real numbers, got dtype {array.dtype}")
+    xyz = np.ascontiguousarray(array[:, :3], dtype=np.float64)
+    if not np.isfinite(xyz).all():
+        bad = np.flatnonzero(~np.isfinite(xyz).all(axis=1))
+        raise DataError(
+            f"points hold NaN/inf coordinates in {len(bad)} rows (first: row {int(bad[0])})"
+        )
+    return xyz
+
+
+def _check_viewpoint(viewpoint: Sequence[float] | np.ndarray) -> np.ndarray:
+    try:
+        center = np.asarray(viewpoint, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as error:
+        raise DataError(f"viewpoint must be 3 numbers, got {viewpoint!r}") from error
+    if center.shape != (3,) or not np.isfinite(center).all():
+        raise DataError(f"viewpoint must be 3 finite numbers, got {viewpoint!r}")
+    return center
+
+
+def _check_radius(radius: float, name: str = "radius") -> float:
+    try:
+        value = float(radius)
+    except (TypeError, ValueError) as error:
+        raise ConfigError(f"{name} must be a number, got {radius!r}") from error
+    if not (math.isfinite(value) and 0.0 < value <= MAX_RADIUS):
+        raise ConfigError(f"{name} must be a finite number in (0, {MAX_RADIUS:g}], got {radius}")
+    return value
+
+
+def _check_query(query: np.ndarray | None, count: int) -> np.ndarray:
+    if query is None:
+        return np.ones(count, dtype=bool)
+    array = np.asarray(query)
+    if array.dtype == bool:
+        if array.shape != (count,):
+            raise DataError(f"query mask must have shape ({count},), got {array.shape}")
+        return array
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise DataError(f"query must be a bool mask or integer indices, got dtype {array.dtype}")
+    index = array.astype(np.int64).ravel()
+    if index.size and (index.min() < -count or index.max() >= count):
+        raise DataError(f"query indices out of range for {count} points")
+    mask = np.zeros(count, dtype=bool)
+    mask[index] = True
+    return mask
+
+
+def _check_workers(workers: int | None) -> int:
+    if workers is None:
+        try:
+            available = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on Linux
+            available = os.cpu_count() or 1
+        return max(1, min(2, available))
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ConfigError(f"workers must be a positive integer or None, got {workers!r}")
+    return int(workers)
+
+
+# ----------------------------------------------------------------------------------------------
+# Shared set-up: the points that take part in the hull, as rays and ranges
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Setup:
+    """The flip's inputs for the points that are not at the viewpoint.
+
+    Attributes:
+        index: ``(M,)`` rows of the caller's points that take part.
+        rel: ``(M, 3)`` coordinates relative to the viewpoint, metres.
+        ranges: ``(M,)`` ``|rel|``, metres.
+        rays: ``(M, 3)`` unit vectors ``rel / ranges``.
+        radius: ``R``, metres.
+    """
+
+    index: np.ndarray
+    rel: np.ndarray
+    ranges: np.ndarray
+    rays: np.ndarray
+    radius: float
+
+    @classmethod
+    def build(cls, xyz: np.ndarray, center: np.ndarray, radius: float) -> _Setup:
+        rel = xyz - center
+        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        # A hypot-free norm underflows for coordinates near 1e-160; those points sit at the
+        # viewpoint for any practical purpose and fall under the same rule.
+        away = ranges > _AT_VIEWPOINT * (1.0 + float(ranges.max(initial=0.0)))
+        if not away.all():
+            rel, ranges = rel[away], ranges[away]
+        return cls(np.flatnonzero(away), rel, ranges, rel / ranges[:, None], radius)
+
+    @property
+    def size(self) -> int:
+        return len(self.ranges)
+
+    @property
+    def local_ok(self) -> bool:
+        """The ray-and-range formulation needs every flipped range ``2R - r`` positive."""
+        return 2.0 * self.radius > float(self.ranges.max()) * (1.0 + 1e-12)
+
+    def distinct(self) -> tuple[_Setup, np.ndarray]:
+        """The set-up of the distinct points, and ``(M,)`` the position of each point's copy in
+        it (Qhull keeps one of several equal points; drcpo gives every copy its verdict)."""
+        _, first, inverse = np.unique(self.rel, axis=0, return_index=True, return_inverse=True)
+        if len(first) == self.size:
+            return self, np.arange(self.size)
+        subset = _Setup(
+            self.index[first], self.rel[first], self.ranges[first], self.rays[first], self.radius
+        )
+        return subset, inverse.ravel()
+
+    def flipped(self) -> np.ndarray:
+        """``(M, 3)`` Open3D's spherical flip ``p + 2 (R - |p|) p / |p|``."""
+        scale = 2.0 * (self.radius - self.ranges) / self.ranges
+        return self.rel + self.rel * scale[:, None]
+
+
+def _resolve_method(method: str, setup: _Setup, wanted: int) -> str:
+    if not setup.local_ok:
+        return "reference"
+    if method != "auto":
+        return method
+    precise = setup.radius <= _QHULL_RATIO_MAX * float(setup.ranges.max())
+    if setup.size <= AUTO_REFERENCE_MAX and precise:
+        return "reference"
+    # With R not far above the ranges every point's neighbourhood is a wide cone and the
+    # per-point test degrades towards quadratic time; one hull is then cheaper.
+    spread = float(np.median(setup.ranges)) - float(setup.ranges.min())
+    if spread > _LOCAL_MAX_CONE**2 * setup.radius and precise:
+        return "reference"
+    return "local"
+
+
+# ----------------------------------------------------------------------------------------------
+# Reference: one Qhull hull, as Open3D
+# ----------------------------------------------------------------------------------------------
+def _reference(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
+    """Visible flags ``(M,)`` of the set-up's points from one hull of the whole flipped set."""
+    distinct, inverse = setup.distinct()
+    vertex = _hull_vertices(distinct.flipped())
+    if vertex is None:
+        return _degenerate_fallback(setup, wanted)
+    return vertex[inverse]
+
+
+def _hull_vertices(flipped: np.ndarray) -> np.ndarray | None:
+    """``bool (K,)``: flipped points that are vertices of hull(flipped + origin); ``None`` when
+    Qhull cannot build a 3-D hull (too few points, flat or precision failure)."""
+    if len(flipped) < 3:
+        return None
+    cloud = np.vstack([flipped, np.zeros((1, 3))])
+    try:
+        hull = ConvexHull(cloud)
+    except (QhullError, ValueError):
+        return None
+    vertex = np.zeros(len(cloud), dtype=bool)
+    vertex[hull.vertices] = True
+    return vertex[:-1]
+
+
+def _degenerate_fallback(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
+    """Verdicts when Qhull cannot build the hull: "local", else joggled Qhull, else all."""
+    if setup.local_ok:
+        return _local(setup, wanted, 1)
+    distinct, inverse = setup.distinct()
+    cloud = np.vstack([distinct.flipped(), np.zeros((1, 3))])
+    try:
+        hull = ConvexHull(cloud, qhull_options="QJ")
+    except (QhullError, ValueError):
+        warnings.warn(
+            "hidden_point_removal: Qhull cannot build a hull of these points even joggled "
+            f"({distinct.size} distinct points, R below half the largest range); all are kept",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+        return np.ones(setup.size, dtype=bool)
+    vertex = np.zeros(len(cloud), dtype=bool)
+    vertex[hull.vertices] = True
+    return vertex[:-1][inverse]
+
+
+# ----------------------------------------------------------------------------------------------
+# Local: per-point supporting-plane test against angular neighbours (numba)
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Grid:
+    """Points sorted into (elevation, azimuth) cells of ``size`` radians, for cone queries."""
+
+    order: np.ndarray  # (M,) set-up index of the k-th sorted point
+    starts: np.ndarray  # (cells + 1,) first sorted position of each cell
+    elevation: np.ndarray  # (M,) sorted, radians
+    azimuth: np.ndarray  # (M,) sorted, radians
+    origin: float  # elevation of the first row's lower edge
+    size: float  # row height, radians
+    rows: int
+    columns: int
+
+
+def _build_grid(rays: np.ndarray, cone: np.ndarray) -> _Grid:
+    elevation = np.arcsin(np.clip(rays[:, 2], -1.0, 1.0))
+    azimuth = np.arctan2(rays[:, 1], rays[:, 0])
+    low, high = float(elevation.min()), float(elevation.max())
+    # Cells about as wide as a typical first neighbourhood, but never many more cells than
+    # points (sparse sets) nor so wide that a query scans most of the set.
+    area = max(high - low, 1e-3) * 2 * math.pi
+    size = float(np.clip(np.median(cone), math.sqrt(area / max(len(rays), 1)), 0.25))
+    rows = int((high - low) / size) + 1
+    columns = max(1, int(2 * math.pi / size))
+    row = np.minimum(((elevation - low) / size).astype(np.int64), rows - 1)
+    column = ((azimuth + np.pi) * (columns / (2 * math.pi))).astype(np.int64) % columns
+    cell = row * columns + column
+    order = np.argsort(cell, kind="stable")
+    counts = np.bincount(cell, minlength=rows * columns)
+    starts = np.zeros(rows * columns + 1, dtype=np.int64)
+    np.cumsum(counts, out=starts[1:])
+    return _Grid(order, starts, elevation[order], azimuth[order], low, size, rows, columns)
+
+
+def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+    """Visible flags ``(M,)`` (``False`` where not wanted) by the per-point plane test."""
+    ranges, radius = setup.ranges, setup.radius
+    r_min = float(ranges.min())
+    rho_max = 2.0 * radius - r_min
+    # Radius of the neighbourhood that can cross the plane normal to the ray (module doc).
+    first_cone = 2.0 * np.arcsin(np.sqrt(np.clip((ranges - r_min) / rho_max, 0, 2) / 2.0))
+    grid = _build_grid(setup.rays, first_cone)
+    order = grid.order
+    rays = np.ascontiguousarray(setup.rays[order])
+    rel = np.ascontiguousarray(setup.rel[order])
+    sorted_ranges = np.ascontiguousarray(ranges[order])
+    rho = 2.0 * radius - sorted_ranges
+    todo = np.flatnonzero(wanted[order])
+    chunks = np.array_split(todo, workers if len(todo) >= _PARALLEL_MIN else 1)
+    args = (
+        rays,
+        rel,
+        sorted_ranges,
+        rho,
+        np.ascontiguousarray(first_cone[order]),
+        grid.elevation,
+        grid.azimuth,
+        grid.starts,
+        grid.origin,
+        grid.size,
+        grid.rows,
+        grid.columns,
+        r_min,
+        rho_max,
+    )
+    if len(chunks) == 1:
+        states = [_classify(chunks[0], *args, _BRUTE_BUDGET)]
+    else:
+        with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
+            states = list(pool.map(lambda c: _classify(c, *args, _BRUTE_BUDGET), chunks))
+    state = np.concatenate(states)
+    unresolved = todo[state == _STATE_UNRESOLVED]
+    if len(unresolved):
+        state[state == _STATE_UNRESOLVED] = _resolve_unresolved(unresolved, args, setup, order)
+    visible_sorted = np.zeros(setup.size, dtype=bool)
+    visible_sorted[todo] = state == _STATE_VISIBLE
+    visible = np.zeros(setup.size, dtype=bool)
+    visible[order] = visible_sorted
+    return visible
+
+
+def _resolve_unresolved(
+    unresolved: np.ndarray, args: tuple, setup: _Setup, order: np.ndarray
+) -> np.ndarray:
+    """States of the (sorted) points the neighbourhood search gave up on: a full scan each when
+    they are few, else one reference hull; exact either way."""
+    if len(unresolved) <= 4 * _BRUTE_BUDGET:
+        return _classify(unresolved, *args, len(unresolved) + 1)
+    distinct, inverse = setup.distinct()
+    vertex = _hull_vertices(distinct.flipped())
+    if vertex is None:
+        return _classify(unresolved, *args, len(unresolved) + 1)
+    return np.where(vertex[inverse][order[unresolved]], _STATE_VISIBLE, _STATE_HIDDEN)
+
+
+@nb.njit(cache=True, nogil=True)
+def _tangent_basis(ux: float, uy: float, uz: float) -> tuple:
+    """Two unit vectors completing the ray ``u`` to an orthonormal basis."""
+    if abs(uz) < 0.9:
+        ax, ay, az = -uy, ux, 0.0
+    else:
+        ax, ay, az = 0.0, -uz, uy
+    norm = math.sqrt(ax * ax + ay * ay + az * az)
+    ax, ay, az = ax / norm, ay / norm, az / norm
+    return ax, ay, az, uy * az - uz * ay, uz * ax - ux * az, ux * ay - uy * ax
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather(
+    i,
+    cone,
+    radial_only,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    origin,
+    size,
+    rows,
+    columns,
+    out_s1,
+    out_s2,
+    out_t,
+):
+    """Constraints from the points within ``cone`` radians of point ``i``'s ray.
+
+    A plane through flipped point ``i`` with normal ``u_i + a e1 + b e2`` has flipped point
+    ``j`` strictly below it iff ``a s1_j + b s2_j < t_j`` with ``s_j = (u_j - u_i) . e`` and
+    ``t_j = |u_j - u_i|^2 / 2 - (r_i - r_j) / (2R - r_j)``. Returns the number of constraints
+    (which may exceed the buffers: the caller grows them and asks again), or ``-1`` when
+    ``radial_only`` and some point blocks the plane normal to the ray (``t_j`` not positive).
+    Exact duplicates of point ``i`` are skipped.
+    """
+    ux, uy, uz = rays[i, 0], rays[i, 1], rays[i, 2]
+    e1x, e1y, e1z, e2x, e2y, e2z = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    if not radial_only:
+        e1x, e1y, e1z, e2x, e2y, e2z = _tangent_basis(ux, uy, uz)
+    ri = ranges[i]
+    reach = min(cone * (1.0 + 1e-9) + 1e-12, math.pi)
+    half = math.sin(reach / 2.0)
+    chord2 = 4.0 * half * half * (1.0 + 1e-12) + 1e-300
+    if reach >= math.pi:
+        chord2 = 5.0
+    capacity = out_t.shape[0]
+    count = 0
+    el = elevation[i]
+    row_lo = max(0, math.floor((el - reach - origin) / size))
+    row_hi = min(rows - 1, math.floor((el + reach - origin) / size))
+    full_turn = reach >= _BRUTE_ANGLE or math.sin(reach) >= math.cos(el)
+    col_lo = 0
+    col_n = columns
+    if not full_turn:
+        spread = math.asin(min(1.0, math.sin(reach) / math.cos(el))) * (1.0 + 1e-9) + 1e-12
+        step = 2.0 * math.pi / columns
+        col_lo = math.floor((azimuth[i] - spread + math.pi) / step)
+        col_hi = math.floor((azimuth[i] + spread + math.pi) / step)
+        col_n = min(columns, col_hi - col_lo + 1)
+    if reach >= _BRUTE_ANGLE:
+        row_lo, row_hi = 0, rows - 1
+    for row in range(row_lo, row_hi + 1):
+        for k in range(col_n):
+            column = ((col_lo + k) % columns + columns) % columns
+            cell = row * columns + column
+            for j in range(starts[cell], starts[cell + 1]):
+                if j == i:
+                    continue
+                dx = rays[j, 0] - ux
+                dy = rays[j, 1] - uy
+                dz = rays[j, 2] - uz
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 > chord2:
+                    continue
+                if rel[j, 0] == rel[i, 0] and rel[j, 1] == rel[i, 1] and rel[j, 2] == rel[i, 2]:
+                    continue
+                t = 0.5 * d2 - (ri - ranges[j]) / rho[j]
+                if radial_only:
+                    if t <= _SLACK:
+                        return -1
+                    continue
+                if count < capacity:
+                    out_s1[count] = dx * e1x + dy * e1y + dz * e1z
+                    out_s2[count] = dx * e2x + dy * e2y + dz * e2z
+                    out_t[count] = t
+                count += 1
+    return count
+
+
+@nb.njit(cache=True, nogil=True)
+def _meet(a1, b1, c1, a2, b2, c2):
+    """Intersection of the lines ``a x + b y = c``; ``(nan, nan)`` when parallel."""
+    det = a1 * b2 - a2 * b1
+    if det == 0.0:
+        return math.nan, math.nan
+    return (c1 * b2 - c2 * b1) / det, (a1 * c2 - a2 * c1) / det
+
+
+@nb.njit(cache=True, nogil=True)
+def _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny):
+    """Feasible region of ``a s1 + b s2 <= t - slack`` within the tilt box, and its point
+    nearest ``(0, 0)``.
+
+    The region is kept as a convex polygon of constraint lines in counter-clockwise order; each
+    vertex is recomputed from its two lines, so precision does not depend on the box size.
+    Returns ``(status, a, b)``: status 1 feasible (``(a, b)`` the nearest point), 0 infeasible,
+    -1 numerically undecidable.
+    """
+    box = _TILT_BOX
+    la[0], lb[0], lc[0] = 0.0, -1.0, box
+    la[1], lb[1], lc[1] = 1.0, 0.0, box
+    la[2], lb[2], lc[2] = 0.0, 1.0, box
+    la[3], lb[3], lc[3] = -1.0, 0.0, box
+    m = 4
+    for k in range(m):
+        vx[k], vy[k] = _meet(la[k], lb[k], lc[k], la[(k + 1) % m], lb[(k + 1) % m], lc[(k + 1) % m])
+    # Constraints that cut off the plane normal to the ray first: they shrink the polygon (and
+    # prove most hidden points hidden) soonest.
+    for k in range(2 * count):
+        j = k if k < count else k - count
+        if (k < count) != (t[j] <= _SLACK):
+            continue
+        a, b, c = s1[j], s2[j], t[j] - _SLACK
+        if a == 0.0 and b == 0.0:
+            if c <= 0.0:
+                return 0, 0.0, 0.0
+            continue
+        first_out = -1
+        inside = 0
+        for k in range(m):
+            if a * vx[k] + b * vy[k] <= c:
+                inside += 1
+            elif first_out < 0:
+                first_out = k
+        if inside == m:
+            continue
+        if inside == 0:
+            return 0, 0.0, 0.0
+        # The outside vertices form one cyclic run p..q; lines p+1..q go, the new line goes
+        # between line p and line q+1.
+        p = first_out
+        while a * vx[(p - 1) % m] + b * vy[(p - 1) % m] > c:
+            p = (p - 1) % m
+        q = p
+        while a * vx[(q + 1) % m] + b * vy[(q + 1) % m] > c:
+            q = (q + 1) % m
+        run = (q - p) % m + 1
+        kept = m - run + 1
+        n = 0
+        for step in range(kept):
+            k = (q + 1 + step) % m
+            na[n], nb_[n], nc[n] = la[k], lb[k], lc[k]
+            if step < kept - 1:
+                nx[n], ny[n] = vx[k], vy[k]
+            n += 1
+        # n == kept; line p is at n - 1
+        x1, y1 = _meet(na[n - 1], nb_[n - 1], nc[n - 1], a, b, c)
+        x2, y2 = _meet(a, b, c, na[0], nb_[0], nc[0])
+        if math.isnan(x1) or math.isnan(x2):
+            return -1, 0.0, 0.0
+        nx[n - 1], ny[n - 1] = x1, y1
+        na[n], nb_[n], nc[n] = a, b, c
+        nx[n], ny[n] = x2, y2
+        n += 1
+        for k in range(n):
+            la[k], lb[k], lc[k] = na[k], nb_[k], nc[k]
+            vx[k], vy[k] = nx[k], ny[k]
+        m = n
+    # Nearest point to the origin: the origin itself, or a point on an edge.
+    origin_inside = True
+    for k in range(m):
+        if lc[k] < 0.0:
+            origin_inside = False
+            break
+    if origin_inside:
+        return 1, 0.0, 0.0
+    best, best_x, best_y = math.inf, 0.0, 0.0
+    for k in range(m):
+        # edge k runs along line k from vertex k-1 to vertex k
+        x0, y0 = vx[(k - 1) % m], vy[(k - 1) % m]
+        ex, ey = vx[k] - x0, vy[k] - y0
+        length2 = ex * ex + ey * ey
+        lam = 0.0
+        if length2 > 0.0:
+            lam = min(1.0, max(0.0, -(x0 * ex + y0 * ey) / length2))
+        px, py = x0 + lam * ex, y0 + lam * ey
+        d = px * px + py * py
+        if d < best:
+            best, best_x, best_y = d, px, py
+    return 1, best_x, best_y
+
+
+@nb.njit(cache=True, nogil=True)
+def _danger_cone(alpha_tan, ri, r_min, rho_max):
+    """Tilt ``alpha`` and the angle around the plane normal beyond which no flipped point can
+    cross a plane through flipped point ``i`` (range ``ri``) tilted by ``alpha``."""
+    cos_alpha = 1.0 / math.sqrt(1.0 + alpha_tan * alpha_tan)
+    alpha = math.atan(alpha_tan)
+    one_minus = 2.0 * math.sin(alpha / 2.0) ** 2 + cos_alpha * (ri - r_min) / rho_max
+    gamma = 2.0 * math.asin(min(1.0, math.sqrt(max(0.0, one_minus) / 2.0)))
+    return alpha, gamma
+
+
+@nb.njit(cache=True, nogil=True)
+def _classify(
+    todo,
+    rays,
+    rel,
+    ranges,
+    rho,
+    first_cone,
+    elevation,
+    azimuth,
+    starts,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+    brute_budget,
+):
+    """States (hidden 0, visible 1, unresolved 2) of the sorted points ``todo``."""
+    state = np.empty(todo.shape[0], dtype=np.int64)
+    capacity = 256
+    s1 = np.empty(capacity)
+    s2 = np.empty(capacity)
+    t = np.empty(capacity)
+    la = np.empty(capacity + 4)
+    lb = np.empty(capacity + 4)
+    lc = np.empty(capacity + 4)
+    vx = np.empty(capacity + 4)
+    vy = np.empty(capacity + 4)
+    na = np.empty(capacity + 5)
+    nb_ = np.empty(capacity + 5)
+    nc = np.empty(capacity + 5)
+    nx = np.empty(capacity + 5)
+    ny = np.empty(capacity + 5)
+    brutes = 0
+    for slot in range(todo.shape[0]):
+        i = todo[slot]
+        ri = ranges[i]
+        if (
+            _gather(
+                i,
+                first_cone[i],
+                True,
+                rays,
+                rel,
+                ranges,
+                rho,
+                elevation,
+                azimuth,
+                starts,
+                origin,
+                size,
+                rows,
+                columns,
+                s1,
+                s2,
+                t,
+            )
+            >= 0
+        ):
+            state[slot] = _STATE_VISIBLE
+            continue
+        cone = max(_FIRST_WIDENING * first_cone[i], 1e-6)
+        verdict = _STATE_UNRESOLVED
+        while True:
+            everything = cone >= _BRUTE_ANGLE
+            if everything:
+                if brutes >= brute_budget:
+                    break
+                brutes += 1
+                cone = math.pi
+            count = _gather(
+                i,
+                cone,
+                False,
+                rays,
+                rel,
+                ranges,
+                rho,
+                elevation,
+                azimuth,
+                starts,
+                origin,
+                size,
+                rows,
+                columns,
+                s1,
+                s2,
+                t,
+            )
+            if count > capacity:
+                capacity = 2 * count
+                s1 = np.empty(capacity)
+                s2 = np.empty(capacity)
+                t = np.empty(capacity)
+                la = np.empty(capacity + 4)
+                lb = np.empty(capacity + 4)
+                lc = np.empty(capacity + 4)
+                vx = np.empty(capacity + 4)
+                vy = np.empty(capacity + 4)
+                na = np.empty(capacity + 5)
+                nb_ = np.empty(capacity + 5)
+                nc = np.empty(capacity + 5)
+                nx = np.empty(capacity + 5)
+                ny = np.empty(capacity + 5)
+                count = _gather(
+                    i,
+                    cone,
+                    False,
+                    rays,
+                    rel,
+                    ranges,
+                    rho,
+                    elevation,
+                    azimuth,
+                    starts,
+                    origin,
+                    size,
+                    rows,
+                    columns,
+                    s1,
+                    s2,
+                    t,
+                )
+            status, a, b = _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny)
+            if status == 0:
+                verdict = _STATE_HIDDEN
+                break
+            if status < 0:
+                break
+            if everything:
+                verdict = _STATE_VISIBLE
+                break
+            alpha, gamma = _danger_cone(math.sqrt(a * a + b * b), ri, r_min, rho_max)
+            if alpha + gamma <= cone * (1.0 - 1e-9):
+                verdict = _STATE_VISIBLE
+                break
+            cone = max(2.0 * cone, 1.05 * (alpha + gamma))
+        state[slot] = verdict
+    return state
+
+
+# ----------------------------------------------------------------------------------------------
+# Sectors: Qhull per overlapping azimuth sector, verdicts certified, threads
+# ----------------------------------------------------------------------------------------------
+_SECTOR_POINTS = 3000  # target core points per sector
+
+
+def _sectors(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+    """Visible flags ``(M,)`` from per-sector hulls; uncertified points go to :func:`_local`."""
+    distinct, inverse = setup.distinct()
+    if distinct is not setup:
+        chosen = np.zeros(distinct.size, dtype=bool)
+        chosen[inverse[wanted]] = True
+        return _sectors(distinct, chosen, workers)[inverse] & wanted
+    ranges, radius = setup.ranges, setup.radius
+    r_min = float(ranges.min())
+    rho_max = 2.0 * radius - r_min
+    rays = setup.rays
+    azimuth = np.arctan2(rays[:, 1], rays[:, 0])
+    elevation = np.arcsin(np.clip(rays[:, 2], -1.0, 1.0))
+    # Margin: the widest danger cone of a facet normal to the ray, in azimuth, with room for
+    # some tilt; facets that need more are not certified and their points go to "local".
+    widest = 2.0 * math.asin(math.sqrt(min(2.0, (float(ranges.max()) - r_min) / rho_max) / 2.0))
+    top = min(float(np.abs(elevation).max()) + widest, 1.2)
+    margin = 1.5 * math.asin(min(1.0, math.sin(widest) / math.cos(top))) + 1e-6
+    count = int(np.clip(setup.size // _SECTOR_POINTS, 1, 64))
+    count = min(count, max(1, int(2 * math.pi / (4 * margin))))
+    if count < 2:
+        decided = _reference(setup, wanted)
+        return decided
+    order = np.argsort(azimuth, kind="stable")
+    sorted_azimuth = azimuth[order]
+    bounds = np.linspace(0, setup.size, count + 1).astype(np.int64)
+    flipped = setup.flipped()
+    jobs = []
+    for k in range(count):
+        lo, hi = int(bounds[k]), int(bounds[k + 1])
+        if hi > lo and wanted[order[lo:hi]].any():
+            jobs.append((lo, hi))
+    tasks = [
+        (lo, hi, order, sorted_azimuth, flipped, margin, rho_max, setup.size) for lo, hi in jobs
+    ]
+    if workers > 1 and len(tasks) > 1 and setup.size >= _PARALLEL_MIN:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            results = list(pool.map(_sector_verdicts, tasks))
+    else:
+        results = [_sector_verdicts(task) for task in tasks]
+    visible = np.zeros(setup.size, dtype=bool)
+    uncertain = np.zeros(setup.size, dtype=bool)
+    for core, vertex, certified in results:
+        visible[core] = vertex & certified
+        uncertain[core] = vertex & ~certified
+    uncertain &= wanted
+    if uncertain.any():
+        visible[uncertain] = _local(setup, uncertain, 1)[uncertain]
+    return visible & wanted
+
+
+def _sector_verdicts(task: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Core points of one sector, whether each is a vertex of the sector's hull, and whether
+    that verdict is certified for the whole set."""
+    lo, hi, order, sorted_azimuth, flipped, margin, rho_max, total = task
+    extended = np.concatenate(
+        [sorted_azimuth - 2 * np.pi, sorted_azimuth, sorted_azimuth + 2 * np.pi]
+    )
+    start = int(np.searchsorted(extended, sorted_azimuth[lo] - margin, "left"))
+    stop = int(np.searchsorted(extended, sorted_azimuth[hi - 1] + margin, "right"))
+    if stop - start >= total:
+        positions = np.arange(total)
+        cover = None  # the sector's set is the whole set
+    else:
+        positions = np.arange(start, stop) % total
+        # every point with an azimuth strictly between these two is in the sector's set
+        cover = (float(extended[start - 1]), float(extended[stop]))
+    members = order[positions]
+    core_mask = (positions >= lo) & (positions < hi)
+    cloud = np.vstack([flipped[members], np.zeros((1, 3))])
+    try:
+        hull = ConvexHull(cloud)
+    except (QhullError, ValueError):
+        count = int(core_mask.sum())
+        return members[core_mask], np.ones(count, bool), np.zeros(count, bool)
+    certified_facet = _certified_facets(hull.equations, rho_max, cover)
+    vertex = np.zeros(len(cloud), dtype=bool)
+    vertex[hull.simplices.ravel()] = True
+    certified = np.zeros(len(cloud), dtype=bool)
+    certified[hull.simplices[certified_facet].ravel()] = True
+    return members[core_mask], vertex[:-1][core_mask], certified[:-1][core_mask]
+
+
+def _certified_facets(
+    equations: np.ndarray, rho_max: float, cover: tuple[float, float] | None
+) -> np.ndarray:
+    """``bool (F,)``: hull facets whose plane provably bounds the whole set.
+
+    A flipped point at angle ``beta`` from the facet normal lies at most ``rho_max cos(beta)``
+    along it, so only points within ``arccos(offset / rho_max)`` of the normal can cross the
+    plane; the facet is certified when that cone lies inside the azimuth interval ``cover``
+    whose points all took part (``None``: all did).
+    """
+    normal, offset = equations[:, :3], -equations[:, 3]
+    if cover is None:
+        return np.ones(len(equations), dtype=bool)
+    cone = np.arccos(np.clip(offset / rho_max, -1.0, 1.0))
+    elevation = np.arcsin(np.clip(normal[:, 2], -1.0, 1.0))
+    ok = (offset > 0) & (cone + np.abs(elevation) < np.pi / 2 - 1e-9)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        spread = np.arcsin(np.clip(np.sin(cone) / np.cos(elevation), -1.0, 1.0))
+    middle, half = (cover[0] + cover[1]) / 2, (cover[1] - cover[0]) / 2
+    azimuth = np.arctan2(normal[:, 1], normal[:, 0])
+    offset_azimuth = (azimuth - middle + np.pi) % (2 * np.pi) - np.pi
+    return ok & (np.abs(offset_azimuth) + spread < half * (1 - 1e-12))

@@ -1,0 +1,392 @@
+"""Tests for drcpo.occlusion: HPR against Open3D's answers, the fast paths against the plain
+one, awkward inputs, forked workers, s-HPR / e-HPR presets and the range-image mode."""
+
+from __future__ import annotations
+
+import multiprocessing
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from drcpo import occlusion
+from drcpo.errors import ConfigError, DataError
+from drcpo.geometry import box_diagonal
+from drcpo.occlusion import (
+    HPR_PRESETS,
+    azimuth_focus,
+    external_occlusion,
+    hidden_point_removal,
+    range_image_occlusion,
+    self_occlusion,
+)
+
+FAST_METHODS = ("local", "sectors", "auto")
+ALL_METHODS = ("reference", *FAST_METHODS)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenes
+# ----------------------------------------------------------------------------------------------
+def _box_surface(rng: np.random.Generator, count: int, centre, dims, yaw: float) -> np.ndarray:
+    local = rng.uniform(-0.5, 0.5, (count, 3)) * dims
+    face = rng.integers(0, 3, count)
+    local[np.arange(count), face] = rng.choice([-0.5, 0.5], count) * np.asarray(dims)[face]
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    x = cos * local[:, 0] - sin * local[:, 1]
+    y = sin * local[:, 0] + cos * local[:, 1]
+    return np.column_stack([x, y, local[:, 2]]) + centre
+
+
+def street_scene(rng: np.random.Generator, count: int, fov: float | None = None) -> np.ndarray:
+    """A ground disc (radius 40 m, 1.7 m below the sensor) with a few box-shaped objects."""
+    ground = count // 2
+    radius = np.sqrt(rng.uniform(9.0, 1600.0, ground))
+    angle = rng.uniform(-np.pi, np.pi, ground)
+    parts = [
+        np.column_stack(
+            [radius * np.cos(angle), radius * np.sin(angle), rng.normal(-1.7, 0.02, ground)]
+        )
+    ]
+    objects = int(rng.integers(3, 9))
+    for _ in range(objects):
+        distance, angle = rng.uniform(3.0, 30.0), rng.uniform(-np.pi, np.pi)
+        dims = rng.uniform([0.5, 0.5, 1.0], [5.0, 2.5, 3.0])
+        centre = [distance * np.cos(angle), distance * np.sin(angle), -1.7 + dims[2] / 2]
+        parts.append(
+            _box_surface(rng, (count - ground) // objects, centre, dims, rng.uniform(-3, 3))
+        )
+    points = np.vstack(parts)
+    if fov is not None:
+        points = points[np.abs(np.arctan2(points[:, 1], points[:, 0])) < fov]
+    return points
+
+
+def _fixture_mask(data) -> np.ndarray:
+    mask = np.zeros(len(data["points"]), dtype=bool)
+    mask[data["visible"]] = True
+    return mask
+
+
+def _jaccard(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max(1, (a | b).sum()))
+
+
+# ----------------------------------------------------------------------------------------------
+# Open3D's answers
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_matches_open3d_fixtures(hpr_fixtures, method):
+    files = sorted(hpr_fixtures.glob("*.npz"))
+    assert len(files) >= 19
+    for path in files:
+        with np.load(path, allow_pickle=False) as data:
+            expected = _fixture_mask(data)
+            got = hidden_point_removal(
+                data["points"], data["viewpoint"], float(data["radius"]), method=method
+            )
+        assert got.dtype == bool and got.shape == expected.shape
+        if path.name.startswith("frame"):
+            assert _jaccard(got, expected) >= 0.999, path.name
+        else:
+            assert np.array_equal(got, expected), path.name
+
+
+def test_frame_fixture_through_external_occlusion_preset(hpr_fixtures):
+    with np.load(hpr_fixtures / "frame000001_R1e5_z0.npz") as data:
+        expected = _fixture_mask(data)
+        points = data["points"]
+    assert HPR_PRESETS["pv_rcnn_plusplus"].radius == 1e5
+    got = external_occlusion(points.astype(np.float32), "pv_rcnn_plusplus")
+    assert _jaccard(got, expected) >= 0.999
+
+
+# ----------------------------------------------------------------------------------------------
+# Fast paths == plain path
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(6))
+def test_fast_paths_equal_reference_on_random_scenes(seed, monkeypatch):
+    # small sectors, so that scenes of a few thousand points are split into many
+    monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 300)
+    rng = np.random.default_rng(seed)
+    points = street_scene(rng, int(rng.integers(1500, 4000)), fov=[None, 0.8][seed % 2])
+    radius = [1e3, 1e4, 1e5, 3e5, 1e6, 1e9][seed]
+    viewpoint = np.array([0.0, 0.0, [0.0, 1.0, 2.0][seed % 3]])
+    reference = hidden_point_removal(points, viewpoint, radius, method="reference")
+    assert 0 < reference.sum() <= len(points)
+    for method in FAST_METHODS:
+        got = hidden_point_removal(points, viewpoint, radius, method=method, workers=2)
+        assert np.array_equal(got, reference), method
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    count=st.integers(4, 120),
+    log_ratio=st.floats(0.05, 6.0),
+)
+def test_local_equals_reference_on_random_clouds(seed, count, log_ratio):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(count, 3)) * rng.uniform(0.1, 10.0, 3) + rng.normal(0, 5, 3)
+    ranges = np.linalg.norm(points, axis=1)
+    radius = float(ranges.max() * 10**log_ratio)
+    reference = hidden_point_removal(points, (0, 0, 0), radius, method="reference")
+    local = hidden_point_removal(points, (0, 0, 0), radius, method="local")
+    assert np.array_equal(local, reference)
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_invariant_to_point_order(method, monkeypatch):
+    monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 300)
+    rng = np.random.default_rng(7)
+    points = street_scene(rng, 3000)
+    first = hidden_point_removal(points, (0, 0, 1.0), 3e5, method=method)
+    order = rng.permutation(len(points))
+    second = hidden_point_removal(points[order], (0, 0, 1.0), 3e5, method=method)
+    assert np.array_equal(second, first[order])
+
+
+def test_query_decides_only_the_asked_points():
+    rng = np.random.default_rng(3)
+    points = street_scene(rng, 4000)
+    full = hidden_point_removal(points, (0, 0, 0), 1e5, method="reference")
+    query = rng.random(len(points)) < 0.3
+    for method in ALL_METHODS:
+        got = hidden_point_removal(points, (0, 0, 0), 1e5, method=method, query=query)
+        assert np.array_equal(got[query], full[query]), method
+        assert got[~query].all(), method
+    indices = np.flatnonzero(query)
+    by_index = hidden_point_removal(points, (0, 0, 0), 1e5, query=indices)
+    assert np.array_equal(by_index[query], full[query])
+
+
+# ----------------------------------------------------------------------------------------------
+# Awkward input
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_tiny_inputs(method):
+    assert hidden_point_removal(np.zeros((0, 3)), (0, 0, 0), 10.0, method=method).shape == (0,)
+    assert hidden_point_removal([[1.0, 2.0, 3.0]], (0, 0, 0), 10.0, method=method).tolist() == [
+        True
+    ]
+    two = np.array([[5.0, 0.0, 0.0], [0.0, 5.0, 0.0]])
+    assert hidden_point_removal(two, (0, 0, 0), 100.0, method=method).all()
+    # one ray: the nearer point hides the farther one
+    ray = np.array([[2.0, 1.0, 0.5], [4.0, 2.0, 1.0], [6.0, 3.0, 1.5]])
+    assert hidden_point_removal(ray, (0, 0, 0), 100.0, method=method).tolist() == [
+        True,
+        False,
+        False,
+    ]
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_flat_configurations_use_the_planar_answer(method):
+    rng = np.random.default_rng(11)
+    # all points and the viewpoint in the plane z = 0: a 2-D HPR
+    circle = rng.uniform(-np.pi, np.pi, 200)
+    near = np.column_stack([10 + np.cos(circle), np.sin(circle), np.zeros(200)])
+    visible = hidden_point_removal(near, (0, 0, 0), 1e4, method=method)
+    facing = near[:, 0] < 10 - 0.2  # the half of the circle towards the viewpoint
+    behind = near[:, 0] > 10 + 0.2
+    assert visible[facing].mean() > 0.9 and not visible[behind].any()
+    # collinear points off the viewpoint's line: all visible (each is extreme along the line)
+    line = np.column_stack([np.linspace(1, 5, 20), np.full(20, 3.0), np.zeros(20)])
+    assert hidden_point_removal(line, (0, 0, 0), 1e3, method=method).all()
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_duplicates_share_one_verdict(method):
+    rng = np.random.default_rng(5)
+    points = street_scene(rng, 2500)
+    doubled = np.vstack([points, points[::3]])
+    visible = hidden_point_removal(doubled, (0, 0, 0), 1e5, method=method)
+    assert np.array_equal(visible[len(points) :], visible[: len(points)][::3])
+    single = hidden_point_removal(points, (0, 0, 0), 1e5, method="reference")
+    assert np.array_equal(visible[: len(points)], single)
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_points_at_the_viewpoint_are_visible(method):
+    rng = np.random.default_rng(2)
+    points = np.vstack([street_scene(rng, 500), [[0.0, 0.0, 1.0]], [[0.0, 0.0, 1.0 + 1e-12]]])
+    visible = hidden_point_removal(points, (0, 0, 1.0), 1e5, method=method)
+    assert visible[-2:].all()
+    rest = hidden_point_removal(points[:-2], (0, 0, 1.0), 1e5, method="reference")
+    assert np.array_equal(visible[:-2], rest)
+    assert hidden_point_removal(np.ones((4, 3)), (1, 1, 1), 5.0, method=method).all()
+
+
+@pytest.mark.parametrize("method", ALL_METHODS)
+def test_huge_and_tiny_radii(method):
+    rng = np.random.default_rng(4)
+    points = street_scene(rng, 800)
+    for radius in (1e12, 1e150):
+        # R -> infinity keeps every point not exactly behind another one
+        assert hidden_point_removal(points, (0, 0, 0), radius, method=method).all()
+    ranges = np.linalg.norm(points, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for radius in (ranges.max() / 4, ranges.max() * 0.75, 1e-9):
+            visible = hidden_point_removal(points, (0, 0, 0), radius, method=method)
+            assert visible.shape == (len(points),) and visible.dtype == bool
+
+
+def test_bad_input_raises_clear_errors():
+    good = np.ones((5, 4), dtype=np.float32) * np.arange(5)[:, None]
+    for bad_value in (np.nan, np.inf, -np.inf):
+        broken = good.copy()
+        broken[2, 1] = bad_value
+        with pytest.raises(DataError, match="row 2"):
+            hidden_point_removal(broken, (0, 0, 0), 10.0)
+    with pytest.raises(DataError, match="shape"):
+        hidden_point_removal(np.ones((5, 2)), (0, 0, 0), 10.0)
+    with pytest.raises(DataError, match="viewpoint"):
+        hidden_point_removal(good, (0, 0), 10.0)
+    with pytest.raises(DataError, match="viewpoint"):
+        hidden_point_removal(good, (0, np.nan, 0), 10.0)
+    for radius in (0.0, -1.0, np.nan, np.inf, 1e300, "big"):
+        with pytest.raises(ConfigError, match="radius"):
+            hidden_point_removal(good, (0, 0, 0), radius)
+    with pytest.raises(ConfigError, match="method"):
+        hidden_point_removal(good, (0, 0, 0), 10.0, method="fast")
+    with pytest.raises(ConfigError, match="workers"):
+        hidden_point_removal(good, (0, 0, 0), 10.0, workers=0)
+    with pytest.raises(DataError, match="query"):
+        hidden_point_removal(good, (0, 0, 0), 10.0, query=np.ones(3, dtype=bool))
+
+
+def test_features_and_dtypes_pass_through():
+    rng = np.random.default_rng(8)
+    points = street_scene(rng, 600)
+    with_features = np.column_stack([points, rng.random((len(points), 2))]).astype(np.float32)
+    expected = hidden_point_removal(points.astype(np.float32).astype(np.float64), (0, 0, 0), 1e5)
+    assert np.array_equal(hidden_point_removal(with_features, (0, 0, 0), 1e5), expected)
+
+
+# ----------------------------------------------------------------------------------------------
+# Forked workers (PyTorch DataLoader style)
+# ----------------------------------------------------------------------------------------------
+def _worker_job(args):
+    points, method, workers = args
+    return hidden_point_removal(points, (0, 0, 0), 1e5, method=method, workers=workers)
+
+
+def test_runs_in_forked_workers():
+    rng = np.random.default_rng(9)
+    points = street_scene(rng, 25000)
+    # run in the parent first: compiled kernels, thread pools and Qhull state exist before fork
+    expected = {m: _worker_job((points, m, 2)) for m in ("local", "sectors", "reference")}
+    context = multiprocessing.get_context("fork")
+    with context.Pool(2) as pool:
+        jobs = [(points, m, w) for m in expected for w in (1, 2)]
+        results = pool.map_async(_worker_job, jobs).get(timeout=120)
+    for (_, method, _), got in zip(jobs, results, strict=True):
+        assert np.array_equal(got, expected[method]), method
+
+
+# ----------------------------------------------------------------------------------------------
+# s-HPR, e-HPR, focus
+# ----------------------------------------------------------------------------------------------
+def test_presets_are_the_papers():
+    assert {k: (v.radius, v.viewpoint_z) for k, v in HPR_PRESETS.items()} == {
+        "second": (300000.0, 2.0),
+        "pointrcnn": (300000.0, 1.0),
+        "pv_rcnn": (100000.0, 0.0),
+        "pv_rcnn_plusplus": (100000.0, 0.0),
+    }
+
+
+def test_self_occlusion_uses_the_box_diagonal():
+    rng = np.random.default_rng(12)
+    box = np.array([20.0, 5.0, -0.9, 4.2, 1.8, 1.6, 0.7])
+    points = _box_surface(rng, 800, box[:3], box[3:6], box[6])
+    radius = float(box_diagonal(box)[0]) * 200
+    expected = hidden_point_removal(points, (0, 0, 0), radius)
+    got = self_occlusion(points, box)
+    assert np.array_equal(got, expected)
+    assert 0.1 < got.mean() < 0.7  # the far side is gone
+    near_side = np.linalg.norm(points, axis=1) < np.linalg.norm(box[:3]) - 0.5
+    assert got[near_side].mean() > got.mean()
+    with pytest.raises(DataError):
+        self_occlusion(points, np.zeros(7))
+
+
+@pytest.mark.parametrize("preset", sorted(HPR_PRESETS))
+def test_external_occlusion_uses_the_preset(preset):
+    rng = np.random.default_rng(13)
+    points = street_scene(rng, 3000)
+    setting = HPR_PRESETS[preset]
+    expected = hidden_point_removal(
+        points, (0, 0, setting.viewpoint_z), setting.radius, method="reference"
+    )
+    assert np.array_equal(external_occlusion(points, preset), expected)
+    custom = external_occlusion(points, preset, radius=500.0, viewpoint_z=0.5)
+    assert np.array_equal(custom, hidden_point_removal(points, (0, 0, 0.5), 500.0))
+    with pytest.raises(ConfigError):
+        external_occlusion(points, "pointpillars")
+    with pytest.raises(ConfigError):
+        external_occlusion(points, preset, mode="raytrace")
+
+
+def test_external_occlusion_focus_is_exact_in_its_directions():
+    rng = np.random.default_rng(14)
+    points = street_scene(rng, 5000)
+    full = external_occlusion(points, "second", method="reference")
+    focus = np.zeros(len(points), dtype=bool)
+    focus[rng.choice(len(points), 5, replace=False)] = True
+    decided = azimuth_focus(points, focus, np.deg2rad(2.0))
+    assert decided[focus].all() and 0 < decided.sum() < len(points)
+    got = external_occlusion(points, "second", focus=focus)
+    assert np.array_equal(got[decided], full[decided])
+    assert got[~decided].all()
+
+
+def test_azimuth_focus_selects_directions():
+    angles = np.deg2rad(np.arange(-180, 180, 1.0))
+    points = np.column_stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)]) * 10
+    focus = np.zeros(len(points), dtype=bool)
+    focus[np.argmin(np.abs(angles - np.deg2rad(30.0)))] = True
+    chosen = azimuth_focus(points, focus, margin=np.deg2rad(3.0))
+    degrees = np.rad2deg(angles[chosen])
+    assert degrees.min() > 26 - 1e-9 and degrees.max() < 34 + 1e-9
+    assert np.isclose(degrees, 30).any()
+    assert azimuth_focus(points, np.zeros(len(points), dtype=bool)).sum() == 0
+    assert azimuth_focus(points, focus, margin=np.pi).all()
+
+
+# ----------------------------------------------------------------------------------------------
+# Range image
+# ----------------------------------------------------------------------------------------------
+def test_range_image_keeps_the_nearest_surface():
+    wall = np.column_stack([np.full(400, 20.0), np.linspace(-2, 2, 400), np.zeros(400)])
+    blocker = np.array([[10.0, 0.01, 0.0], [10.05, 0.01, 0.0]])
+    points = np.vstack([wall, blocker])
+    resolution = np.deg2rad(0.2)
+    visible = range_image_occlusion(points, azimuth_resolution=resolution, depth_tolerance=0.2)
+    assert visible[-2:].all()  # the blocker's two returns are one surface
+    column = np.floor((np.arctan2(points[:, 1], points[:, 0]) + np.pi) / resolution)
+    in_shadow = column[:-2] == column[-1]
+    assert 2 <= in_shadow.sum() < 20
+    assert not visible[:-2][in_shadow].any() and visible[:-2][~in_shadow].all()
+    tight = range_image_occlusion(points, azimuth_resolution=resolution, depth_tolerance=0.0)
+    assert tight[-2] and not tight[-1]
+
+
+def test_range_image_beams_and_modes():
+    rng = np.random.default_rng(15)
+    points = street_scene(rng, 3000)
+    beams = np.deg2rad(np.linspace(-25, 3, 64))
+    by_beam = range_image_occlusion(points, beam_elevations=beams)
+    assert by_beam.shape == (len(points),) and 0.3 < by_beam.mean() <= 1.0
+    via_external = external_occlusion(
+        points, mode="range_image", range_image={"beam_elevations": beams}
+    )
+    assert np.array_equal(via_external, by_beam)
+    assert range_image_occlusion(np.zeros((3, 3))).all()
+    with pytest.raises(ConfigError):
+        range_image_occlusion(points, azimuth_resolution=0.0)
+    with pytest.raises(DataError):
+        range_image_occlusion(np.full((2, 3), np.nan))
