@@ -106,7 +106,7 @@ class IndexConfig:
     mirrored: tuple[str, ...] = DEFAULT_MIRRORED
     exclude_difficulties: tuple[int, ...] = ()
     classes: tuple[str, ...] | None = None
-    approximate_above: int | None = 200_000
+    approximate_above: int | None = None
     approx_factor: float = 2.0
     workers: int | None = None
     block_size: int = 512
@@ -376,32 +376,38 @@ def build_index(
         indexed = rows[keep[rows]]
         class_max = counts[indexed, :p].max(axis=0) if len(indexed) else np.zeros(p, np.int64)
         max_counts[name] = class_max.astype(np.int64)
-        densities[rows, :p] = normalise_counts(counts[rows, :p], class_max)
+        for chunk in _chunks(rows):
+            densities[chunk, :p] = normalise_counts(counts[chunk, :p], class_max)
         mode = _mode_for(len(indexed), config)
         if len(indexed) > 1:
-            local = rank_candidates(
+            rank_candidates(
                 database.boxes[indexed, 3:6],
                 densities[indexed, :p],
                 config,
                 mode=mode,
                 progress=None if progress is None else _named(progress, name),
-            )
-            candidates[indexed, : local.shape[1]] = np.where(
-                local >= 0, indexed[np.maximum(local, 0)], -1
+                rows=indexed,
+                out=candidates,
             )
         elif progress is not None:
             progress(name, len(indexed), len(indexed))
-        per_object = (candidates[indexed] >= 0).sum(axis=1)
+        found = sum(int((candidates[chunk] >= 0).sum()) for chunk in _chunks(indexed))
         stats[name] = {
             "objects": len(rows),
             "indexed": len(indexed),
-            "mean_candidates": float(per_object.mean()) if len(indexed) else 0.0,
+            "mean_candidates": found / len(indexed) if len(indexed) else 0.0,
             "mode": mode,
         }
     del counts
     return CandidateIndex(
         candidates, densities, grids, max_counts, config, database.checksum, stats
     )
+
+
+def _chunks(rows: np.ndarray, size: int = 1 << 16) -> Iterable[np.ndarray]:
+    """Consecutive pieces of ``rows``, so that per-row temporaries stay small."""
+    for start in range(0, len(rows), size):
+        yield rows[start : start + size]
 
 
 def _named(progress: Progress, name: str) -> Callable[[int, int], None]:
@@ -526,8 +532,10 @@ def rank_candidates(
     config: IndexConfig,
     mode: str = "exact",
     progress: Callable[[int, int], None] | None = None,
+    rows: np.ndarray | None = None,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Candidates of every object of one class, as local ids ``int32 (M, min(k, M - 1))``.
+    """Candidates of every object of one class, best first.
 
     Args:
         dims: ``(M, 3)`` box sizes (m) of the class's indexed objects, in database-row order
@@ -535,47 +543,70 @@ def rank_candidates(
         densities: ``float32 (M, P)`` their partition densities.
         config: ``k``, ``alpha``, ``approx_factor``, ``workers``, ``block_size``.
         mode: ``"exact"`` or ``"approximate"`` first stage.
+        rows: ``(M,)`` database rows of the objects; with ``out``, object i's candidates are
+            written as database rows to ``out[rows[i], :min(k, M - 1)]``.
+        out: ``int32 (N, >= min(k, M - 1))`` array to write into.
+
+    Returns:
+        ``out``, or without it local ids ``int32 (M, min(k, M - 1))``, ``-1`` padded.
     """
-    dims = np.ascontiguousarray(dims, np.float64)
-    densities = np.ascontiguousarray(densities, np.float32)
     m = len(dims)
     s = min(2 * config.k, m - 1)
     k = min(config.k, m - 1)
-    out = np.full((m, k), -1, np.int32)
+    if out is None:
+        out = np.full((m, max(k, 0)), -1, np.int32)
+        rows = np.arange(m)
+    elif rows is None or len(rows) != m:
+        raise ValueError("rank_candidates: out= needs rows= with one row per object")
     if k <= 0:
         return out
     search = SimilaritySearch(dims, s, mode=mode, approx_factor=config.approx_factor)
+    # Densities in query (cell) order: neighbours of neighbouring queries share cache lines.
+    position = np.empty(m, np.int64)
+    position[search.order] = np.arange(m)
+    densities = np.ascontiguousarray(np.asarray(densities, np.float32)[search.order])
+    totals = densities.sum(axis=1, dtype=np.float64)
+    # Index -1 (padding) picks the appended -1.
+    labels = np.append(np.asarray(rows, np.int32), np.int32(-1))
+    alpha = float(config.alpha)
 
-    def work(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def work(start: int) -> tuple[int, np.ndarray]:
+        block = search.order[start : start + config.block_size]
         ids, _ = search.top(block)
-        return block, _fill_rank(ids, densities, block, float(config.alpha), k)
+        return start, _fill_rank(ids, densities, totals, position, start, alpha, k)
 
-    for block, ranked in _map_blocks(work, search.order, config, progress):
-        out[block] = ranked
+    starts = np.arange(0, m, config.block_size)
+    for start, ranked in _map_blocks(work, starts, m, config, progress):
+        block = search.order[start : start + config.block_size]
+        out[labels[block], :k] = labels[ranked]
     return out
 
 
 def _map_blocks(
-    work: Callable[[np.ndarray], Any],
-    order: np.ndarray,
+    work: Callable[[Any], Any],
+    items: Iterable[Any],
+    total: int,
     config: IndexConfig,
     progress: Callable[[int, int], None] | None,
 ) -> Iterable[Any]:
-    """Apply ``work`` to consecutive blocks of ``order``, in order, on ``workers`` threads."""
-    blocks = [order[i : i + config.block_size] for i in range(0, len(order), config.block_size)]
-    workers = min(config.resolved_workers(), len(blocks))
+    """``work(item)`` for each item, results in order, on ``workers`` threads.
+
+    ``progress(done, total)`` advances by ``block_size`` per item.
+    """
+    items = list(items)
+    workers = min(config.resolved_workers(), len(items))
     done = 0
     if workers <= 1:
-        results: Iterable[Any] = map(work, blocks)
+        results: Iterable[Any] = map(work, items)
     else:
         pool = ThreadPoolExecutor(workers)
-        # Bounded look-ahead keeps memory flat while both threads stay busy.
-        results = _bounded_map(pool, work, blocks, 4 * workers)
+        # Bounded look-ahead keeps memory flat while every thread stays busy.
+        results = _bounded_map(pool, work, items, 4 * workers)
     try:
-        for block, result in zip(blocks, results, strict=True):
-            done += len(block)
+        for result in results:
+            done = min(done + config.block_size, total)
             if progress is not None:
-                progress(done, len(order))
+                progress(done, total)
             yield result
     finally:
         if workers > 1:
@@ -928,15 +959,20 @@ def _rerank(queries, near, dims, vol, s):  # pragma: no cover - numba
 # Second stage: the best ``k`` of those by density filled in
 # --------------------------------------------------------------------------------------------
 @nb.njit(cache=True, nogil=True)
-def _fill_rank(ids, densities, queries, alpha, k):  # pragma: no cover - numba
-    """Best ``k`` of each row of ``ids`` (ranked list, -1 padded) by fill score, then rank."""
+def _fill_rank(ids, densities, totals, position, first, alpha, k):  # pragma: no cover - numba
+    """Best ``k`` of each row of ``ids`` (ranked list, -1 padded) by fill score, then rank.
+
+    Object j's densities are ``densities[position[j]]`` and their float64 sum
+    ``totals[position[j]]``; row b of ``ids`` belongs to the object at position ``first + b``.
+    """
     nq, s = ids.shape
     p = densities.shape[1]
     out = np.full((nq, k), -1, np.int32)
-    low = np.empty(p, np.int64)
+    low = np.empty(p, np.bool_)
+    terms = np.empty(p, np.int64)
     score = np.empty(s, np.float64)
     for b in range(nq):
-        d = densities[queries[b]]
+        d = densities[first + b]
         total = 0.0
         filled = 0
         for c in range(p):
@@ -944,26 +980,28 @@ def _fill_rank(ids, densities, queries, alpha, k):  # pragma: no cover - numba
                 total += np.float64(d[c])
                 filled += 1
         n_low = 0
-        if filled == 0:
-            for c in range(p):
-                low[n_low] = c
-                n_low += 1
-        else:
-            threshold = alpha * (total / filled)
-            for c in range(p):
-                if np.float64(d[c]) < threshold:
-                    low[n_low] = c
-                    n_low += 1
+        for c in range(p):
+            low[c] = filled == 0 or np.float64(d[c]) < alpha * (total / filled)
+            n_low += low[c]
+        # Sum over the low partitions, or subtract the others from the total when they are
+        # fewer; both are exact (see the module docstring), so the scores are identical.
+        complement = 2 * n_low > p
+        n_terms = 0
+        for c in range(p):
+            if low[c] != complement:
+                terms[n_terms] = c
+                n_terms += 1
         n = s
         for c in range(s):
             j = ids[b, c]
             if j < 0:
                 n = c
                 break
+            row = position[j]
             acc = 0.0
-            for e in range(n_low):
-                acc += np.float64(densities[j, low[e]])
-            score[c] = -acc
+            for e in range(n_terms):
+                acc += np.float64(densities[row, terms[e]])
+            score[c] = acc - totals[row] if complement else -acc
         # A stable sort of the negated scores keeps equal scores in first-stage order.
         order = np.argsort(score[:n], kind="mergesort")
         for c in range(min(k, n)):
@@ -993,9 +1031,10 @@ def similarity_recall(
     config = IndexConfig(workers=workers, block_size=256)
     sample = np.asarray(sample, np.int64)
     found = 0
+    blocks = [sample[i : i + config.block_size] for i in range(0, len(sample), config.block_size)]
     for truth, guess in zip(
-        _map_blocks(lambda b: exact.top(b)[0], sample, config, None),
-        _map_blocks(lambda b: approx.top(b)[0], sample, config, None),
+        _map_blocks(lambda b: exact.top(b)[0], blocks, len(sample), config, None),
+        _map_blocks(lambda b: approx.top(b)[0], blocks, len(sample), config, None),
         strict=True,
     ):
         for t_row, g_row in zip(truth, guess, strict=True):
