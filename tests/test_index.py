@@ -303,3 +303,31 @@ def test_config_round_trip():
     assert IndexConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
     with pytest.raises(ConfigError, match="unknown"):
         IndexConfig.from_dict({"kk": 3})
+
+
+def test_cli_index_builds_saves_and_refuses_to_overwrite(tmp_path):
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+
+    db = random_database(np.random.default_rng(16), 120)
+    db.save(tmp_path / "db")
+    runner = CliRunner()
+    result = runner.invoke(app, ["index", str(tmp_path / "db"), "--k", "8", "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    assert "mean candidates" in result.output
+    opened = GroundTruthDatabase.open(tmp_path / "db")
+    index = load_index(opened)
+    assert index.k == 8
+    np.testing.assert_array_equal(
+        index.candidates, build_index(opened, IndexConfig(k=8)).candidates
+    )
+    again = runner.invoke(app, ["index", str(tmp_path / "db")])
+    assert again.exit_code == 1
+    assert "already exists" in again.output
+    rebuilt = runner.invoke(app, ["index", str(tmp_path / "db"), "--k", "3", "--overwrite"])
+    assert rebuilt.exit_code == 0, rebuilt.output
+    assert load_index(opened).k == 3
+    missing = runner.invoke(app, ["index", str(tmp_path / "nowhere")])
+    assert missing.exit_code == 1
+    assert "not a drcpo database" in missing.output

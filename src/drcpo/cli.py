@@ -150,6 +150,75 @@ def info(
 
 
 @app.command()
+def index(
+    db: Annotated[Path, typer.Argument(help="Database directory (the index goes to DB/index/).")],
+    k: Annotated[int, typer.Option("--k", min=1, help="Candidates per object.")] = 400,
+    alpha: Annotated[
+        float, typer.Option(min=0.0, help="Low-density partitions: below alpha x mean.")
+    ] = 0.8,
+    min_points: Annotated[
+        int, typer.Option(min=0, help="Objects with fewer points are not indexed.")
+    ] = 5,
+    exclude_difficulty: Annotated[
+        list[int] | None,
+        typer.Option(help="Difficulty code never indexed (repeatable; -1 = unknown)."),
+    ] = None,
+    approximate_above: Annotated[
+        int | None,
+        typer.Option(help="Approximate first stage for classes with more indexed objects."),
+    ] = None,
+    workers: Annotated[
+        int | None, typer.Option(min=1, help="Threads (default: all cores).")
+    ] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing index.")] = False,
+) -> None:
+    """Index every object's K best candidates (DR.CPO pre-processing)."""
+    import time
+
+    from drcpo.database import GroundTruthDatabase
+    from drcpo.index import INDEX_DIRNAME, IndexConfig, build_index, indexed_mask
+
+    try:
+        database = GroundTruthDatabase.open(db)
+        if (db / INDEX_DIRNAME).exists() and not overwrite:
+            fail(f"{db / INDEX_DIRNAME} already exists (pass --overwrite to rebuild it)")
+        config = IndexConfig(
+            k=k,
+            alpha=alpha,
+            min_points=min_points,
+            exclude_difficulties=tuple(exclude_difficulty or ()),
+            approximate_above=approximate_above,
+            workers=workers,
+        )
+        total = int(indexed_mask(database, config).sum())
+        done: dict[str, int] = {}
+        start = time.perf_counter()
+        with progress_bar("indexing objects") as bar:
+
+            def progress(name: str, objects: int, _: int) -> None:
+                done[name] = objects
+                bar(sum(done.values()), total)
+
+            result = build_index(database, config, progress=progress)
+            path = result.save(db, overwrite=overwrite)
+        seconds = time.perf_counter() - start
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
+    table = Table(title=f"{path} (K = {k}, {seconds:.1f} s)")
+    for column in ("class", "objects", "indexed", "mean candidates", "first stage"):
+        table.add_column(column, justify="left" if column == "class" else "right")
+    for name, stats in result.classes.items():
+        table.add_row(
+            name,
+            str(stats["objects"]),
+            str(stats["indexed"]),
+            f"{stats['mean_candidates']:.1f}",
+            stats["mode"],
+        )
+    Console().print(table)
+
+
+@app.command()
 def augment(
     kitti: Annotated[Path, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")],
     db: Annotated[Path, typer.Option("--db", help="Ground-truth database (with index/).")],
