@@ -679,13 +679,17 @@ class DRCPO(Transform):
        ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
        is dropped (``self_occlusion``).
     5. **Insert**: frame points inside the accepted boxes are removed, the objects' points added.
-    6. **e-HPR** from the detector preset's viewpoint: scope ``inserted`` removes only inserted
-       points and original points that are hidden after the insertion but visible without it,
-       and computes visibility only in the azimuth sectors the inserted boxes cover; scope
-       ``frame`` (the paper) removes every hidden point of the frame.
-    7. **Labels**: a box left with fewer than ``min_points_after`` points is dropped, unless it
-       already had fewer before (a dropped inserted object also loses its remaining points;
-       reason ``external_occlusion``).
+    6. **e-HPR** from the detector preset's viewpoint and radius. Scope ``frame`` (the paper)
+       removes every hidden point of the frame. Scope ``inserted`` (default) removes only
+       inserted points that are hidden and original points that lie behind an inserted box,
+       in its view window (the azimuth and elevation it covers), and are hidden with the
+       objects but visible without them; visibility is decided only for those points, each
+       exactly against the whole frame (HPR queries), so HPR's own errors never delete real,
+       visible points and directions without inserted objects cost nothing.
+    7. **Labels**: an inserted object left with fewer than ``min_points_after`` points in its
+       box is dropped with all its points (reason ``external_occlusion``), and the frame points
+       it displaced or hid come back. An original box that lost points and holds fewer than
+       ``min_points_after`` is dropped, unless it already had fewer before.
 
     Args:
         database: the ground-truth database (canonical points).
@@ -1007,10 +1011,12 @@ class DRCPO(Transform):
         """
         minimum = self.config.min_points_after
         # Points in the box itself count (construction may leave some a few cm outside).
+        # Owners are sorted (original points first, then each insertion's block).
+        bounds = np.searchsorted(owner, np.arange(len(insertions) + 1))
         survivors = np.array(
             [
-                len(BoxQuery(points[keep & (owner == j)]).inside(insertion.box))
-                for j, insertion in enumerate(insertions)
+                len(BoxQuery(points[a:b][keep[a:b]]).inside(insertion.box))
+                for a, b, insertion in zip(bounds[:-1], bounds[1:], insertions, strict=True)
             ],
             dtype=np.int64,
         )
