@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from drcpo import construction, placement
+from drcpo import construction, occlusion, placement
 from drcpo.config import (
     DRCPOConfig,
     FlipConfig,
@@ -53,6 +53,7 @@ from drcpo.geometry import (
     wrap_angle,
 )
 from drcpo.ground import GroundModel
+from drcpo.index import indexed_mask
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
@@ -727,8 +728,6 @@ class DRCPO(Transform):
         self._placement = {fov: self._placement_config(fov) for fov in (False, True)}
         classes = [name for name, count in config.sample.items() if count > 0]
         self._check_index(classes)
-        from drcpo.index import indexed_mask
-
         indexed = indexed_mask(database, index.config)
         self._pools = {
             name: pool[indexed[pool]]
@@ -896,8 +895,6 @@ class DRCPO(Transform):
         stats: Stats,
     ) -> list[_Insertion]:
         """Placed points of each object after s-HPR; objects left too sparse are dropped."""
-        from drcpo import occlusion
-
         settings = self.config.self_occlusion
         dim = frame.points.shape[1]
         insertions = []
@@ -974,8 +971,6 @@ class DRCPO(Transform):
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
-        from drcpo import occlusion
-
         settings = self.config.external_occlusion
         preset = occlusion.HPR_PRESETS[settings.preset]
         radius = settings.radius if settings.radius is not None else preset.radius
@@ -984,8 +979,6 @@ class DRCPO(Transform):
 
     def _visible(self, points: np.ndarray, query: np.ndarray | None = None) -> np.ndarray:
         """``bool (N,)`` visibility from the e-HPR viewpoint (``True`` outside ``query``)."""
-        from drcpo import occlusion
-
         radius, viewpoint = self.e_hpr_setting()
         if self.config.external_occlusion.mode == "range_image":
             visible = occlusion.range_image_occlusion(points, viewpoint)
