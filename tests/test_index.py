@@ -331,3 +331,20 @@ def test_cli_index_builds_saves_and_refuses_to_overwrite(tmp_path):
     missing = runner.invoke(app, ["index", str(tmp_path / "nowhere")])
     assert missing.exit_code == 1
     assert "not a drcpo database" in missing.output
+
+
+def test_progress_reaches_every_indexed_object():
+    db = random_database(np.random.default_rng(17), 700)
+    config = IndexConfig(k=10, block_size=50)
+    seen = {}
+    build_index(
+        db,
+        config,
+        progress=lambda name, done, total: seen.setdefault(name, []).append((done, total)),
+    )
+    keep = indexed_mask(db, config)
+    for name, calls in seen.items():
+        expected = int(keep[db.names == name].sum())
+        assert calls[-1] == (expected, expected)
+        assert [d for d, _ in calls] == sorted(d for d, _ in calls)
+    assert set(seen) == set(db.names.tolist())
