@@ -303,9 +303,11 @@ def synth(
 @app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("drcpo_demo"),
-    frames: Annotated[int, typer.Option(min=1, help="Synthetic frames (cached in OUT/kitti).")] = 8,
+    frames: Annotated[
+        int, typer.Option(min=1, help="Synthetic frames (cached in OUT/kitti).")
+    ] = 16,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    augment_frames: Annotated[int, typer.Option(min=1, help="Frames to augment.")] = 3,
+    augment_frames: Annotated[int, typer.Option(min=1, help="Frames to augment.")] = 4,
 ) -> None:
     """Run every available stage on the built-in synthetic world; writes figures and a summary."""
     from drcpo.demo import run_demo

@@ -42,8 +42,8 @@ from drcpo.viz import (
     density_figure,
 )
 
-DEFAULT_FRAMES = 8
-DEFAULT_AUGMENTED = 3
+DEFAULT_FRAMES = 16
+DEFAULT_AUGMENTED = 4
 MAX_CONSTRUCTION_PANELS = 8
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 
@@ -286,10 +286,12 @@ def _figures(
     figures: dict[str, Path] = {}
     with run.stage("figures", f"drawing figures into {out}"):
         titles = {"gt sampling": "after ground-truth sampling", "dr.cpo": "after DR.CPO"}
-        first = originals[0]
-        panels = [BevPanel(first.points, first.boxes, first.names.tolist(), "original")]
+        shown = _most_inserted(originals, results)
+        first = originals[shown]
+        title = f"original (frame {first.frame_id})"
+        panels = [BevPanel(first.points, first.boxes, first.names.tolist(), title)]
         for label, group in results.items():
-            frame = group[0]
+            frame = group[shown]
             panels.append(
                 BevPanel(
                     frame.points,
@@ -310,11 +312,24 @@ def _figures(
             steps = None
         if steps:
             name, row, steps = steps
-            title = f"iterative construction of database object {row} ({name})"
+            title = (
+                f"iterative construction of database object {row} ({name}), seen from above\n"
+                "blue: its own points (mirrored); orange: points added from candidates; "
+                "green: share of each column's partitions above the density threshold"
+            )
             figures["construction"] = construction_figure(steps, out / "construction.png", title)
     for path in figures.values():
         run.console.print(f"    wrote {path}")
     return figures
+
+
+def _most_inserted(originals: list[Frame], results: dict[str, list[Frame]]) -> int:
+    """The augmented frame into which the last transform (DR.CPO when it ran) inserted most."""
+    if not results:
+        return 0
+    group = list(results.values())[-1]
+    counts = [int(inserted_mask(o, a).sum()) for o, a in zip(originals, group, strict=True)]
+    return int(np.argmax(counts))
 
 
 def _density_series(
@@ -363,16 +378,21 @@ def _construction_steps(run: _Run, database: GroundTruthDatabase, index: Any, se
     name = str(database.names[row])
     max_counts = np.asarray(index.max_counts[name])
     grid = tuple(index.grids[name])
-    steps, threshold, source_count = [], None, 0
-    for iterations in range(MAX_CONSTRUCTION_PANELS):
-        config = config_cls(max_iterations=iterations)
-        built = construct(
-            database, row, index.candidates_of(row), np.random.default_rng(seed), config, max_counts
-        )
+
+    def build(iterations: int | None):
+        config = config_cls() if iterations is None else config_cls(max_iterations=iterations)
+        rng = np.random.default_rng(seed)  # same draws each time: runs share their prefix
+        return construct(database, row, index.candidates_of(row), rng, config, max_counts)
+
+    total = build(None).iterations
+    shown = np.unique(np.round(np.linspace(0, total, min(total + 1, MAX_CONSTRUCTION_PANELS))))
+    steps, threshold, source_count = [], 0.0, 0
+    for iterations in shown.astype(int).tolist():
+        built = build(iterations)
         counts = partition_counts(built.points, built.dims, grid)
         fillable = max_counts[: len(counts)] > 0
         density = counts / np.where(fillable, max_counts[: len(counts)], 1)
-        if threshold is None:
+        if iterations == 0:
             occupied = fillable & (counts > 0)
             threshold = float(density[occupied].mean()) if occupied.any() else 0.0
             source_count = len(built.points)
@@ -389,8 +409,6 @@ def _construction_steps(run: _Run, database: GroundTruthDatabase, index: Any, se
                 built.iterations,
             )
         )
-        if built.iterations < iterations:
-            break  # converged: more iterations would repeat the last panel
     return name, row, steps
 
 
