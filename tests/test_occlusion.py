@@ -137,6 +137,24 @@ def test_local_equals_reference_on_random_clouds(seed, count, log_ratio):
     assert np.array_equal(local, reference)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
+    # integer lattices: duplicates, points on one ray, many coplanar quadruples
+    monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 60)
+    rng = np.random.default_rng(100 + seed)
+    for trial in range(25):
+        points = rng.integers(-6, 7, size=(int(rng.integers(4, 400)), 3)).astype(float)
+        if trial % 2:
+            points[:, 2] = rng.integers(-2, 0, len(points))
+        viewpoint = rng.normal(0, 0.3, 3) if trial % 3 == 0 else np.zeros(3)
+        reach = np.linalg.norm(points - viewpoint, axis=1).max()
+        radius = float(reach * 10 ** rng.uniform(0.05, 5))
+        reference = hidden_point_removal(points, viewpoint, radius, method="reference")
+        for method in ("local", "sectors"):
+            got = hidden_point_removal(points, viewpoint, radius, method=method)
+            assert np.array_equal(got, reference), (trial, method)
+
+
 @pytest.mark.parametrize("method", ALL_METHODS)
 def test_invariant_to_point_order(method, monkeypatch):
     monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 300)

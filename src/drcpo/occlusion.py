@@ -489,13 +489,20 @@ class _Setup:
     def distinct(self) -> tuple[_Setup, np.ndarray]:
         """The set-up of the distinct points, and ``(M,)`` the position of each point's copy in
         it (Qhull keeps one of several equal points; drcpo gives every copy its verdict)."""
-        _, first, inverse = np.unique(self.rel, axis=0, return_index=True, return_inverse=True)
-        if len(first) == self.size:
+        rel = self.rel
+        order = np.lexsort((rel[:, 2], rel[:, 1], rel[:, 0]))
+        ordered = rel[order]
+        repeat = (ordered[1:] == ordered[:-1]).all(axis=1)
+        if not repeat.any():
             return self, np.arange(self.size)
+        group = np.concatenate([[0], np.cumsum(~repeat)])
+        first = order[np.concatenate([[True], ~repeat])]
+        inverse = np.empty(self.size, dtype=np.int64)
+        inverse[order] = group
         subset = _Setup(
             self.index[first], self.rel[first], self.ranges[first], self.rays[first], self.radius
         )
-        return subset, inverse.ravel()
+        return subset, inverse
 
     def flipped(self) -> np.ndarray:
         """``(M, 3)`` Open3D's spherical flip ``p + 2 (R - |p|) p / |p|``."""
@@ -655,14 +662,20 @@ def _resolve_unresolved(
     unresolved: np.ndarray, args: tuple, setup: _Setup, order: np.ndarray
 ) -> np.ndarray:
     """States of the (sorted) points the neighbourhood search gave up on: a full scan each when
-    they are few, else one reference hull; exact either way."""
+    they are few, else (and for any the scan cannot settle) one reference hull."""
+    state = np.full(len(unresolved), _STATE_UNRESOLVED, dtype=np.int64)
     if len(unresolved) <= 4 * _BRUTE_BUDGET:
-        return _classify(unresolved, *args, len(unresolved) + 1)
-    distinct, inverse = setup.distinct()
-    vertex = _hull_vertices(distinct.flipped())
-    if vertex is None:
-        return _classify(unresolved, *args, len(unresolved) + 1)
-    return np.where(vertex[inverse][order[unresolved]], _STATE_VISIBLE, _STATE_HIDDEN)
+        state = _classify(unresolved, *args, len(unresolved) + 1)
+    left = state == _STATE_UNRESOLVED
+    if left.any():
+        distinct, inverse = setup.distinct()
+        vertex = _hull_vertices(distinct.flipped())
+        if vertex is None:  # cannot happen for a set the scan failed on; keep the points
+            state[left] = _STATE_VISIBLE
+        else:
+            hull_says = vertex[inverse][order[unresolved[left]]]
+            state[left] = np.where(hull_says, _STATE_VISIBLE, _STATE_HIDDEN)
+    return state
 
 
 @nb.njit(cache=True, nogil=True)
@@ -745,8 +758,13 @@ def _gather(
                 d2 = dx * dx + dy * dy + dz * dz
                 if d2 > chord2:
                     continue
-                if rel[j, 0] == rel[i, 0] and rel[j, 1] == rel[i, 1] and rel[j, 2] == rel[i, 2]:
-                    continue
+                if (
+                    d2 == 0.0
+                    and rel[j, 0] == rel[i, 0]
+                    and rel[j, 1] == rel[i, 1]
+                    and rel[j, 2] == rel[i, 2]
+                ):
+                    continue  # an exact duplicate (equal points have equal rays)
                 t = 0.5 * d2 - (ri - ranges[j]) / rho[j]
                 if radial_only:
                     if t <= _SLACK:
@@ -776,8 +794,7 @@ def _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny):
 
     The region is kept as a convex polygon of constraint lines in counter-clockwise order; each
     vertex is recomputed from its two lines, so precision does not depend on the box size.
-    Returns ``(status, a, b)``: status 1 feasible (``(a, b)`` the nearest point), 0 infeasible,
-    -1 numerically undecidable.
+    Returns ``(status, a, b)``: status 1 feasible (``(a, b)`` the nearest point), 0 infeasible.
     """
     box = _TILT_BOX
     la[0], lb[0], lc[0] = 0.0, -1.0, box
@@ -830,7 +847,9 @@ def _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny):
         x1, y1 = _meet(na[n - 1], nb_[n - 1], nc[n - 1], a, b, c)
         x2, y2 = _meet(a, b, c, na[0], nb_[0], nc[0])
         if math.isnan(x1) or math.isnan(x2):
-            return -1, 0.0, 0.0
+            # The new line is parallel to a neighbouring edge yet cuts it: it coincides with
+            # that edge up to rounding and cannot shrink the region; leave it out.
+            continue
         nx[n - 1], ny[n - 1] = x1, y1
         na[n], nb_[n], nc[n] = a, b, c
         nx[n], ny[n] = x2, y2
@@ -1002,8 +1021,6 @@ def _classify(
             status, a, b = _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny)
             if status == 0:
                 verdict = _STATE_HIDDEN
-                break
-            if status < 0:
                 break
             if everything:
                 verdict = _STATE_VISIBLE
