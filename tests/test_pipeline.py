@@ -14,7 +14,9 @@ from drcpo.pipeline import (
     GlobalRotation,
     GlobalScaling,
     GroundTruthSampling,
+    OcclusionMap,
     Stats,
+    _facing_samples,
     build_pipeline,
     frame_ground,
     match_features,
@@ -698,6 +700,19 @@ def test_every_rejection_reason(synthetic_world):
     forest = Frame(np.column_stack([forest, np.zeros(len(forest))]).astype(np.float32))
     reasons = _reasons(DRCPO(db, index)(forest, rng(0)))
     assert reasons.get("obstacle", 0) >= 20, reasons
+    u, v = np.meshgrid(np.arange(-3.2, 3.2, 0.03), np.arange(-2.5, 1.0, 0.06), indexing="ij")
+    wall = np.column_stack([np.full(u.size, 20.0), u.ravel(), v.ravel(), np.zeros(u.size)])
+    behind_wall = DRCPO(
+        db,
+        index,
+        {
+            "sample": {"Car": 1},
+            "placement": {"x_range": [30, 40], "y_range": [-2.5, 2.5], "height": "source"},
+        },
+    )
+    for seed in range(3):
+        out = behind_wall(Frame(wall.astype(np.float32)), rng(seed))
+        assert _reasons(out) == {"occluded": 1}
     sparse = DRCPO(db, index, {"self_occlusion": {"min_points": 100_000}})
     assert set(_reasons(sparse(empty, rng(0)))) == {"self_occlusion"}
     strict = DRCPO(db, index, {"min_points_after": 100_000})
@@ -773,3 +788,20 @@ def test_build_pipeline_kinds(synthetic_world):
         build_pipeline(None)
     with pytest.raises(ConfigError, match="pipeline"):
         build_pipeline(None, db, index, kind="magic")
+
+
+def test_occlusion_map_samples_the_faces_seen_from_the_viewpoint():
+    box = np.array([10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0])
+    occlusion_map = OcclusionMap(np.zeros((0, 4), np.float32), np.zeros(3))
+    assert occlusion_map.occluded(box[None])[0] == 0.0  # nothing in front
+    samples = _facing_samples(box, np.zeros(3), 0.2)
+    local = samples - box[:3]
+    # Seen from the origin (in front, above the top): the near x face and the top, nothing else.
+    on_near_face = np.isclose(local[:, 0], -2.0)
+    on_top = np.isclose(local[:, 2], 0.75)
+    assert (on_near_face | on_top).all() and on_near_face.any() and on_top.any()
+    assert np.abs(local).max(axis=0) == pytest.approx([2.0, 1.0, 0.75])
+    # A dense sheet of points just in front of the box hides all of it.
+    u, v = np.meshgrid(np.linspace(-2, 2, 400), np.linspace(-2, 1, 300), indexing="ij")
+    sheet = np.column_stack([np.full(u.size, 6.0), u.ravel(), v.ravel()])
+    assert OcclusionMap(sheet, np.zeros(3)).occluded(box[None])[0] == 1.0

@@ -238,6 +238,18 @@ class PlacementSettings:
         default=1,
         metadata=_spec("int", "poses tried per sampled object (the paper: 1)", low=1, high=1000),
     )
+    occluded_fraction: float | None = field(
+        default=1.0,
+        metadata=_spec(
+            "float",
+            "reject a placed box before construction once this share of its sensor-facing "
+            "surface lies behind frame points (1.0: only fully hidden boxes; null: never)",
+            low=0.0,
+            high=1.0,
+            low_open=True,
+            optional=True,
+        ),
+    )
     camera_fov: str = field(
         default="auto",
         metadata=_spec(

@@ -868,7 +868,16 @@ class DRCPO(Transform):
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
-        return result.boxes, result.accepted
+        boxes, accepted = result.boxes, result.accepted
+        limit = self.config.placement.occluded_fraction
+        if limit is not None and self.config.external_occlusion.enabled and len(boxes):
+            _, viewpoint = self.e_hpr_setting()
+            clear = ~BoxQuery(frame.points).inside_any(boxes)
+            occluded = OcclusionMap(frame.points[clear], viewpoint).occluded(boxes) >= limit
+            for i in accepted[occluded]:
+                stats.rejected(self.name, names[i], "occluded")
+            boxes, accepted = boxes[~occluded], accepted[~occluded]
+        return boxes, accepted
 
     def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
         objects = []
@@ -1138,6 +1147,75 @@ def _box_window(box: np.ndarray, viewpoint: np.ndarray) -> tuple[float, ...] | N
     vertical = max(bottom, 0.0, -top)
     nearest = math.hypot(near, vertical)
     return centre, float(spread.min()), float(spread.max()), el_low, el_high, nearest
+
+
+class OcclusionMap:
+    """Nearest range per (azimuth, elevation) cell of a point cloud seen from a viewpoint: a
+    z-buffer used to reject placements hidden behind the frame before anything is built.
+
+    Cells are ``0.2 x 0.4`` degrees (about a KITTI HDL-64E's resolution). A box sample counts
+    as occluded when its cell holds a point at least ``depth_tolerance`` metres nearer; cells
+    without points occlude nothing, so gaps in the frame keep boxes visible.
+    """
+
+    AZIMUTH_STEP = math.radians(0.2)
+    ELEVATION_STEP = math.radians(0.4)
+    SAMPLE_STEP = 0.2  # metres between samples on a box face
+
+    def __init__(
+        self, points: np.ndarray, viewpoint: np.ndarray, depth_tolerance: float = 0.5
+    ) -> None:
+        self.viewpoint = np.asarray(viewpoint, dtype=np.float64)
+        self.tolerance = depth_tolerance
+        self.columns = math.ceil(2 * math.pi / self.AZIMUTH_STEP)
+        rows = math.ceil(math.pi / self.ELEVATION_STEP) + 1
+        self.nearest = np.full(rows * self.columns, np.inf)
+        cells, ranges = self._cells(points[:, :3])
+        np.minimum.at(self.nearest, cells, ranges)
+
+    def _cells(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rel = np.asarray(xyz, dtype=np.float64) - self.viewpoint
+        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
+        column = np.floor((azimuth + math.pi) / self.AZIMUTH_STEP).astype(np.int64)
+        row = np.floor((elevation + math.pi / 2) / self.ELEVATION_STEP).astype(np.int64)
+        return row * self.columns + column % self.columns, ranges
+
+    def occluded(self, boxes: np.ndarray) -> np.ndarray:
+        """``float64 (M,)``: share of each box's sensor-facing surface samples occluded."""
+        out = np.zeros(len(boxes))
+        for m, box in enumerate(np.asarray(boxes, dtype=np.float64).reshape(-1, 7)):
+            samples = _facing_samples(box, self.viewpoint, self.SAMPLE_STEP)
+            if len(samples) == 0:
+                continue
+            cells, ranges = self._cells(samples)
+            out[m] = np.mean(self.nearest[cells] + self.tolerance < ranges)
+        return out
+
+
+def _facing_samples(box: np.ndarray, viewpoint: np.ndarray, step: float) -> np.ndarray:
+    """Grid samples ``(S, 3)`` (about ``step`` metres apart) on the faces of a box that face
+    ``viewpoint``: the sides and the top (the bottom rests on the ground)."""
+    rel = viewpoint - box[:3]
+    cos, sin = math.cos(box[6]), math.sin(box[6])
+    local_view = np.array([rel[0] * cos + rel[1] * sin, -rel[0] * sin + rel[1] * cos, rel[2]])
+    half = box[3:6] / 2.0
+    faces = []
+    for axis, sign in ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0)):
+        if sign * local_view[axis] <= half[axis]:
+            continue  # the viewpoint is behind this face's plane: the face looks away
+        u_axis, v_axis = (a for a in range(3) if a != axis)
+        u = np.linspace(-half[u_axis], half[u_axis], max(2, math.ceil(box[3 + u_axis] / step) + 1))
+        v = np.linspace(-half[v_axis], half[v_axis], max(2, math.ceil(box[3 + v_axis] / step) + 1))
+        grid = np.zeros((len(u) * len(v), 3))
+        grid[:, u_axis] = np.repeat(u, len(v))
+        grid[:, v_axis] = np.tile(v, len(u))
+        grid[:, axis] = sign * half[axis]
+        faces.append(grid)
+    if not faces:
+        return np.zeros((0, 3))
+    return from_canonical(np.concatenate(faces), box)
 
 
 def frame_ground(frame: Frame) -> GroundModel:
