@@ -794,13 +794,14 @@ def test_occlusion_map_samples_the_faces_seen_from_the_viewpoint():
     box = np.array([10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0])
     occlusion_map = OcclusionMap(np.zeros((0, 4), np.float32), np.zeros(3))
     assert occlusion_map.occluded(box[None])[0] == 0.0  # nothing in front
-    samples = _facing_samples(box, np.zeros(3), 0.2)
-    local = samples - box[:3]
+    samples, facing = _facing_samples(box[None], np.zeros(3))
+    local = samples[0][facing[0]].reshape(-1, 3) - box[:3]
     # Seen from the origin (in front, above the top): the near x face and the top, nothing else.
     on_near_face = np.isclose(local[:, 0], -2.0)
     on_top = np.isclose(local[:, 2], 0.75)
     assert (on_near_face | on_top).all() and on_near_face.any() and on_top.any()
-    assert np.abs(local).max(axis=0) == pytest.approx([2.0, 1.0, 0.75])
+    assert facing.sum() == 2
+    assert np.abs(samples[0] - box[:3]).max(axis=(0, 1)) == pytest.approx([2.0, 1.0, 0.75])
     # A dense sheet of points just in front of the box hides all of it.
     u, v = np.meshgrid(np.linspace(-2, 2, 400), np.linspace(-2, 1, 300), indexing="ij")
     sheet = np.column_stack([np.full(u.size, 6.0), u.ravel(), v.ravel()])
