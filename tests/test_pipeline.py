@@ -806,3 +806,78 @@ def test_occlusion_map_samples_the_faces_seen_from_the_viewpoint():
     u, v = np.meshgrid(np.linspace(-2, 2, 400), np.linspace(-2, 1, 300), indexing="ij")
     sheet = np.column_stack([np.full(u.size, 6.0), u.ravel(), v.ravel()])
     assert OcclusionMap(sheet, np.zeros(3)).occluded(box[None])[0] == 1.0
+
+
+# --------------------------------------------------------------------------------------------
+# Offline generation (drcpo augment) and the benchmark's quick mode
+# --------------------------------------------------------------------------------------------
+def test_augment_cli_writes_kitti_layout_and_stats(kitti_world, kitti_sample, tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+    from drcpo.datasets.kitti import KittiDataset
+
+    db_path = _KITTI_CACHE["path"]
+    out = tmp_path / "augmented"
+    args = ["augment", "--kitti", str(kitti_sample), "--db", str(db_path), "--out", str(out)]
+    result = CliRunner().invoke(app, [*args, "--frames", "3", "--seed", "4"])
+    assert result.exit_code == 0, result.output
+    lines = (out / "stats.jsonl").read_text().splitlines()
+    assert len(lines) == 3
+    records = [json.loads(line) for line in lines]
+    assert records[0]["frame_id"] == "000000" and "drcpo.external_occlusion" in records[0]["stages"]
+    written = KittiDataset(out, "train")
+    assert written.frame_ids == ["000000", "000001", "000002"]
+    for record in records:
+        frame = written.frame(record["frame_id"])
+        assert len(frame) == record["points"]
+        names, counts = np.unique(frame.names, return_counts=True)
+        assert dict(zip(names.tolist(), counts.tolist(), strict=True)) == record["boxes"]
+    # Same seed, same output; an existing output is refused, nothing half-written is left.
+    again = CliRunner().invoke(
+        app, [*args[:-1], str(tmp_path / "again"), "--frames", "3", "--seed", "4"]
+    )
+    assert again.exit_code == 0
+    for name in ("000000", "000002"):
+        first = (out / "training" / "velodyne" / f"{name}.bin").read_bytes()
+        assert first == (tmp_path / "again" / "training" / "velodyne" / f"{name}.bin").read_bytes()
+    refused = CliRunner().invoke(app, [*args, "--frames", "1"])
+    assert refused.exit_code == 1 and "exists" in refused.output
+    bad = CliRunner().invoke(app, [*args[:-1], str(tmp_path / "x"), "--config", "nope.yaml"])
+    assert bad.exit_code == 1 and "nope.yaml" in bad.output
+    assert not (tmp_path / "x").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_augment_kitti_leaves_nothing_when_a_frame_fails(kitti_world, kitti_sample, tmp_path):
+    from drcpo.errors import DataError
+    from drcpo.pipeline import augment_kitti
+
+    class Failing(GlobalFlip):
+        def apply(self, frame, rng, stats):
+            if frame.frame_id == "000001":
+                raise DataError("frame 000001: broken")
+            return super().apply(frame, rng, stats)
+
+    with pytest.raises(DataError, match="000001"):
+        augment_kitti(kitti_sample, "train", Failing(), tmp_path / "out")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bench_augment_quick_mode(tmp_path, capsys):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_augment.py"
+    spec = importlib.util.spec_from_file_location("bench_augment", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    bench.main(["--quick", "--frames", "1", "--repeats", "1", "--work", str(tmp_path)])
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    result = json.loads(last)
+    assert {"cda_ms", "drcpo_ms", "ratio", "stages_ms"} <= set(result)
+    assert result["ratio"] == pytest.approx(result["drcpo_ms"] / result["cda_ms"])
+    assert "drcpo.external_occlusion" in result["stages_ms"]
