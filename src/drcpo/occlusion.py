@@ -125,7 +125,10 @@ _PARALLEL_MIN = 20000
 # as below it, about Qhull's own roundoff, so points on a common plane are not vertices.
 _TILT_BOX = 1e7
 _SLACK = 1e-15
+_BOX_A = np.array([1.0, -1.0, 0.0, 0.0])
+_BOX_B = np.array([0.0, 0.0, 1.0, -1.0])
 _FIRST_WIDENING = 1.3  # first neighbourhood of a point the plane normal to its ray fails
+_PROBE_NARROWING = 0.5  # the probe for hidden points looks this far, relative to the first
 _BRUTE_ANGLE = 0.6  # radians: wider neighbourhoods scan every point
 _BRUTE_BUDGET = 64  # full scans per call before the leftovers go to the reference hull
 _STATE_HIDDEN, _STATE_VISIBLE, _STATE_UNRESOLVED = 0, 1, 2
@@ -620,17 +623,12 @@ def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
     first_cone = 2.0 * np.arcsin(np.sqrt(np.clip((ranges - r_min) / rho_max, 0, 2) / 2.0))
     grid = _build_grid(setup.rays, first_cone)
     order = grid.order
-    rays = np.ascontiguousarray(setup.rays[order])
-    rel = np.ascontiguousarray(setup.rel[order])
     sorted_ranges = np.ascontiguousarray(ranges[order])
-    rho = 2.0 * radius - sorted_ranges
-    todo = np.flatnonzero(wanted[order])
-    chunks = np.array_split(todo, workers if len(todo) >= _PARALLEL_MIN else 1)
     args = (
-        rays,
-        rel,
+        np.ascontiguousarray(setup.rays[order]),
+        np.ascontiguousarray(setup.rel[order]),
         sorted_ranges,
-        rho,
+        2.0 * radius - sorted_ranges,
         np.ascontiguousarray(first_cone[order]),
         grid.elevation,
         grid.azimuth,
@@ -642,20 +640,34 @@ def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
         r_min,
         rho_max,
     )
-    if len(chunks) == 1:
-        states = [_classify(chunks[0], *args, _BRUTE_BUDGET)]
-    else:
-        with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
-            states = list(pool.map(lambda c: _classify(c, *args, _BRUTE_BUDGET), chunks))
-    state = np.concatenate(states)
-    unresolved = todo[state == _STATE_UNRESOLVED]
-    if len(unresolved):
-        state[state == _STATE_UNRESOLVED] = _resolve_unresolved(unresolved, args, setup, order)
+    todo = np.flatnonzero(wanted[order])
+    parts = workers if len(todo) >= _PARALLEL_MIN else 1
+    settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, *args), todo, parts))
+    pending = todo[~settled]
     visible_sorted = np.zeros(setup.size, dtype=bool)
-    visible_sorted[todo] = state == _STATE_VISIBLE
+    visible_sorted[todo[settled]] = True
+    if len(pending):
+        parts = workers if len(pending) >= _PARALLEL_MIN // 8 else 1
+        state = np.concatenate(
+            _in_threads(lambda c: _classify(c, *args, _BRUTE_BUDGET), pending, parts)
+        )
+        unresolved = state == _STATE_UNRESOLVED
+        if unresolved.any():
+            state[unresolved] = _resolve_unresolved(pending[unresolved], args, setup, order)
+        visible_sorted[pending] = state == _STATE_VISIBLE
     visible = np.zeros(setup.size, dtype=bool)
     visible[order] = visible_sorted
     return visible
+
+
+def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
+    """``kernel`` over ``parts`` contiguous chunks of ``items``, on that many threads (the
+    kernels release the GIL); the pool lives only for this call, so nothing leaks into a fork."""
+    chunks = np.array_split(items, max(1, parts))
+    if len(chunks) == 1:
+        return [kernel(chunks[0])]
+    with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
+        return list(pool.map(kernel, chunks))
 
 
 def _resolve_unresolved(
@@ -688,6 +700,70 @@ def _tangent_basis(ux: float, uy: float, uz: float) -> tuple:
     norm = math.sqrt(ax * ax + ay * ay + az * az)
     ax, ay, az = ax / norm, ay / norm, az / norm
     return ax, ay, az, uy * az - uz * ay, uz * ax - ux * az, ux * ay - uy * ax
+
+
+@nb.njit(cache=True, nogil=True)
+def _cell_range(el, az, reach, origin, size, rows, columns):
+    """Grid rows ``row_lo..row_hi`` and ``col_n`` columns from ``col_lo`` (cyclic) holding
+    every ray within ``reach`` radians of the ray at elevation ``el``, azimuth ``az``."""
+    if reach >= _BRUTE_ANGLE:
+        return 0, rows - 1, 0, columns
+    row_lo = max(0, math.floor((el - reach - origin) / size))
+    row_hi = min(rows - 1, math.floor((el + reach - origin) / size))
+    if math.sin(reach) >= math.cos(el):  # the cone holds a pole: every azimuth
+        return row_lo, row_hi, 0, columns
+    spread = math.asin(min(1.0, math.sin(reach) / math.cos(el))) * (1.0 + 1e-9) + 1e-12
+    step = 2.0 * math.pi / columns
+    col_lo = math.floor((az - spread + math.pi) / step)
+    col_hi = math.floor((az + spread + math.pi) / step)
+    return row_lo, row_hi, col_lo, min(columns, col_hi - col_lo + 1)
+
+
+@nb.njit(cache=True, nogil=True)
+def _radial_pass(
+    todo,
+    rays,
+    rel,
+    ranges,
+    rho,
+    first_cone,
+    elevation,
+    azimuth,
+    starts,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+):
+    """``bool`` per point of ``todo``: visible by the plane normal to its ray (the pre-filter);
+    ``False`` means undecided."""
+    empty = np.empty(0)
+    settled = np.empty(todo.shape[0], dtype=np.bool_)
+    for slot in range(todo.shape[0]):
+        i = todo[slot]
+        found = _gather(
+            i,
+            first_cone[i],
+            True,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            origin,
+            size,
+            rows,
+            columns,
+            empty,
+            empty,
+            empty,
+        )
+        settled[slot] = found >= 0
+    return settled
 
 
 @nb.njit(cache=True, nogil=True)
@@ -731,20 +807,9 @@ def _gather(
         chord2 = 5.0
     capacity = out_t.shape[0]
     count = 0
-    el = elevation[i]
-    row_lo = max(0, math.floor((el - reach - origin) / size))
-    row_hi = min(rows - 1, math.floor((el + reach - origin) / size))
-    full_turn = reach >= _BRUTE_ANGLE or math.sin(reach) >= math.cos(el)
-    col_lo = 0
-    col_n = columns
-    if not full_turn:
-        spread = math.asin(min(1.0, math.sin(reach) / math.cos(el))) * (1.0 + 1e-9) + 1e-12
-        step = 2.0 * math.pi / columns
-        col_lo = math.floor((azimuth[i] - spread + math.pi) / step)
-        col_hi = math.floor((azimuth[i] + spread + math.pi) / step)
-        col_n = min(columns, col_hi - col_lo + 1)
-    if reach >= _BRUTE_ANGLE:
-        row_lo, row_hi = 0, rows - 1
+    row_lo, row_hi, col_lo, col_n = _cell_range(
+        elevation[i], azimuth[i], reach, origin, size, rows, columns
+    )
     for row in range(row_lo, row_hi + 1):
         for k in range(col_n):
             column = ((col_lo + k) % columns + columns) % columns
@@ -779,107 +844,65 @@ def _gather(
 
 
 @nb.njit(cache=True, nogil=True)
-def _meet(a1, b1, c1, a2, b2, c2):
-    """Intersection of the lines ``a x + b y = c``; ``(nan, nan)`` when parallel."""
-    det = a1 * b2 - a2 * b1
-    if det == 0.0:
-        return math.nan, math.nan
-    return (c1 * b2 - c2 * b1) / det, (a1 * c2 - a2 * c1) / det
+def _line_interval(a, b, c, fa, fb, da, db, lo, hi):
+    """Clip the parameter interval ``[lo, hi]`` of the line ``f + lam d`` by the constraint
+    ``a x + b y <= c``. Returns ``(lo, hi, ok)``; ``ok`` is False when the constraint excludes
+    the whole line (a parallel constraint that coincides with the line up to rounding counts as
+    satisfied)."""
+    along = a * da + b * db
+    room = c - (a * fa + b * fb)
+    scale = abs(a) + abs(b)
+    if abs(along) <= 1e-14 * scale:
+        return lo, hi, room >= -1e-13 * (abs(c) + scale * (abs(fa) + abs(fb)))
+    bound = room / along
+    if along > 0.0:
+        hi = min(hi, bound)
+    else:
+        lo = max(lo, bound)
+    return lo, hi, True
 
 
 @nb.njit(cache=True, nogil=True)
-def _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny):
-    """Feasible region of ``a s1 + b s2 <= t - slack`` within the tilt box, and its point
-    nearest ``(0, 0)``.
+def _min_tilt(s1, s2, t, count):
+    """The point nearest ``(0, 0)`` of the region ``a s1_j + b s2_j <= t_j - slack`` (all j),
+    within the tilt box ``|a|, |b| <= _TILT_BOX``.
 
-    The region is kept as a convex polygon of constraint lines in counter-clockwise order; each
-    vertex is recomputed from its two lines, so precision does not depend on the box size.
-    Returns ``(status, a, b)``: status 1 feasible (``(a, b)`` the nearest point), 0 infeasible.
+    Seidel's randomised incremental method for this LP-type problem: the optimum so far is kept
+    while constraints hold, and recomputed on the violated constraint's line (a 1-D problem
+    over the constraints seen before) when one does not; visiting the constraints in a
+    scrambled order makes the expected work linear. Returns ``(status, a, b)``: status 1
+    feasible with ``(a, b)`` the nearest point, 0 infeasible.
     """
     box = _TILT_BOX
-    la[0], lb[0], lc[0] = 0.0, -1.0, box
-    la[1], lb[1], lc[1] = 1.0, 0.0, box
-    la[2], lb[2], lc[2] = 0.0, 1.0, box
-    la[3], lb[3], lc[3] = -1.0, 0.0, box
-    m = 4
-    for k in range(m):
-        vx[k], vy[k] = _meet(la[k], lb[k], lc[k], la[(k + 1) % m], lb[(k + 1) % m], lc[(k + 1) % m])
-    # Constraints that cut off the plane normal to the ray first: they shrink the polygon (and
-    # prove most hidden points hidden) soonest.
-    for k in range(2 * count):
-        j = k if k < count else k - count
-        if (k < count) != (t[j] <= _SLACK):
-            continue
+    xa, xb = 0.0, 0.0
+    stride = 2147483647 % count if count > 0 else 1  # a prime above count: a permutation
+    for k in range(count):
+        j = (k * stride) % count
         a, b, c = s1[j], s2[j], t[j] - _SLACK
-        if a == 0.0 and b == 0.0:
-            if c <= 0.0:
-                return 0, 0.0, 0.0
+        if a * xa + b * xb <= c:
             continue
-        first_out = -1
-        inside = 0
-        for k in range(m):
-            if a * vx[k] + b * vy[k] <= c:
-                inside += 1
-            elif first_out < 0:
-                first_out = k
-        if inside == m:
-            continue
-        if inside == 0:
+        norm2 = a * a + b * b
+        if norm2 == 0.0:
+            return 0, 0.0, 0.0  # 0 <= c fails: a point straight in front on the same ray
+        # nearest point of the line to the origin, and the line's direction
+        fa, fb = c * a / norm2, c * b / norm2
+        da, db = -b, a
+        lo, hi, inside = -math.inf, math.inf, True
+        for side in range(4):
+            lo, hi, ok = _line_interval(_BOX_A[side], _BOX_B[side], box, fa, fb, da, db, lo, hi)
+            inside = inside and ok
+        if not inside:
             return 0, 0.0, 0.0
-        # The outside vertices form one cyclic run p..q; lines p+1..q go, the new line goes
-        # between line p and line q+1.
-        p = first_out
-        while a * vx[(p - 1) % m] + b * vy[(p - 1) % m] > c:
-            p = (p - 1) % m
-        q = p
-        while a * vx[(q + 1) % m] + b * vy[(q + 1) % m] > c:
-            q = (q + 1) % m
-        run = (q - p) % m + 1
-        kept = m - run + 1
-        n = 0
-        for step in range(kept):
-            k = (q + 1 + step) % m
-            na[n], nb_[n], nc[n] = la[k], lb[k], lc[k]
-            if step < kept - 1:
-                nx[n], ny[n] = vx[k], vy[k]
-            n += 1
-        # n == kept; line p is at n - 1
-        x1, y1 = _meet(na[n - 1], nb_[n - 1], nc[n - 1], a, b, c)
-        x2, y2 = _meet(a, b, c, na[0], nb_[0], nc[0])
-        if math.isnan(x1) or math.isnan(x2):
-            # The new line is parallel to a neighbouring edge yet cuts it: it coincides with
-            # that edge up to rounding and cannot shrink the region; leave it out.
-            continue
-        nx[n - 1], ny[n - 1] = x1, y1
-        na[n], nb_[n], nc[n] = a, b, c
-        nx[n], ny[n] = x2, y2
-        n += 1
-        for k in range(n):
-            la[k], lb[k], lc[k] = na[k], nb_[k], nc[k]
-            vx[k], vy[k] = nx[k], ny[k]
-        m = n
-    # Nearest point to the origin: the origin itself, or a point on an edge.
-    origin_inside = True
-    for k in range(m):
-        if lc[k] < 0.0:
-            origin_inside = False
-            break
-    if origin_inside:
-        return 1, 0.0, 0.0
-    best, best_x, best_y = math.inf, 0.0, 0.0
-    for k in range(m):
-        # edge k runs along line k from vertex k-1 to vertex k
-        x0, y0 = vx[(k - 1) % m], vy[(k - 1) % m]
-        ex, ey = vx[k] - x0, vy[k] - y0
-        length2 = ex * ex + ey * ey
-        lam = 0.0
-        if length2 > 0.0:
-            lam = min(1.0, max(0.0, -(x0 * ex + y0 * ey) / length2))
-        px, py = x0 + lam * ex, y0 + lam * ey
-        d = px * px + py * py
-        if d < best:
-            best, best_x, best_y = d, px, py
-    return 1, best_x, best_y
+        for previous in range(k):
+            i = (previous * stride) % count
+            lo, hi, ok = _line_interval(s1[i], s2[i], t[i] - _SLACK, fa, fb, da, db, lo, hi)
+            if not ok:
+                return 0, 0.0, 0.0
+        if lo > hi:
+            return 0, 0.0, 0.0
+        lam = min(max(0.0, lo), hi)
+        xa, xb = fa + lam * da, fb + lam * db
+    return 1, xa, xb
 
 
 @nb.njit(cache=True, nogil=True)
@@ -912,31 +935,27 @@ def _classify(
     rho_max,
     brute_budget,
 ):
-    """States (hidden 0, visible 1, unresolved 2) of the sorted points ``todo``."""
+    """States (hidden 0, visible 1, unresolved 2) of the sorted points ``todo``, which the
+    plane normal to their ray leaves undecided (see :func:`_radial_pass`)."""
     state = np.empty(todo.shape[0], dtype=np.int64)
     capacity = 256
     s1 = np.empty(capacity)
     s2 = np.empty(capacity)
     t = np.empty(capacity)
-    la = np.empty(capacity + 4)
-    lb = np.empty(capacity + 4)
-    lc = np.empty(capacity + 4)
-    vx = np.empty(capacity + 4)
-    vy = np.empty(capacity + 4)
-    na = np.empty(capacity + 5)
-    nb_ = np.empty(capacity + 5)
-    nc = np.empty(capacity + 5)
-    nx = np.empty(capacity + 5)
-    ny = np.empty(capacity + 5)
     brutes = 0
     for slot in range(todo.shape[0]):
         i = todo[slot]
         ri = ranges[i]
-        if (
-            _gather(
+        cone = max(_FIRST_WIDENING * first_cone[i], 1e-6)
+        verdict = _STATE_UNRESOLVED
+        # A narrow neighbourhood first: the points hiding a hidden point are usually its
+        # nearest, and the full one can hold many times more.
+        probe = _PROBE_NARROWING * first_cone[i]
+        while probe > 1e-6:
+            count = _gather(
                 i,
-                first_cone[i],
-                True,
+                probe,
+                False,
                 rays,
                 rel,
                 ranges,
@@ -952,13 +971,15 @@ def _classify(
                 s2,
                 t,
             )
-            >= 0
-        ):
-            state[slot] = _STATE_VISIBLE
-            continue
-        cone = max(_FIRST_WIDENING * first_cone[i], 1e-6)
-        verdict = _STATE_UNRESOLVED
-        while True:
+            if count <= capacity:
+                if _min_tilt(s1, s2, t, count)[0] == 0:
+                    verdict = _STATE_HIDDEN
+                break
+            capacity = 2 * count
+            s1 = np.empty(capacity)
+            s2 = np.empty(capacity)
+            t = np.empty(capacity)
+        while verdict == _STATE_UNRESOLVED:
             everything = cone >= _BRUTE_ANGLE
             if everything:
                 if brutes >= brute_budget:
@@ -989,16 +1010,6 @@ def _classify(
                 s1 = np.empty(capacity)
                 s2 = np.empty(capacity)
                 t = np.empty(capacity)
-                la = np.empty(capacity + 4)
-                lb = np.empty(capacity + 4)
-                lc = np.empty(capacity + 4)
-                vx = np.empty(capacity + 4)
-                vy = np.empty(capacity + 4)
-                na = np.empty(capacity + 5)
-                nb_ = np.empty(capacity + 5)
-                nc = np.empty(capacity + 5)
-                nx = np.empty(capacity + 5)
-                ny = np.empty(capacity + 5)
                 count = _gather(
                     i,
                     cone,
@@ -1018,7 +1029,7 @@ def _classify(
                     s2,
                     t,
                 )
-            status, a, b = _min_tilt(s1, s2, t, count, la, lb, lc, vx, vy, na, nb_, nc, nx, ny)
+            status, a, b = _min_tilt(s1, s2, t, count)
             if status == 0:
                 verdict = _STATE_HIDDEN
                 break
