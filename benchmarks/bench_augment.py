@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -124,10 +125,13 @@ def synthetic_frames(limit: int, seed: int = 0) -> list[Frame]:
     return frames
 
 
-def time_call(transform, frame: Frame, seed: int) -> tuple[float, dict]:
-    start = time.perf_counter()
+def time_call(transform, frame: Frame, seed: int) -> tuple[float, float, dict]:
+    """Wall and CPU milliseconds of one call (CPU time is the steadier figure on a shared
+    machine; HPR may use two threads, so it can exceed the wall time), and its statistics."""
+    start, cpu = time.perf_counter(), time.process_time()
     out = transform(frame, np.random.default_rng(seed))
-    return (time.perf_counter() - start) * 1000.0, out.metadata["augment_stats"]
+    wall = (time.perf_counter() - start) * 1000.0
+    return wall, (time.process_time() - cpu) * 1000.0, out.metadata["augment_stats"]
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -156,13 +160,16 @@ def main(argv: list[str] | None = None) -> dict:
         # Warm-up: numba compilation and first-touch of the memory-mapped database.
         time_call(cda, frames[0], 0)
         time_call(drcpo, frames[0], 0)
-        cda_ms, drcpo_ms, stages, added = [], [], {}, []
+        cda_ms, drcpo_ms, cda_cpu, drcpo_cpu, stages, added = [], [], [], [], {}, []
         for f, frame in enumerate(frames):
             for r in range(repeats):
                 seed = 1000 * f + r
-                cda_ms.append(time_call(cda, frame, seed)[0])
-                elapsed, stats = time_call(drcpo, frame, seed)
+                elapsed, cpu, _ = time_call(cda, frame, seed)
+                cda_ms.append(elapsed)
+                cda_cpu.append(cpu)
+                elapsed, cpu, stats = time_call(drcpo, frame, seed)
                 drcpo_ms.append(elapsed)
+                drcpo_cpu.append(cpu)
                 for name, stage in stats["stages"].items():
                     stages.setdefault(name, []).append(stage["ms"])
                 added.append(sum(c["added"] for c in stats["objects"].get("drcpo", {}).values()))
@@ -172,7 +179,11 @@ def main(argv: list[str] | None = None) -> dict:
     }
     result["ratio"] = result["drcpo_ms"] / result["cda_ms"]
     result["stages_ms"] = {name: statistics.median(v) for name, v in stages.items()}
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     result.update(
+        cda_cpu_ms=statistics.median(cda_cpu),
+        drcpo_cpu_ms=statistics.median(drcpo_cpu),
+        load_average=load,
         frames=len(frames),
         source="kitti_sample" if use_kitti else "synthetic_world",
         points_per_frame=int(np.median([len(f) for f in frames])),
@@ -189,7 +200,8 @@ def main(argv: list[str] | None = None) -> dict:
     )
     for name, ms in result["stages_ms"].items():
         print(f"  {name:28s} {ms:8.2f} ms", file=sys.stderr)
-    print(json.dumps(result))
+    sys.stderr.flush()
+    print(json.dumps(result), flush=True)
     return result
 
 
