@@ -673,7 +673,10 @@ class DRCPO(Transform):
        nothing): a random heading and position, the box bottom on the frame's ground estimate
        (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
        any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
-       the box); see :mod:`drcpo.placement`. In ``whole`` mode the box grows during
+       the box); see :mod:`drcpo.placement`. A placed box whose sensor-facing surface lies
+       (by at least ``placement.occluded_fraction``, default: all of it) behind the frame's
+       points in a z-buffer at the sensor's resolution is rejected too (``occluded``): e-HPR
+       would remove it anyway, so it is not built. In ``whole`` mode the box grows during
        construction, so objects are constructed first and placed with their final size.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
