@@ -274,6 +274,10 @@ def test_bad_input_raises_clear_errors():
         hidden_point_removal(good, (0, 0, 0), 10.0, workers=0)
     with pytest.raises(DataError, match="query"):
         hidden_point_removal(good, (0, 0, 0), 10.0, query=np.ones(3, dtype=bool))
+    with pytest.raises(DataError, match="too far"):
+        hidden_point_removal(np.full((3, 3), 1e200), (0, 0, 0), 10.0)
+    with pytest.raises(DataError, match="box"):
+        self_occlusion(good, np.ones(6))
 
 
 def test_features_and_dtypes_pass_through():

@@ -17,19 +17,21 @@ Methods (``method=``):
   every other flipped point and ``C`` on one side. A plane tilted by ``alpha`` from the ray of
   ``p`` can only be crossed by points within a known angle of its normal (all flipped points
   lie within ``2R - r_min`` of ``C``), so each point is decided from its angular neighbours:
-  first the plane normal to the ray (a cheap pre-filter that settles most points), then a
-  two-variable linear program over the plane's tilt. A point whose feasible plane does not fit
-  its neighbourhood is retried with a wider one, at worst against every point; a handful that
-  would need that go to the reference hull instead. Written with ranges and unit vectors, it
-  never forms ``2R - r`` differences, so it stays exact for huge ``R`` where the flipped
-  coordinates (and hence Qhull and Open3D) lose precision.
-* ``"sectors"``: the reference hull split into overlapping azimuth sectors, each hull on its
-  own thread; a sector's verdict on one of its core points is used only when it is provably the
+  first the plane normal to the ray (a cheap pre-filter that settles most points), then the
+  least tilted plane that keeps every neighbour below (a two-variable problem solved by
+  Seidel's randomised incremental method); no such plane means hidden. A point whose plane
+  is tilted too far for its neighbourhood is retried with a wider one, at worst against every
+  point (more than a few hundred such points go to one reference hull instead). Written with
+  ranges and unit vectors, it never subtracts flipped coordinates, so it stays exact for huge
+  ``R`` where those (and hence Qhull and Open3D) lose precision.
+* ``"sectors"``: the reference hull split into overlapping azimuth sectors, the hulls spread
+  over threads; a sector's verdict on one of its core points is used only when it is provably the
   whole set's (hidden in a subset implies hidden; visible needs a hull facet whose danger cone
   lies inside the sector), the rest go to ``"local"``.
 * ``"auto"`` (default): ``"reference"`` for small inputs (at most :data:`AUTO_REFERENCE_MAX`
-  points, such as one object for s-HPR) unless ``R`` is too large for the flipped coordinates,
-  else ``"local"``.
+  points, such as one object for s-HPR) and when ``R`` is not far above the ranges (every
+  neighbourhood is then a wide cone and one hull is cheaper), unless ``R`` is too large for
+  the flipped coordinates; else ``"local"`` (e-HPR on whole frames).
 
 Defined behaviour on awkward input (every method):
 
@@ -177,7 +179,7 @@ def hidden_point_removal(
     if setup.size == 0:
         return visible
     wanted_hull = wanted[setup.index]
-    method = _resolve_method(method, setup, int(wanted_hull.sum()))
+    method = _resolve_method(method, setup)
     if method == "reference":
         decided = _reference(setup, wanted_hull)
     elif method == "sectors":
@@ -210,7 +212,10 @@ def self_occlusion(
     Returns:
         ``bool (N,)``: points kept (visible).
     """
-    diagonal = float(box_diagonal(np.asarray(box, dtype=np.float64).reshape(-1, 7))[0])
+    box = np.asarray(box, dtype=np.float64)
+    if box.size != 7:
+        raise DataError(f"self_occlusion: box must have 7 values, got shape {box.shape}")
+    diagonal = float(box_diagonal(box.reshape(1, 7))[0])
     factor = _check_radius(radius_factor, "radius_factor")
     if not diagonal > 0.0:
         raise DataError(f"self_occlusion: the box has no extent (diagonal {diagonal})")
@@ -473,6 +478,9 @@ class _Setup:
     def build(cls, xyz: np.ndarray, center: np.ndarray, radius: float) -> _Setup:
         rel = xyz - center
         ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        if not np.isfinite(ranges).all():
+            row = int(np.flatnonzero(~np.isfinite(ranges))[0])
+            raise DataError(f"points: row {row} is too far from the viewpoint for float64")
         # A hypot-free norm underflows for coordinates near 1e-160; those points sit at the
         # viewpoint for any practical purpose and fall under the same rule.
         away = ranges > _AT_VIEWPOINT * (1.0 + float(ranges.max(initial=0.0)))
@@ -513,7 +521,7 @@ class _Setup:
         return self.rel + self.rel * scale[:, None]
 
 
-def _resolve_method(method: str, setup: _Setup, wanted: int) -> str:
+def _resolve_method(method: str, setup: _Setup) -> str:
     if not setup.local_ok:
         return "reference"
     if method != "auto":
