@@ -374,12 +374,13 @@ class BoxQuery:
     """Repeated "which points lie in this box" queries on one point array.
 
     Holds contiguous float32 copies of the x and y columns so each query first selects the
-    points in the box's axis-aligned BEV bounds (a few cheap comparisons) and only tests those
-    exactly with :func:`drcpo.geometry.points_in_boxes`, whose boundary rule (closed boxes) it
-    keeps. About 30x faster than testing every point against every box for KITTI-size frames.
+    points in the box's axis-aligned BEV bounds (a few cheap comparisons) and tests only those
+    exactly, with the arithmetic and boundary rule (closed boxes) of
+    :func:`drcpo.geometry.points_in_boxes`. (Sorting the points by x once instead costs more
+    than it saves for the few dozen queries a frame needs.)
 
     Args:
-        points: ``(N, 3+)`` points, metres.
+        points: ``(N, 3+)`` points, metres (not copied; do not modify them while querying).
     """
 
     _SLACK = 1e-3  # metres; keeps the float32 pre-filter conservative
@@ -390,13 +391,15 @@ class BoxQuery:
         self.y = np.ascontiguousarray(points[:, 1])
 
     def inside(self, box: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """Indices ``int64 (k,)`` of the points in one ``(7,)`` box grown by ``margin``."""
-        box = np.asarray(box, dtype=np.float64)
-        cx, cy, dx, dy, heading = (float(box[i]) for i in (0, 1, 3, 4, 6))
-        cos, sin = math.cos(heading), math.sin(heading)
-        length, width = dx + 2.0 * margin, dy + 2.0 * margin
+        """Indices ``int64 (k,)`` (ascending) of the points in one ``(7,)`` box grown by
+        ``margin`` metres."""
+        box = np.asarray(box, dtype=np.float64).reshape(7)
+        # numpy's cos/sin, as points_in_boxes uses them (libm may differ in the last bit).
+        cos, sin = float(np.cos(box[6:7])[0]), float(np.sin(box[6:7])[0])
+        length, width = box[3] + 2.0 * margin, box[4] + 2.0 * margin
         half_x = (length * abs(cos) + width * abs(sin)) / 2.0 + self._SLACK
         half_y = (length * abs(sin) + width * abs(cos)) / 2.0 + self._SLACK
+        cx, cy = float(box[0]), float(box[1])
         # Python floats compare with the float32 columns without converting them to float64.
         near = np.flatnonzero(
             (self.x >= cx - half_x)
@@ -406,7 +409,6 @@ class BoxQuery:
         )
         if len(near) == 0:
             return near
-        # The same float64 arithmetic as drcpo.geometry.points_in_boxes, so the same answer.
         delta = self.points[near, :3].astype(np.float64) - box[:3]
         half = box[3:6] / 2.0 + margin
         local_x = delta[:, 0] * cos + delta[:, 1] * sin
@@ -1097,17 +1099,19 @@ def view_windows(
     With ``behind``, only points at least as far from the viewpoint as the box's nearest point
     count (nothing nearer can be occluded by it).
     """
+    inside = np.zeros(len(points), dtype=bool)
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    if len(points) == 0 or len(boxes) == 0:
+        return inside
+    centre, az_low, az_high, el_low, el_high, nearest = _box_windows(boxes, viewpoint)
+    if not np.isfinite(nearest).all():  # the viewpoint is inside a footprint: every direction
+        return np.ones(len(points), dtype=bool)
     rel = points[:, :3].astype(np.float64) - viewpoint
     azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-    order = np.argsort(azimuth, kind="stable")
+    order = np.argsort(azimuth)
     sorted_azimuth = azimuth[order]
-    inside = np.zeros(len(points), dtype=bool)
-    for box in np.asarray(boxes, dtype=np.float64).reshape(-1, 7):
-        window = _box_window(box, viewpoint)
-        if window is None:  # the viewpoint is inside the box's footprint: every direction
-            return np.ones(len(points), dtype=bool)
-        centre, az_low, az_high, el_low, el_high, nearest = window
-        low, high = centre + az_low, centre + az_high
+    for m in range(len(boxes)):
+        low, high = centre[m] + az_low[m], centre[m] + az_high[m]
         spans = [(low, high)]
         if low < -math.pi:  # the window crosses the azimuth seam at +-pi
             spans = [(-math.pi, high), (low + 2 * math.pi, math.pi)]
@@ -1120,36 +1124,34 @@ def view_windows(
             local = rel[rows]
             horizontal = np.hypot(local[:, 0], local[:, 1])
             elevation = np.arctan2(local[:, 2], horizontal)
-            hit = (elevation >= el_low) & (elevation <= el_high)
+            hit = (elevation >= el_low[m]) & (elevation <= el_high[m])
             if behind:
-                hit &= np.hypot(horizontal, local[:, 2]) >= nearest
+                hit &= np.hypot(horizontal, local[:, 2]) >= nearest[m]
             inside[rows[hit]] = True
     return inside
 
 
-def _box_window(box: np.ndarray, viewpoint: np.ndarray) -> tuple[float, ...] | None:
-    """``(centre azimuth, azimuth low, high relative to it, elevation low, high, nearest
-    distance)`` of a box seen from ``viewpoint``, or ``None`` when the viewpoint lies inside
-    its footprint. Angles in radians, distance in metres."""
-    corners = bev_corners(box[None])[0] - viewpoint[:2]
-    cos, sin = math.cos(box[6]), math.sin(box[6])
-    # Nearest footprint point to the viewpoint, in the box's frame.
-    dx, dy = viewpoint[0] - box[0], viewpoint[1] - box[1]
-    local = np.array([dx * cos + dy * sin, -dx * sin + dy * cos])
-    gap = np.maximum(np.abs(local) - box[3:5] / 2.0, 0.0)
-    near = float(np.hypot(*gap))
-    if near == 0.0:
-        return None
-    far = float(np.hypot(corners[:, 0], corners[:, 1]).max())
-    centre = math.atan2(box[1] - viewpoint[1], box[0] - viewpoint[0])
-    spread = wrap_angle(np.arctan2(corners[:, 1], corners[:, 0]) - centre)
-    top = box[2] + box[5] / 2.0 - viewpoint[2]
-    bottom = box[2] - box[5] / 2.0 - viewpoint[2]
-    el_high = math.atan2(top, near if top > 0 else far)
-    el_low = math.atan2(bottom, near if bottom < 0 else far)
-    vertical = max(bottom, 0.0, -top)
-    nearest = math.hypot(near, vertical)
-    return centre, float(spread.min()), float(spread.max()), el_low, el_high, nearest
+def _box_windows(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, ...]:
+    """View windows of ``(M, 7)`` boxes seen from ``viewpoint``, each ``(M,)``: centre
+    azimuth, azimuth low and high relative to it, elevation low and high (radians), and the
+    distance of the box's nearest point (metres; ``inf`` when the viewpoint lies inside the
+    footprint, whose window is then every direction)."""
+    corners = bev_corners(boxes) - viewpoint[:2]  # (M, 4, 2)
+    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    dx, dy = viewpoint[0] - boxes[:, 0], viewpoint[1] - boxes[:, 1]
+    local = np.column_stack([dx * cos + dy * sin, -dx * sin + dy * cos])
+    gap = np.maximum(np.abs(local) - boxes[:, 3:5] / 2.0, 0.0)
+    near = np.hypot(gap[:, 0], gap[:, 1])  # nearest footprint point, horizontally
+    far = np.hypot(corners[..., 0], corners[..., 1]).max(axis=1)
+    centre = np.arctan2(boxes[:, 1] - viewpoint[1], boxes[:, 0] - viewpoint[0])
+    spread = wrap_angle(np.arctan2(corners[..., 1], corners[..., 0]) - centre[:, None])
+    top = boxes[:, 2] + boxes[:, 5] / 2.0 - viewpoint[2]
+    bottom = boxes[:, 2] - boxes[:, 5] / 2.0 - viewpoint[2]
+    el_high = np.arctan2(top, np.where(top > 0, near, far))
+    el_low = np.arctan2(bottom, np.where(bottom < 0, near, far))
+    vertical = np.maximum(np.maximum(bottom, 0.0), -top)
+    nearest = np.where(near > 0, np.hypot(near, vertical), np.inf)
+    return centre, spread.min(axis=1), spread.max(axis=1), el_low, el_high, nearest
 
 
 class OcclusionMap:
