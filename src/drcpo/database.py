@@ -316,6 +316,10 @@ def atomic_directory(path: str | os.PathLike, write, overwrite: bool = False) ->
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:
+        # mkdtemp makes the directory private (0700); a finished one gets the usual umask mode.
+        umask = os.umask(0)
+        os.umask(umask)
+        tmp.chmod(0o777 & ~umask)
         write(tmp)
         if path.exists():
             old = path.with_name(f".{path.name}.old-{os.getpid()}")
