@@ -881,3 +881,12 @@ def test_bench_augment_quick_mode(tmp_path, capsys):
     assert {"cda_ms", "drcpo_ms", "ratio", "stages_ms"} <= set(result)
     assert result["ratio"] == pytest.approx(result["drcpo_ms"] / result["cda_ms"])
     assert "drcpo.external_occlusion" in result["stages_ms"]
+
+
+@pytest.mark.parametrize("scope", ["inserted", "frame"])
+def test_drcpo_range_image_mode(synthetic_world, scope):
+    db, index, frames = synthetic_world
+    transform = DRCPO(db, index, {"external_occlusion": {"mode": "range_image", "scope": scope}})
+    out = transform(frames[0], np.random.default_rng(3))
+    result = check_drcpo_frame(transform, frames[0], out)
+    assert result["added"] > 0
