@@ -99,22 +99,7 @@ class GroundTruthDatabase:
     def open(cls, path: str | os.PathLike) -> GroundTruthDatabase:
         """Open a database directory; raises :class:`DataError` naming what is wrong."""
         path = Path(path)
-        manifest_path = path / "manifest.json"
-        if not manifest_path.is_file():
-            raise DataError(f"{path}: not a drcpo database (no manifest.json)")
-        try:
-            manifest = json.loads(manifest_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
-        if manifest.get("format") != FORMAT_NAME:
-            raise DataError(
-                f"{manifest_path}: format is {manifest.get('format')!r}, expected {FORMAT_NAME!r}"
-            )
-        if manifest.get("format_version") != FORMAT_VERSION:
-            raise DataError(
-                f"{manifest_path}: format_version {manifest.get('format_version')} "
-                f"is not supported (this drcpo reads {FORMAT_VERSION})"
-            )
+        manifest = read_manifest(path, FORMAT_NAME, FORMAT_VERSION, "not a drcpo database")
         points = _load(path / "points.npy", mmap=True)
         offsets = _load(path / "offsets.npy", mmap=True)
         columns = {name: _load(path / f"{name}.npy") for name in _COLUMNS}
@@ -332,6 +317,30 @@ def atomic_directory(path: str | os.PathLike, write, overwrite: bool = False) ->
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return path
+
+
+def read_manifest(path: Path, format_name: str, format_version: int, missing: str) -> dict:
+    """Read ``path/manifest.json`` and check its format name and version.
+
+    Raises :class:`DataError` naming the file; ``missing`` says what a directory without a
+    manifest is not (e.g. "not a drcpo database").
+    """
+    manifest_path = path / "manifest.json"
+    if not manifest_path.is_file():
+        raise DataError(f"{path}: {missing} (no manifest.json)")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
+    if not isinstance(manifest, dict) or manifest.get("format") != format_name:
+        found = manifest.get("format") if isinstance(manifest, dict) else manifest
+        raise DataError(f"{manifest_path}: format is {found!r}, expected {format_name!r}")
+    if manifest.get("format_version") != format_version:
+        raise DataError(
+            f"{manifest_path}: format_version {manifest.get('format_version')} "
+            f"is not supported (this drcpo reads {format_version})"
+        )
+    return manifest
 
 
 def _load(path: Path, mmap: bool = False) -> np.ndarray:

@@ -65,7 +65,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from drcpo.database import GroundTruthDatabase, atomic_directory
+from drcpo.database import GroundTruthDatabase, atomic_directory, read_manifest
 from drcpo.errors import ConfigError, DataError
 from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for, num_partitions
 
@@ -315,23 +315,7 @@ def load_index(
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:
-    manifest_path = path / "manifest.json"
-    if not manifest_path.is_file():
-        raise DataError(f"{path}: no candidate index (missing manifest.json); run `drcpo index`")
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
-    if manifest.get("format") != FORMAT_NAME:
-        raise DataError(
-            f"{manifest_path}: format is {manifest.get('format')!r}, expected {FORMAT_NAME!r}"
-        )
-    if manifest.get("format_version") != FORMAT_VERSION:
-        raise DataError(
-            f"{manifest_path}: format_version {manifest.get('format_version')} is not supported "
-            f"(this drcpo reads {FORMAT_VERSION})"
-        )
-    return manifest
+    return read_manifest(path, FORMAT_NAME, FORMAT_VERSION, "no candidate index; run `drcpo index`")
 
 
 def _load_array(path: Path, mmap: bool) -> np.ndarray:
