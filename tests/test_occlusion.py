@@ -407,8 +407,43 @@ def test_range_image_beams_and_modes():
         points, mode="range_image", range_image={"beam_elevations": beams}
     )
     assert np.array_equal(via_external, by_beam)
+    # The range image looks from the preset's viewpoint (or the override), like e-HPR.
+    raised = range_image_occlusion(points, (0.0, 0.0, 2.0), beam_elevations=beams)
+    assert not np.array_equal(raised, by_beam)
+    for kwargs in ({"preset": "second"}, {"viewpoint_z": 2.0}):
+        np.testing.assert_array_equal(
+            external_occlusion(
+                points, mode="range_image", range_image={"beam_elevations": beams}, **kwargs
+            ),
+            raised,
+        )
     assert range_image_occlusion(np.zeros((3, 3))).all()
     with pytest.raises(ConfigError):
         range_image_occlusion(points, azimuth_resolution=0.0)
     with pytest.raises(DataError):
         range_image_occlusion(np.full((2, 3), np.nan))
+
+
+def test_counting_sort_is_the_stable_argsort(rng):
+    from drcpo.occlusion import _counting_sort
+
+    for size, cells in ((0, 3), (1, 1), (500, 7), (5000, 900)):
+        cell = rng.integers(0, cells, size)
+        starts = np.zeros(cells + 1, dtype=np.int64)
+        np.cumsum(np.bincount(cell, minlength=cells), out=starts[1:])
+        np.testing.assert_array_equal(_counting_sort(cell, starts), np.argsort(cell, kind="stable"))
+
+
+def test_distinct_without_duplicates_is_the_same_setup(rng):
+    from drcpo.occlusion import _Setup
+
+    xyz = rng.normal(size=(200, 3)) + 5.0
+    setup = _Setup.build(xyz, np.zeros(3), 1000.0)
+    distinct, inverse = setup.distinct()
+    assert distinct is setup
+    np.testing.assert_array_equal(inverse, np.arange(200))
+    # Equal x alone is not a duplicate; a real copy is.
+    xyz[1, 0] = xyz[0, 0]
+    xyz[3] = xyz[2]
+    distinct, inverse = _Setup.build(xyz, np.zeros(3), 1000.0).distinct()
+    assert distinct.size == 199 and inverse[3] == inverse[2] and inverse[1] != inverse[0]

@@ -426,7 +426,13 @@ def test_box_query_equals_points_in_boxes(rng):
             )
         np.testing.assert_array_equal(query.inside_any(boxes, margin), reference.any(axis=1))
         np.testing.assert_array_equal(query.counts(boxes, margin), reference.sum(axis=0))
+        # owners: the last box holding each point (boxes overlap here), -1 for none
+        last = np.where(
+            reference.any(axis=1), len(boxes) - 1 - np.argmax(reference[:, ::-1], axis=1), -1
+        )
+        np.testing.assert_array_equal(query.owners(boxes, margin), last)
     assert query.inside_any(np.zeros((0, 7))).sum() == 0
+    assert (query.owners(np.zeros((0, 7))) == -1).all()
 
 
 # --------------------------------------------------------------------------------------------

@@ -245,7 +245,8 @@ def external_occlusion(
         points: ``(N, 3 + C)`` the frame's points (metres).
         preset: detector whose ``(R, z)`` is used, a key of :data:`HPR_PRESETS`.
         mode: ``"hpr"`` (the paper) or ``"range_image"`` (:func:`range_image_occlusion`, not the
-            paper's method; it looks from the sensor origin unless ``viewpoint_z`` is given).
+            paper's method); both look from the preset's viewpoint (or ``viewpoint_z``), as
+            the DR.CPO pipeline does.
         radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
         focus: optional ``bool (N,)`` mask (or indices) of the points that matter, e.g. inserted
             ones. Only points in the azimuth directions of the focus points (see
@@ -263,13 +264,12 @@ def external_occlusion(
     setting = HPR_PRESETS[preset]
     xyz = _check_points(points)
     query = None if focus is None else azimuth_focus(xyz, focus, focus_margin)
+    height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
     if mode == "range_image":
-        height = 0.0 if viewpoint_z is None else float(viewpoint_z)
         visible = range_image_occlusion(xyz, (0.0, 0.0, height), **(range_image or {}))
         return visible if query is None else visible | ~query
     if mode != "hpr":
         raise ConfigError(f"external occlusion mode must be 'hpr' or 'range_image', got {mode!r}")
-    height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
     r = setting.radius if radius is None else radius
     return hidden_point_removal(
         xyz, (0.0, 0.0, height), r, method=method, query=query, workers=workers
@@ -503,6 +503,11 @@ class _Setup:
         """The set-up of the distinct points, and ``(M,)`` the position of each point's copy in
         it (Qhull keeps one of several equal points; drcpo gives every copy its verdict)."""
         rel = self.rel
+        # Equal points have equal x: when no two x are equal (the usual case) there is no
+        # duplicate, and one single-key sort is much cheaper than the three-key one.
+        by_x = np.sort(rel[:, 0])
+        if not (by_x[1:] == by_x[:-1]).any():
+            return self, np.arange(self.size)
         order = np.lexsort((rel[:, 2], rel[:, 1], rel[:, 0]))
         ordered = rel[order]
         repeat = (ordered[1:] == ordered[:-1]).all(axis=1)
@@ -548,7 +553,7 @@ def _reference(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     vertex = _hull_vertices(distinct.flipped())
     if vertex is None:
         return _degenerate_fallback(setup, wanted)
-    return vertex[inverse]
+    return vertex if distinct is setup else vertex[inverse]
 
 
 def _hull_vertices(flipped: np.ndarray) -> np.ndarray | None:
@@ -617,11 +622,22 @@ def _build_grid(rays: np.ndarray, cone: np.ndarray) -> _Grid:
     row = np.minimum(((elevation - low) / size).astype(np.int64), rows - 1)
     column = ((azimuth + np.pi) * (columns / (2 * math.pi))).astype(np.int64) % columns
     cell = row * columns + column
-    order = np.argsort(cell, kind="stable")
     counts = np.bincount(cell, minlength=rows * columns)
     starts = np.zeros(rows * columns + 1, dtype=np.int64)
     np.cumsum(counts, out=starts[1:])
+    order = _counting_sort(cell, starts)
     return _Grid(order, starts, elevation[order], azimuth[order], low, size, rows, columns)
+
+
+@nb.njit(cache=True, nogil=True)
+def _counting_sort(cell, starts):  # pragma: no cover - numba
+    # The stable argsort of the cell numbers in linear time (cells are few and known).
+    order = np.empty(len(cell), dtype=np.int64)
+    position = starts[:-1].copy()
+    for i in range(len(cell)):
+        order[position[cell[i]]] = i
+        position[cell[i]] += 1
+    return order
 
 
 def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba as nb
 import numpy as np
 
 from drcpo import construction, occlusion, placement
@@ -422,15 +423,58 @@ class BoxQuery:
 
     def inside_any(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``bool (N,)``: points in at least one of the ``(M, 7)`` boxes."""
-        mask = np.zeros(len(self.points), dtype=bool)
-        for box in np.asarray(boxes, dtype=np.float64).reshape(-1, 7):
-            mask[self.inside(box, margin)] = True
-        return mask
+        return self.owners(boxes, margin) >= 0
+
+    def owners(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """``int64 (N,)``: the last of the ``(M, 7)`` boxes holding each point (-1: none).
+
+        One pass over the points for all boxes (a per-box query scans every point again);
+        same arithmetic and boundary rule as :meth:`inside`.
+        """
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        owner = np.full(len(self.points), -1, dtype=np.int64)
+        if len(boxes) == 0 or len(owner) == 0:
+            return owner
+        heading = np.ascontiguousarray(boxes[:, 6])
+        cos, sin = np.cos(heading), np.sin(heading)
+        length, width = boxes[:, 3] + 2.0 * margin, boxes[:, 4] + 2.0 * margin
+        reach = np.column_stack(
+            [
+                (length * np.abs(cos) + width * np.abs(sin)) / 2.0 + self._SLACK,
+                (length * np.abs(sin) + width * np.abs(cos)) / 2.0 + self._SLACK,
+            ]
+        )
+        half = boxes[:, 3:6] / 2.0 + margin
+        _box_owners(self.points, boxes, cos, sin, reach, half, owner)
+        return owner
 
     def counts(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``int64 (M,)``: points in each box."""
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         return np.array([len(self.inside(box, margin)) for box in boxes], dtype=np.int64)
+
+
+@nb.njit(cache=True, nogil=True)
+def _box_owners(points, boxes, cos, sin, reach, half, owner):  # pragma: no cover - numba
+    # Per point, the boxes in order; the float64 arithmetic of BoxQuery.inside, operation for
+    # operation, so a point on a face gets the same verdict.
+    for i in range(points.shape[0]):
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        for m in range(boxes.shape[0]):
+            dx = px - boxes[m, 0]
+            if abs(dx) > reach[m, 0]:
+                continue
+            dy = py - boxes[m, 1]
+            if abs(dy) > reach[m, 1]:
+                continue
+            local_x = dx * cos[m] + dy * sin[m]
+            local_y = -dx * sin[m] + dy * cos[m]
+            if (
+                abs(local_x) <= half[m, 0]
+                and abs(local_y) <= half[m, 1]
+                and abs(pz - boxes[m, 2]) <= half[m, 2]
+            ):
+                owner[i] = m
 
 
 #: Metadata arrays holding one row per box, kept in step when boxes are added or removed, with
@@ -936,9 +980,7 @@ class DRCPO(Transform):
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
-        query = BoxQuery(frame.points)
-        for j, insertion in enumerate(insertions):
-            cleared_by[query.inside(insertion.box)] = j
+        cleared_by = BoxQuery(frame.points).owners(np.array([i.box for i in insertions]))
         original = cleared_by < 0
         points = np.concatenate([frame.points[original], *(i.points for i in insertions)])
         owner = np.concatenate(
