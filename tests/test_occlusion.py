@@ -447,3 +447,25 @@ def test_distinct_without_duplicates_is_the_same_setup(rng):
     xyz[3] = xyz[2]
     distinct, inverse = _Setup.build(xyz, np.zeros(3), 1000.0).distinct()
     assert distinct.size == 199 and inverse[3] == inverse[2] and inverse[1] != inverse[0]
+
+
+def test_self_occlusion_many_equals_one_by_one(rng):
+    from drcpo.occlusion import self_occlusion_many
+
+    objects = []
+    for k in range(7):
+        count = int(rng.integers(0, 1500)) if k else 0
+        points = rng.normal(size=(count, 4)) * [1.5, 0.8, 0.7, 1.0]
+        box = np.array([rng.uniform(5, 40), rng.uniform(-10, 10), 0.0, 4.0, 1.8, 1.5, 0.3])
+        points[:, :3] += box[:3]
+        objects.append((points, box))
+    alone = [
+        self_occlusion(p, b, 200.0, method="reference") if len(p) else np.zeros(0, bool)
+        for p, b in objects
+    ]
+    for workers in (1, 2):
+        together = self_occlusion_many(objects, 200.0, method="reference", workers=workers)
+        assert len(together) == len(objects)
+        for a, b in zip(alone, together, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert self_occlusion_many([], workers=2) == []

@@ -955,16 +955,22 @@ class DRCPO(Transform):
         """Placed points of each object after s-HPR; objects left too sparse are dropped."""
         settings = self.config.self_occlusion
         dim = frame.points.shape[1]
+        placed_objects = [
+            match_features(from_canonical(built.points, box), dim)
+            for box, built in zip(boxes, objects, strict=True)
+        ]
+        if settings.enabled:
+            # One Qhull hull per object (faster than the per-point method for objects), two
+            # objects at a time.
+            pairs = zip(placed_objects, boxes, strict=True)
+            jobs = [(placed, box) for placed, box in pairs if len(placed)]
+            masks = iter(
+                occlusion.self_occlusion_many(jobs, settings.radius_factor, method="reference")
+            )
+            placed_objects = [p[next(masks)] if len(p) else p for p in placed_objects]
         insertions = []
-        for row, box, built in zip(rows, boxes, objects, strict=True):
+        for row, box, placed in zip(rows, boxes, placed_objects, strict=True):
             name = str(self.database.names[row])
-            placed = match_features(from_canonical(built.points, box), dim)
-            if settings.enabled and len(placed):
-                # One Qhull hull per object: faster than the per-point method for objects.
-                visible = occlusion.self_occlusion(
-                    placed, box, settings.radius_factor, method="reference"
-                )
-                placed = placed[visible]
             if len(placed) < settings.min_points:
                 stats.rejected(self.name, name, "self_occlusion")
                 continue
