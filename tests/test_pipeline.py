@@ -896,3 +896,25 @@ def test_drcpo_range_image_mode(synthetic_world, scope):
     out = transform(frames[0], np.random.default_rng(3))
     result = check_drcpo_frame(transform, frames[0], out)
     assert result["added"] > 0
+
+
+def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
+    boxes = np.array(
+        [[10.0, 3.0, -0.8, 4.0, 1.8, 1.5, 0.4], [-12.0, -0.5, -0.8, 4.0, 1.8, 1.5, 2.0]]
+    )
+    viewpoint = np.array([0.0, 0.0, 0.5])
+    inside = np.concatenate(
+        [from_canonical(rng.uniform(-0.5, 0.5, (300, 3)) * box[3:6], box) for box in boxes]
+    )
+    # Twice as far along the same rays: behind the boxes, in their windows.
+    behind = viewpoint + 2.0 * (inside - viewpoint)
+    nearer = viewpoint + 0.3 * (inside - viewpoint)
+    across = inside * [1.0, -1.0, 1.0] + [0.0, 0.0, 30.0]  # mirrored and high above
+    points = np.concatenate([inside, behind, nearer, across]).astype(np.float32)
+    kind = np.repeat(np.arange(4), len(inside))
+    hit = view_windows(points, boxes, viewpoint)
+    assert hit[kind <= 2].all() and not hit[kind == 3].any()
+    hit_behind = view_windows(points, boxes, viewpoint, behind=True)
+    assert hit_behind[kind == 1].all() and not hit_behind[kind >= 2].any()
+    # The second box's window crosses the azimuth seam at +-pi.
+    assert hit[len(inside) // 2 : len(inside)].all()
