@@ -122,8 +122,9 @@ _QHULL_RATIO_MAX = 1e7
 _LOCAL_MAX_CONE = 0.1
 # Points this close to the viewpoint, relative to (1 + max range), count as "at the viewpoint".
 _AT_VIEWPOINT = 1e-9
-# Parallel work only pays above this many points.
-_PARALLEL_MIN = 20000
+# Parallel work only pays above this many points (measured on 2 cores: e-HPR of a KITTI
+# frame with a few thousand queried points runs about 10% faster on two threads).
+_PARALLEL_MIN = 2000
 
 # Kernel constants. The tilt box bounds the plane search to 90 deg - 1e-7 rad from the ray;
 # the slack is how far (in units of the flipped range) a point must lie below a plane to count
