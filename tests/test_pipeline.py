@@ -918,3 +918,26 @@ def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
     assert hit_behind[kind == 1].all() and not hit_behind[kind >= 2].any()
     # The second box's window crosses the azimuth seam at +-pi.
     assert hit[len(inside) // 2 : len(inside)].all()
+
+
+@pytest.mark.parametrize("mode", ["hpr", "range_image"])
+def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode, rng):
+    from drcpo.pipeline import _Insertion
+
+    db, index, _ = synthetic_world
+    transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})
+    # A wall 20 m ahead, a second layer right behind part of it (hidden before anything is
+    # inserted), and a dense box inserted 10 m ahead in front of the wall's middle.
+    y, z = np.meshgrid(np.linspace(-4, 4, 81), np.linspace(-1.5, 1.5, 31))
+    wall = np.column_stack([np.full(y.size, 20.0), y.ravel(), z.ravel()])
+    layer = wall[wall[:, 1] > 2.5] * 1.05
+    box = np.array([10.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])
+    cube = rng.uniform(-0.5, 0.5, (4000, 3)) + box[:3]
+    points = np.concatenate([wall, layer, cube])
+    points = np.column_stack([points, np.zeros(len(points))]).astype(np.float32)
+    owner = np.repeat([-1, 0], [len(wall) + len(layer), len(cube)])
+    keep = transform._external_occlusion(points, owner, [_Insertion(0, "Car", box, points[-4000:])])
+    shadow = (np.abs(wall[:, 1]) < 0.8) & (np.abs(wall[:, 2]) < 0.8)
+    assert not keep[: len(wall)][shadow].any()  # the wall behind the box is hidden now
+    assert keep[: len(wall)][(np.abs(wall[:, 1]) > 1.5)].all()
+    assert keep[len(wall) : len(wall) + len(layer)].all()  # hidden before: HPR's call, kept

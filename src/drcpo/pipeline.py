@@ -1025,10 +1025,10 @@ class DRCPO(Transform):
             original = np.flatnonzero(~inserted)
             wanted = np.zeros(len(original), dtype=bool)
             wanted[np.searchsorted(original, suspects)] = True
-            # Original points hidden even without the inserted objects stay: HPR's own errors
-            # must not delete real points.
+            # Only points visible without the inserted objects go; those hidden even without
+            # them stay: HPR's own errors must not delete real points.
             before = self._visible(points[original], query=wanted)
-            keep[original[wanted & ~before]] = False
+            keep[original[wanted & before]] = False
         return keep
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
