@@ -469,3 +469,47 @@ def test_self_occlusion_many_equals_one_by_one(rng):
         for a, b in zip(alone, together, strict=True):
             np.testing.assert_array_equal(a, b)
     assert self_occlusion_many([], workers=2) == []
+
+
+def wall_and_cube(rng):
+    """A wall at x = 20 m (with a second, hidden layer just behind part of it) and a dense cube
+    inserted at x = 10 m in front of the wall's middle. Returns points, inserted, behind."""
+    y, z = np.meshgrid(np.linspace(-4, 4, 81), np.linspace(-1.5, 1.5, 31))
+    wall = np.column_stack([np.full(y.size, 20.0), y.ravel(), z.ravel()])
+    hidden_layer = wall[wall[:, 1] > 2.5] * 1.05  # same rays, farther
+    cube = rng.uniform(-0.5, 0.5, (400, 3)) + np.array([10.0, 0.0, 0.0])
+    points = np.concatenate([wall, hidden_layer, cube])
+    inserted = np.zeros(len(points), dtype=bool)
+    inserted[-len(cube) :] = True
+    return points, inserted, ~inserted
+
+
+def test_hidden_by_insertion_removes_what_the_objects_hide_and_only_that(rng):
+    from drcpo.occlusion import hidden_by_insertion
+
+    points, inserted, behind = wall_and_cube(rng)
+    removed = hidden_by_insertion(points, inserted, behind, radius=1e5)
+    n_wall = 81 * 31
+    wall = points[:n_wall]
+    shadow = (np.abs(wall[:, 1]) < 0.8) & (np.abs(wall[:, 2]) < 0.8)  # inside the cube's shadow
+    assert removed[:n_wall][shadow].all()  # wall points the cube hides go
+    clear = (np.abs(wall[:, 1]) > 1.5) | (np.abs(wall[:, 2]) > 1.5)
+    assert not removed[:n_wall][clear].any()
+    # The layer behind the wall was hidden before anything was inserted: it stays.
+    assert not removed[n_wall : n_wall + (wall[:, 1] > 2.5).sum()].any()
+    assert removed[inserted].any() and not removed[inserted].all()
+    # The same as the two passes spelled out with hidden_point_removal.
+    visible = hidden_point_removal(points, radius=1e5, query=inserted | behind)
+    suspects = behind & ~visible
+    rows = np.flatnonzero(~inserted)
+    before = hidden_point_removal(points[rows], radius=1e5, query=suspects[rows])
+    expected = inserted & ~visible
+    expected[rows[suspects[rows] & before]] = True
+    np.testing.assert_array_equal(removed, expected)
+    for method in ("reference", "local"):
+        np.testing.assert_array_equal(
+            hidden_by_insertion(points, inserted, behind, radius=1e5, method=method), expected
+        )
+    assert not hidden_by_insertion(
+        points, np.zeros(len(points), bool), np.zeros(len(points), bool)
+    ).any()

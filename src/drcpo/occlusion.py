@@ -86,6 +86,7 @@ __all__ = [
     "HPRPreset",
     "azimuth_focus",
     "external_occlusion",
+    "hidden_by_insertion",
     "hidden_point_removal",
     "range_image_occlusion",
     "self_occlusion",
@@ -192,6 +193,87 @@ def hidden_point_removal(
         decided = _local(setup, wanted_hull, workers)
     visible[setup.index] = decided | ~wanted_hull
     return visible
+
+
+def hidden_by_insertion(
+    points: np.ndarray,
+    inserted: np.ndarray,
+    behind: np.ndarray,
+    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    radius: float = 100000.0,
+    *,
+    method: str = "auto",
+    workers: int | None = None,
+) -> np.ndarray:
+    """Points that inserted objects remove from a frame (e-HPR's ``inserted`` scope).
+
+    An inserted point goes when it is hidden; a point of ``behind`` (original points that the
+    inserted objects may occlude) goes when it is hidden in the whole set but visible once the
+    inserted points are taken out, so HPR's own verdicts on the original frame never delete a
+    point. The same as :func:`hidden_point_removal` with ``query=inserted | behind``, then on
+    ``points[~inserted]`` for the hidden points of ``behind``; with the ``"local"`` method the
+    second pass reuses the first's sorted points instead of preparing them again.
+
+    Args:
+        points: ``(N, 3 + C)`` the frame after insertion (metres).
+        inserted: ``bool (N,)`` the inserted points.
+        behind: ``bool (N,)`` original points whose removal is to be decided (points of
+            ``inserted`` are ignored here).
+        viewpoint, radius, method, workers: as in :func:`hidden_point_removal`.
+
+    Returns:
+        ``bool (N,)``: points to remove.
+    """
+    xyz = _check_points(points)
+    center = _check_viewpoint(viewpoint)
+    radius = _check_radius(radius)
+    if method not in HPR_METHODS:
+        raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
+    inserted = _check_query(inserted, len(xyz))
+    behind = _check_query(behind, len(xyz)) & ~inserted
+    workers = _check_workers(workers)
+    removed = np.zeros(len(xyz), dtype=bool)
+    wanted = inserted | behind
+    if not wanted.any():
+        return removed
+    setup = _Setup.build(xyz, center, radius)
+    if setup.size == 0:
+        return removed
+    local = _resolve_method(method, setup) == "local"
+    if local:
+        state = _LocalState.build(setup)
+        visible = np.ones(len(xyz), dtype=bool)
+        visible[setup.index] = state.visible(wanted[setup.index], workers) | ~wanted[setup.index]
+    else:
+        visible = hidden_point_removal(
+            xyz, center, radius, method=method, query=wanted, workers=workers
+        )
+    removed = wanted & ~visible
+    suspects = behind & removed
+    if not suspects.any():
+        return removed
+    original = np.flatnonzero(~inserted)
+    kept = ~inserted[setup.index]
+    if local and kept.all():
+        before = visible | ~suspects  # nothing inserted takes part: the same set
+    elif local:
+        subset = state.subset(kept)
+        rows = setup.index[kept]
+        before = np.ones(len(xyz), dtype=bool)
+        before[rows] = subset.visible(suspects[rows], workers) | ~suspects[rows]
+    else:
+        before = np.ones(len(xyz), dtype=bool)
+        before[original] = hidden_point_removal(
+            xyz[original],
+            center,
+            radius,
+            method=method,
+            query=suspects[original],
+            workers=workers,
+        )
+    # Original points hidden even without the inserted objects stay.
+    removed[suspects & ~before] = False
+    return removed
 
 
 def self_occlusion(
@@ -689,48 +771,119 @@ def _counting_sort(cell, starts):  # pragma: no cover - numba
 
 def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
     """Visible flags ``(M,)`` (``False`` where not wanted) by the per-point plane test."""
-    ranges, radius = setup.ranges, setup.radius
-    r_min = float(ranges.min())
-    rho_max = 2.0 * radius - r_min
-    # Radius of the neighbourhood that can cross the plane normal to the ray (module doc).
-    first_cone = 2.0 * np.arcsin(np.sqrt(np.clip((ranges - r_min) / rho_max, 0, 2) / 2.0))
-    grid = _build_grid(setup.rays, first_cone)
-    order = grid.order
-    sorted_ranges = np.ascontiguousarray(ranges[order])
-    args = (
-        np.ascontiguousarray(setup.rays[order]),
-        np.ascontiguousarray(setup.rel[order]),
-        sorted_ranges,
-        2.0 * radius - sorted_ranges,
-        np.ascontiguousarray(first_cone[order]),
-        grid.elevation,
-        grid.azimuth,
-        grid.starts,
-        grid.origin,
-        grid.size,
-        grid.rows,
-        grid.columns,
-        r_min,
-        rho_max,
-    )
-    todo = np.flatnonzero(wanted[order])
-    parts = workers if len(todo) >= _PARALLEL_MIN else 1
-    settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, *args), todo, parts))
-    pending = todo[~settled]
-    visible_sorted = np.zeros(setup.size, dtype=bool)
-    visible_sorted[todo[settled]] = True
-    if len(pending):
-        parts = workers if len(pending) >= _PARALLEL_MIN // 8 else 1
-        state = np.concatenate(
-            _in_threads(lambda c: _classify(c, *args, _BRUTE_BUDGET), pending, parts)
+    return _LocalState.build(setup).visible(wanted, workers)
+
+
+class _LocalState:
+    """The per-point test's inputs: the points sorted into the grid, as the kernels take them.
+
+    Attributes:
+        order: ``(M,)`` set-up index of each sorted position.
+        args: the kernels' arguments (sorted rays, rel, ranges, flipped ranges, first cones,
+            elevation, azimuth, cell starts, grid geometry, ``r_min``, ``rho_max``).
+    """
+
+    def __init__(self, setup_fn, order: np.ndarray, args: tuple) -> None:
+        self._setup_fn = setup_fn
+        self._setup: _Setup | None = None
+        self.order = order
+        self.args = args
+
+    @property
+    def setup(self) -> _Setup:
+        if self._setup is None:
+            self._setup = self._setup_fn()
+        return self._setup
+
+    @property
+    def size(self) -> int:
+        return len(self.order)
+
+    @classmethod
+    def build(cls, setup: _Setup) -> _LocalState:
+        ranges, radius = setup.ranges, setup.radius
+        r_min = float(ranges.min())
+        rho_max = 2.0 * radius - r_min
+        # Radius of the neighbourhood that can cross the plane normal to the ray (module doc).
+        first_cone = 2.0 * np.arcsin(np.sqrt(np.clip((ranges - r_min) / rho_max, 0, 2) / 2.0))
+        grid = _build_grid(setup.rays, first_cone)
+        order = grid.order
+        sorted_ranges = np.ascontiguousarray(ranges[order])
+        args = (
+            np.ascontiguousarray(setup.rays[order]),
+            np.ascontiguousarray(setup.rel[order]),
+            sorted_ranges,
+            2.0 * radius - sorted_ranges,
+            np.ascontiguousarray(first_cone[order]),
+            grid.elevation,
+            grid.azimuth,
+            grid.starts,
+            grid.origin,
+            grid.size,
+            grid.rows,
+            grid.columns,
+            r_min,
+            rho_max,
         )
-        unresolved = state == _STATE_UNRESOLVED
-        if unresolved.any():
-            state[unresolved] = _resolve_unresolved(pending[unresolved], args, setup, order)
-        visible_sorted[pending] = state == _STATE_VISIBLE
-    visible = np.zeros(setup.size, dtype=bool)
-    visible[order] = visible_sorted
-    return visible
+        return cls(lambda: setup, order, args)
+
+    def subset(self, keep: np.ndarray) -> _LocalState:
+        """The state of the set-up's points where ``keep`` ``bool (M,)``, without re-sorting.
+
+        The kept points stay in their cells and order; ``r_min``, ``rho_max`` and the first
+        cones stay those of the whole set, which bound the subset's (a nearer point can only
+        widen a cone), so every verdict is still exact.
+        """
+        kept_sorted = keep[self.order]
+        renumber = np.cumsum(keep) - 1
+        order = renumber[self.order[kept_sorted]]
+        rays, rel, ranges, rho, cone, elevation, azimuth, starts, *rest = self.args
+        before = np.zeros(len(kept_sorted) + 1, dtype=np.int64)
+        np.cumsum(kept_sorted, out=before[1:])
+        args = (
+            rays[kept_sorted],
+            rel[kept_sorted],
+            ranges[kept_sorted],
+            rho[kept_sorted],
+            cone[kept_sorted],
+            elevation[kept_sorted],
+            azimuth[kept_sorted],
+            before[starts],
+            *rest,
+        )
+        parent = self
+
+        def setup_fn() -> _Setup:
+            full = parent.setup
+            return _Setup(
+                full.index[keep], full.rel[keep], full.ranges[keep], full.rays[keep], full.radius
+            )
+
+        return _LocalState(setup_fn, order, args)
+
+    def visible(self, wanted: np.ndarray, workers: int) -> np.ndarray:
+        """Visible flags ``(M,)`` of the set-up's points (``False`` where not wanted)."""
+        order, args = self.order, self.args
+        todo = np.flatnonzero(wanted[order])
+        parts = workers if len(todo) >= _PARALLEL_MIN else 1
+        settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, *args), todo, parts))
+        pending = todo[~settled]
+        visible_sorted = np.zeros(self.size, dtype=bool)
+        visible_sorted[todo[settled]] = True
+        if len(pending):
+            parts = workers if len(pending) >= _PARALLEL_MIN // 8 else 1
+            state = np.concatenate(
+                _in_threads(lambda c: _classify(c, *args, _BRUTE_BUDGET), pending, parts)
+            )
+            unresolved = state == _STATE_UNRESOLVED
+            if unresolved.any():
+                state[unresolved] = _resolve_unresolved(
+                    pending[unresolved], args, self.setup, order
+                )
+            visible_sorted[pending] = state == _STATE_VISIBLE
+        visible = np.zeros(self.size, dtype=bool)
+        visible[order] = visible_sorted
+        return visible
 
 
 def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:

@@ -1013,11 +1013,13 @@ class DRCPO(Transform):
             return self._visible(points)
         if not insertions:
             return keep
-        _, viewpoint = self.e_hpr_setting()
+        radius, viewpoint = self.e_hpr_setting()
         inserted = owner >= 0
         behind = ~inserted & view_windows(
             points, _grown([i.box for i in insertions]), viewpoint, behind=True
         )
+        if settings.mode == "hpr":
+            return ~occlusion.hidden_by_insertion(points, inserted, behind, viewpoint, radius)
         visible = self._visible(points, query=inserted | behind)
         keep[inserted & ~visible] = False
         suspects = np.flatnonzero(behind & ~visible)
