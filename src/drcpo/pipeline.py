@@ -388,8 +388,24 @@ class BoxQuery:
 
     def __init__(self, points: np.ndarray) -> None:
         self.points = points
-        self.x = np.ascontiguousarray(points[:, 0])
-        self.y = np.ascontiguousarray(points[:, 1])
+        self._xy: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._columns()[0]
+
+    @property
+    def y(self) -> np.ndarray:
+        return self._columns()[1]
+
+    def _columns(self) -> tuple[np.ndarray, np.ndarray]:
+        # Copied on the first single-box query only: the one-pass scans read the points.
+        if self._xy is None:
+            self._xy = (
+                np.ascontiguousarray(self.points[:, 0]),
+                np.ascontiguousarray(self.points[:, 1]),
+            )
+        return self._xy
 
     def inside(self, box: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """Indices ``int64 (k,)`` (ascending) of the points in one ``(7,)`` box grown by
@@ -433,8 +449,23 @@ class BoxQuery:
         """
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         owner = np.full(len(self.points), -1, dtype=np.int64)
-        if len(boxes) == 0 or len(owner) == 0:
-            return owner
+        if len(boxes) and len(owner):
+            unused = np.zeros(0, np.int64)
+            _box_scan(self.points, boxes, *self._terms(boxes, margin), owner, unused)
+        return owner
+
+    def counts(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """``int64 (M,)``: points in each box."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        counts = np.zeros(len(boxes), dtype=np.int64)
+        if len(boxes) and len(self.points):
+            unused = np.zeros(0, np.int64)
+            _box_scan(self.points, boxes, *self._terms(boxes, margin), unused, counts)
+        return counts
+
+    def _terms(self, boxes: np.ndarray, margin: float) -> tuple[np.ndarray, ...]:
+        """Per box: cos, sin of the heading (numpy's, as :meth:`inside`), the BEV reach of the
+        rotated box ``(M, 2)`` (a conservative pre-filter) and the half sizes ``(M, 3)``."""
         heading = np.ascontiguousarray(boxes[:, 6])
         cos, sin = np.cos(heading), np.sin(heading)
         length, width = boxes[:, 3] + 2.0 * margin, boxes[:, 4] + 2.0 * margin
@@ -444,20 +475,15 @@ class BoxQuery:
                 (length * np.abs(sin) + width * np.abs(cos)) / 2.0 + self._SLACK,
             ]
         )
-        half = boxes[:, 3:6] / 2.0 + margin
-        _box_owners(self.points, boxes, cos, sin, reach, half, owner)
-        return owner
-
-    def counts(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
-        """``int64 (M,)``: points in each box."""
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        return np.array([len(self.inside(box, margin)) for box in boxes], dtype=np.int64)
+        return cos, sin, reach, boxes[:, 3:6] / 2.0 + margin
 
 
 @nb.njit(cache=True, nogil=True)
-def _box_owners(points, boxes, cos, sin, reach, half, owner):  # pragma: no cover - numba
+def _box_scan(points, boxes, cos, sin, reach, half, owner, counts):  # pragma: no cover - numba
     # Per point, the boxes in order; the float64 arithmetic of BoxQuery.inside, operation for
-    # operation, so a point on a face gets the same verdict.
+    # operation, so a point on a face gets the same verdict. Fills ``owner`` (the last box
+    # holding each point) and/or ``counts`` (points per box), whichever is not empty.
+    with_owner, with_counts = owner.shape[0] > 0, counts.shape[0] > 0
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         for m in range(boxes.shape[0]):
@@ -474,7 +500,10 @@ def _box_owners(points, boxes, cos, sin, reach, half, owner):  # pragma: no cove
                 and abs(local_y) <= half[m, 1]
                 and abs(pz - boxes[m, 2]) <= half[m, 2]
             ):
-                owner[i] = m
+                if with_owner:
+                    owner[i] = m
+                if with_counts:
+                    counts[m] += 1
 
 
 #: Metadata arrays holding one row per box, kept in step when boxes are added or removed, with
@@ -1072,7 +1101,7 @@ class DRCPO(Transform):
         bounds = np.searchsorted(owner, np.arange(len(insertions) + 1))
         survivors = np.array(
             [
-                len(BoxQuery(points[a:b][keep[a:b]]).inside(insertion.box))
+                BoxQuery(points[a:b][keep[a:b]]).counts(insertion.box)[0]
                 for a, b, insertion in zip(bounds[:-1], bounds[1:], insertions, strict=True)
             ],
             dtype=np.int64,
@@ -1122,10 +1151,10 @@ class DRCPO(Transform):
         if not removed.any() or len(frame.boxes) == 0:
             return drop
         lost = BoxQuery(frame.points[removed]).counts(frame.boxes)
-        query = BoxQuery(frame.points)
-        for m in np.flatnonzero(lost):
-            had = len(query.inside(frame.boxes[m]))
-            drop[m] = had >= minimum and had - lost[m] < minimum
+        touched = np.flatnonzero(lost)
+        if len(touched):
+            had = BoxQuery(frame.points).counts(frame.boxes[touched])
+            drop[touched] = (had >= minimum) & (had - lost[touched] < minimum)
         return drop
 
 
