@@ -1250,11 +1250,24 @@ class OcclusionMap:
         self.tolerance = depth_tolerance
         self.columns = math.ceil(2 * math.pi / self.AZIMUTH_STEP)
         self.rows = math.ceil(math.pi / self.ELEVATION_STEP) + 1
-        self.nearest = np.full(self.rows * self.columns, np.inf, dtype=np.float32)
-        cells, ranges = self._cells(points[:, :3])
-        np.minimum.at(self.nearest, cells, ranges)
+        row, column, ranges = self._cells(points[:, :3])
+        # Only the window of rows and columns the points occupy is stored (a whole sphere's
+        # cells are megabytes to fault in); cells outside it hold no point and occlude nothing.
+        self.origin = (int(row.min(initial=0)), int(column.min(initial=0)))
+        self.shape = (
+            int(row.max(initial=0)) - self.origin[0] + 1,
+            int(column.max(initial=0)) - self.origin[1] + 1,
+        )
+        self.nearest = np.full(self.shape[0] * self.shape[1], np.inf, dtype=np.float32)
+        np.minimum.at(self.nearest, self._window_cells(row, column)[0], ranges)
 
-    def _cells(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _window_cells(self, row: np.ndarray, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Flat window cell of each ``(row, column)`` and whether it lies in the window."""
+        row, column = row - self.origin[0], column - self.origin[1]
+        inside = (row >= 0) & (row < self.shape[0]) & (column >= 0) & (column < self.shape[1])
+        return np.where(inside, row * self.shape[1] + column, 0), inside
+
+    def _cells(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # float32 is ample for 0.2-degree cells and halves the trigonometry's cost.
         rel = np.asarray(xyz, dtype=np.float32).reshape(-1, 3) - self.viewpoint.astype(np.float32)
         ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
@@ -1262,14 +1275,16 @@ class OcclusionMap:
         elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
         column = np.floor((azimuth + math.pi) / self.AZIMUTH_STEP).astype(np.int64)
         row = np.floor((elevation + math.pi / 2) / self.ELEVATION_STEP).astype(np.int64)
-        return np.clip(row, 0, self.rows - 1) * self.columns + column % self.columns, ranges
+        return np.clip(row, 0, self.rows - 1), column % self.columns, ranges
 
     def occluded(self, boxes: np.ndarray) -> np.ndarray:
         """``float64 (M,)``: share of each box's sensor-facing surface samples occluded."""
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         samples, facing = _facing_samples(boxes, self.viewpoint)  # (M, F, K, 3), (M, F)
-        cells, ranges = self._cells(samples)
-        hidden = (self.nearest[cells] + self.tolerance < ranges).reshape((*facing.shape, -1))
+        row, column, ranges = self._cells(samples)
+        cells, inside = self._window_cells(row, column)
+        nearest = np.where(inside, self.nearest[cells], np.float32(np.inf))
+        hidden = (nearest + self.tolerance < ranges).reshape((*facing.shape, -1))
         seen = facing[..., None] & np.ones_like(hidden)
         total = seen.sum(axis=(1, 2))
         return np.divide(
