@@ -810,8 +810,8 @@ class _LocalState:
         order = grid.order
         sorted_ranges = np.ascontiguousarray(ranges[order])
         args = (
-            np.ascontiguousarray(setup.rays[order]),
-            np.ascontiguousarray(setup.rel[order]),
+            setup.rays.take(order, axis=0),  # take: much faster than fancy indexing of rows
+            setup.rel.take(order, axis=0),
             sorted_ranges,
             2.0 * radius - sorted_ranges,
             np.ascontiguousarray(first_cone[order]),
@@ -835,19 +835,20 @@ class _LocalState:
         widen a cone), so every verdict is still exact.
         """
         kept_sorted = keep[self.order]
+        positions = np.flatnonzero(kept_sorted)
         renumber = np.cumsum(keep) - 1
-        order = renumber[self.order[kept_sorted]]
+        order = renumber[self.order[positions]]
         rays, rel, ranges, rho, cone, elevation, azimuth, starts, *rest = self.args
         before = np.zeros(len(kept_sorted) + 1, dtype=np.int64)
         np.cumsum(kept_sorted, out=before[1:])
         args = (
-            rays[kept_sorted],
-            rel[kept_sorted],
-            ranges[kept_sorted],
-            rho[kept_sorted],
-            cone[kept_sorted],
-            elevation[kept_sorted],
-            azimuth[kept_sorted],
+            rays.take(positions, axis=0),
+            rel.take(positions, axis=0),
+            ranges[positions],
+            rho[positions],
+            cone[positions],
+            elevation[positions],
+            azimuth[positions],
             before[starts],
             *rest,
         )

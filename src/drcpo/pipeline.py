@@ -340,6 +340,12 @@ class GlobalScaling(Transform):
 # --------------------------------------------------------------------------------------------
 # Shared helpers for inserting objects
 # --------------------------------------------------------------------------------------------
+def _rows(array: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``array[mask]`` for a boolean row mask, through ``take`` (several times faster for
+    point arrays than boolean indexing; the same rows in the same order)."""
+    return array.take(np.flatnonzero(mask), axis=0)
+
+
 def match_features(points: np.ndarray, dim: int) -> np.ndarray:
     """``float32 (n, dim)``: the first ``dim`` columns of ``points``, zero-padded if it has fewer.
 
@@ -702,7 +708,7 @@ class GroundTruthSampling(Transform):
             placed = from_canonical(self.database.object_points(int(row)), box)
             objects.append(match_features(placed, dim))
         keep = ~BoxQuery(frame.points).inside_any(boxes)
-        points = np.concatenate([frame.points[keep], *objects])
+        points = np.concatenate([_rows(frame.points, keep), *objects])
         names = np.concatenate([frame.names, self.database.names[rows].astype(str)])
         db = self.database
         metadata = update_box_metadata(
@@ -951,7 +957,7 @@ class DRCPO(Transform):
         if limit is not None and self.config.external_occlusion.enabled and len(boxes):
             _, viewpoint = self.e_hpr_setting()
             clear = ~BoxQuery(frame.points).inside_any(boxes)
-            occluded = OcclusionMap(frame.points[clear], viewpoint).occluded(boxes) >= limit
+            occluded = OcclusionMap(_rows(frame.points, clear), viewpoint).occluded(boxes) >= limit
             for i in accepted[occluded]:
                 stats.rejected(self.name, names[i], "occluded")
             boxes, accepted = boxes[~occluded], accepted[~occluded]
@@ -996,7 +1002,7 @@ class DRCPO(Transform):
             masks = iter(
                 occlusion.self_occlusion_many(jobs, settings.radius_factor, method="reference")
             )
-            placed_objects = [p[next(masks)] if len(p) else p for p in placed_objects]
+            placed_objects = [_rows(p, next(masks)) if len(p) else p for p in placed_objects]
         insertions = []
         for row, box, placed in zip(rows, boxes, placed_objects, strict=True):
             name = str(self.database.names[row])
@@ -1017,7 +1023,7 @@ class DRCPO(Transform):
             return frame.points, cleared_by.copy(), cleared_by
         cleared_by = BoxQuery(frame.points).owners(np.array([i.box for i in insertions]))
         original = cleared_by < 0
-        points = np.concatenate([frame.points[original], *(i.points for i in insertions)])
+        points = np.concatenate([_rows(frame.points, original), *(i.points for i in insertions)])
         owner = np.concatenate(
             [np.full(int(original.sum()), -1)]
             + [np.full(len(i.points), j) for j, i in enumerate(insertions)]
@@ -1131,7 +1137,7 @@ class DRCPO(Transform):
         inserted_keep = keep & (owner >= 0) & ~np.isin(owner, np.flatnonzero(dropped))
         kept_boxes = np.flatnonzero(~drop_original)
         return frame.replace(
-            points=np.concatenate([frame.points[~removed], points[inserted_keep]]),
+            points=np.concatenate([_rows(frame.points, ~removed), _rows(points, inserted_keep)]),
             boxes=np.concatenate([frame.boxes[kept_boxes], _grown([i.box for i in kept], 0.0)]),
             names=np.concatenate([frame.names[kept_boxes], [i.name for i in kept]]),
             metadata=update_box_metadata(
@@ -1150,7 +1156,7 @@ class DRCPO(Transform):
         drop = np.zeros(len(frame.boxes), dtype=bool)
         if not removed.any() or len(frame.boxes) == 0:
             return drop
-        lost = BoxQuery(frame.points[removed]).counts(frame.boxes)
+        lost = BoxQuery(_rows(frame.points, removed)).counts(frame.boxes)
         touched = np.flatnonzero(lost)
         if len(touched):
             had = BoxQuery(frame.points).counts(frame.boxes[touched])
@@ -1198,7 +1204,7 @@ def view_windows(
             spans = [(low, math.pi), (-math.pi, high - 2 * math.pi)]
         for start, stop in spans:
             rows = np.flatnonzero((azimuth >= start) & (azimuth <= stop))
-            local = rel[rows]
+            local = rel.take(rows, axis=0)
             horizontal = np.hypot(local[:, 0], local[:, 1])
             elevation = np.arctan2(local[:, 2], horizontal)
             hit = (elevation >= el_low[m]) & (elevation <= el_high[m])

@@ -289,7 +289,8 @@ class _Obstacles:
         high = np.clip(high, 1, inner).astype(np.int64)
         for (x0, y0), (x1, y1) in zip(low, high, strict=True):
             wanted[x0:x1, y0:y1] = True
-        candidates = self.points[wanted.reshape(-1)[cells]]
+        # take: several times faster than boolean indexing of point rows
+        candidates = self.points.take(np.flatnonzero(wanted.reshape(-1)[cells]), axis=0)
         above = candidates[~self.ground.is_ground(candidates, self.tolerance)]
         return points_in_boxes(above, boxes).sum(axis=0).astype(np.int64)
 
