@@ -211,8 +211,9 @@ def hidden_by_insertion(
     inserted objects may occlude) goes when it is hidden in the whole set but visible once the
     inserted points are taken out, so HPR's own verdicts on the original frame never delete a
     point. The same as :func:`hidden_point_removal` with ``query=inserted | behind``, then on
-    ``points[~inserted]`` for the hidden points of ``behind``; with the ``"local"`` method the
-    second pass reuses the first's sorted points instead of preparing them again.
+    ``points[~inserted]`` for the hidden points of ``behind``. With the ``"local"`` method both
+    passes share one sorted set-up, and ``behind`` is decided without the inserted points
+    first, so that points hidden all along are not proven hidden twice.
 
     Args:
         points: ``(N, 3 + C)`` the frame after insertion (metres).
@@ -239,40 +240,45 @@ def hidden_by_insertion(
     setup = _Setup.build(xyz, center, radius)
     if setup.size == 0:
         return removed
-    local = _resolve_method(method, setup) == "local"
-    if local:
-        state = _LocalState.build(setup)
-        visible = np.ones(len(xyz), dtype=bool)
-        visible[setup.index] = state.visible(wanted[setup.index], workers) | ~wanted[setup.index]
-    else:
-        visible = hidden_point_removal(
-            xyz, center, radius, method=method, query=wanted, workers=workers
-        )
+    if _resolve_method(method, setup) == "local":
+        return _hidden_by_insertion_local(setup, inserted, behind, workers)
+    visible = hidden_point_removal(
+        xyz, center, radius, method=method, query=wanted, workers=workers
+    )
     removed = wanted & ~visible
     suspects = behind & removed
-    if not suspects.any():
-        return removed
-    original = np.flatnonzero(~inserted)
-    kept = ~inserted[setup.index]
-    if local and kept.all():
-        before = visible | ~suspects  # nothing inserted takes part: the same set
-    elif local:
-        subset = state.subset(kept)
-        rows = setup.index[kept]
-        before = np.ones(len(xyz), dtype=bool)
-        before[rows] = subset.visible(suspects[rows], workers) | ~suspects[rows]
-    else:
+    if suspects.any():
+        original = np.flatnonzero(~inserted)
         before = np.ones(len(xyz), dtype=bool)
         before[original] = hidden_point_removal(
-            xyz[original],
-            center,
-            radius,
-            method=method,
-            query=suspects[original],
-            workers=workers,
+            xyz[original], center, radius, method=method, query=suspects[original], workers=workers
         )
-    # Original points hidden even without the inserted objects stay.
-    removed[suspects & ~before] = False
+        # Original points hidden even without the inserted objects stay.
+        removed[suspects & ~before] = False
+    return removed
+
+
+def _hidden_by_insertion_local(
+    setup: _Setup, inserted: np.ndarray, behind: np.ndarray, workers: int
+) -> np.ndarray:
+    """:func:`hidden_by_insertion` with the per-point test, on one sorted set-up.
+
+    The points of ``behind`` are first decided without the inserted points (most are settled
+    by the cheap radial test); only those visible then are decided again with them, so the
+    ones hidden all along are never proven hidden twice. Each verdict is the per-point test's
+    on the same set as the two plain passes, so the answer is theirs.
+    """
+    removed = np.zeros(len(inserted), dtype=bool)
+    state = _LocalState.build(setup)
+    kept = ~inserted[setup.index]
+    candidates = np.zeros(len(inserted), dtype=bool)
+    if behind.any():
+        without = state if kept.all() else state.subset(kept)
+        rows = setup.index[kept]
+        candidates[rows] = without.visible(behind[rows], workers)  # False where not behind
+    wanted = inserted | candidates
+    if wanted.any():
+        removed[setup.index] = wanted[setup.index] & ~state.visible(wanted[setup.index], workers)
     return removed
 
 
