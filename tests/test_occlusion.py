@@ -444,6 +444,9 @@ def test_distinct_without_duplicates_is_the_same_setup(rng):
     np.testing.assert_array_equal(inverse, np.arange(200))
     # Equal x alone is not a duplicate; a real copy is.
     xyz[1, 0] = xyz[0, 0]
+    xyz[5, :2] = xyz[4, :2]
+    tied = _Setup.build(xyz, np.zeros(3), 1000.0)
+    assert tied.distinct()[0] is tied
     xyz[3] = xyz[2]
     distinct, inverse = _Setup.build(xyz, np.zeros(3), 1000.0).distinct()
     assert distinct.size == 199 and inverse[3] == inverse[2] and inverse[1] != inverse[0]

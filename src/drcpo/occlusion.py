@@ -640,8 +640,16 @@ class _Setup:
         rel = self.rel
         # Equal points have equal x: when no two x are equal (the usual case) there is no
         # duplicate, and one single-key sort is much cheaper than the three-key one.
-        by_x = np.sort(rel[:, 0])
-        if not (by_x[1:] == by_x[:-1]).any():
+        by_x = np.argsort(rel[:, 0])
+        sorted_x = rel[by_x, 0]
+        tie = sorted_x[1:] == sorted_x[:-1]
+        if not tie.any():
+            return self, np.arange(self.size)
+        # Equal x is common (float32 inputs), a copy rare: look for one among the ties only.
+        tied = by_x[np.flatnonzero(np.concatenate([tie, [False]]) | np.concatenate([[False], tie]))]
+        candidates = rel.take(tied, axis=0)
+        candidates = candidates[np.lexsort((candidates[:, 2], candidates[:, 1], candidates[:, 0]))]
+        if not (candidates[1:] == candidates[:-1]).all(axis=1).any():
             return self, np.arange(self.size)
         order = np.lexsort((rel[:, 2], rel[:, 1], rel[:, 0]))
         ordered = rel[order]
