@@ -819,7 +819,14 @@ class _LocalState:
         r_min = float(ranges.min())
         rho_max = 2.0 * radius - r_min
         # Radius of the neighbourhood that can cross the plane normal to the ray (module doc).
-        first_cone = 2.0 * np.arcsin(np.sqrt(np.clip((ranges - r_min) / rho_max, 0, 2) / 2.0))
+        # (In place: the same operations without a temporary per step.)
+        first_cone = np.subtract(ranges, r_min)
+        first_cone /= rho_max
+        np.clip(first_cone, 0, 2, out=first_cone)
+        first_cone /= 2.0
+        np.sqrt(first_cone, out=first_cone)
+        np.arcsin(first_cone, out=first_cone)
+        first_cone *= 2.0
         grid = _build_grid(setup.rays, first_cone)
         order = grid.order
         sorted_ranges = np.ascontiguousarray(ranges[order])
