@@ -25,6 +25,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -340,6 +341,15 @@ class GlobalScaling(Transform):
 # --------------------------------------------------------------------------------------------
 # Shared helpers for inserting objects
 # --------------------------------------------------------------------------------------------
+def _spare_core() -> bool:
+    """Whether this process may use a second CPU (a forked data-loader worker pinned to one
+    core may not)."""
+    try:
+        return len(os.sched_getaffinity(0)) > 1
+    except AttributeError:  # not on Linux
+        return (os.cpu_count() or 1) > 1
+
+
 def _rows(array: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``array[mask]`` for a boolean row mask, through ``take`` (several times faster for
     point arrays than boolean indexing; the same rows in the same order)."""
@@ -946,18 +956,29 @@ class DRCPO(Transform):
         dims = source[:, 3:6] if dims is None else dims
         camera = self.config.placement.camera_fov
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
-        result = placement.place_objects(
-            frame, dims, source, rng, self._placement[fov], frame_ground(frame)
-        )
+        limit = self.config.placement.occluded_fraction
+        check = limit is not None and self.config.external_occlusion.enabled
+        _, viewpoint = self.e_hpr_setting()
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            # The z-buffer cells of the frame's points do not depend on the placement: on two
+            # cores they are computed meanwhile (the same numbers either way).
+            pending = None
+            if check and _spare_core():
+                pending = pool.submit(OcclusionMap.point_cells, frame.points, viewpoint)
+            result = placement.place_objects(
+                frame, dims, source, rng, self._placement[fov], frame_ground(frame)
+            )
+            cells = pending.result() if pending is not None else None
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
         boxes, accepted = result.boxes, result.accepted
-        limit = self.config.placement.occluded_fraction
-        if limit is not None and self.config.external_occlusion.enabled and len(boxes):
-            _, viewpoint = self.e_hpr_setting()
-            clear = ~BoxQuery(frame.points).inside_any(boxes)
-            occluded = OcclusionMap(_rows(frame.points, clear), viewpoint).occluded(boxes) >= limit
+        if check and len(boxes):
+            clear = np.flatnonzero(~BoxQuery(frame.points).inside_any(boxes))
+            if cells is None:
+                cells = OcclusionMap.point_cells(frame.points, viewpoint)
+            cells = tuple(values[clear] for values in cells)
+            occluded = OcclusionMap(None, viewpoint, cells=cells).occluded(boxes) >= limit
             for i in accepted[occluded]:
                 stats.rejected(self.name, names[i], "occluded")
             boxes, accepted = boxes[~occluded], accepted[~occluded]
@@ -1249,14 +1270,24 @@ class OcclusionMap:
     AZIMUTH_STEP = math.radians(0.2)
     ELEVATION_STEP = math.radians(0.4)
 
+    COLUMNS = math.ceil(2 * math.pi / AZIMUTH_STEP)
+    ROWS = math.ceil(math.pi / ELEVATION_STEP) + 1
+
     def __init__(
-        self, points: np.ndarray, viewpoint: np.ndarray, depth_tolerance: float = 0.5
+        self,
+        points: np.ndarray | None,
+        viewpoint: np.ndarray,
+        depth_tolerance: float = 0.5,
+        *,
+        cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> None:
+        """``points (N, 3+)``, or their :meth:`point_cells` (``points`` then ``None``)."""
         self.viewpoint = np.asarray(viewpoint, dtype=np.float64)
         self.tolerance = depth_tolerance
-        self.columns = math.ceil(2 * math.pi / self.AZIMUTH_STEP)
-        self.rows = math.ceil(math.pi / self.ELEVATION_STEP) + 1
-        row, column, ranges = self._cells(points[:, :3])
+        self.columns, self.rows = self.COLUMNS, self.ROWS
+        if cells is None:
+            cells = self.point_cells(points, self.viewpoint)
+        row, column, ranges = cells
         # Only the window of rows and columns the points occupy is stored (a whole sphere's
         # cells are megabytes to fault in); cells outside it hold no point and occlude nothing.
         self.origin = (int(row.min(initial=0)), int(column.min(initial=0)))
@@ -1273,15 +1304,28 @@ class OcclusionMap:
         inside = (row >= 0) & (row < self.shape[0]) & (column >= 0) & (column < self.shape[1])
         return np.where(inside, row * self.shape[1] + column, 0), inside
 
+    @classmethod
+    def point_cells(
+        cls, points: np.ndarray, viewpoint: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row, column (``int64 (N,)``) and range (``float32 (N,)``, metres) of each point."""
+        return cls._cells_from(np.asarray(points)[:, :3], np.asarray(viewpoint, np.float64))
+
     def _cells(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._cells_from(xyz, self.viewpoint)
+
+    @classmethod
+    def _cells_from(
+        cls, xyz: np.ndarray, viewpoint: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         # float32 is ample for 0.2-degree cells and halves the trigonometry's cost.
-        rel = np.asarray(xyz, dtype=np.float32).reshape(-1, 3) - self.viewpoint.astype(np.float32)
+        rel = np.asarray(xyz, dtype=np.float32).reshape(-1, 3) - viewpoint.astype(np.float32)
         ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
         azimuth = np.arctan2(rel[:, 1], rel[:, 0])
         elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
-        column = np.floor((azimuth + math.pi) / self.AZIMUTH_STEP).astype(np.int64)
-        row = np.floor((elevation + math.pi / 2) / self.ELEVATION_STEP).astype(np.int64)
-        return np.clip(row, 0, self.rows - 1), column % self.columns, ranges
+        column = np.floor((azimuth + math.pi) / cls.AZIMUTH_STEP).astype(np.int64)
+        row = np.floor((elevation + math.pi / 2) / cls.ELEVATION_STEP).astype(np.int64)
+        return np.clip(row, 0, cls.ROWS - 1), column % cls.COLUMNS, ranges
 
     def occluded(self, boxes: np.ndarray) -> np.ndarray:
         """``float64 (M,)``: share of each box's sensor-facing surface samples occluded."""
