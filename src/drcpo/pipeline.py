@@ -900,24 +900,33 @@ class DRCPO(Transform):
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
         objects: list[Any] = []
-        if self.config.construction.mode == "partition":
-            with stats.stage("drcpo.placement", len(frame)):
-                boxes, accepted = self._place(frame, rows, None, rng, stats)
-                rows = rows[accepted]
-            with stats.stage("drcpo.construction", 0) as record:
-                objects = self._construct(rows, rng, stats)
-                record["points_out"] = sum(len(o.points) for o in objects)
-        else:  # whole: the box grows while constructing, so place with the final size
-            with stats.stage("drcpo.construction", 0) as record:
-                objects = self._construct(rows, rng, stats)
-                record["points_out"] = sum(len(o.points) for o in objects)
-            with stats.stage("drcpo.placement", len(frame)):
-                dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
-                boxes, accepted = self._place(frame, rows, dims, rng, stats)
-                rows, objects = rows[accepted], [objects[i] for i in accepted]
-        with stats.stage("drcpo.self_occlusion", sum(len(o.points) for o in objects)) as record:
-            insertions = self._self_occlusion(frame, rows, boxes, objects, stats)
-            record["points_out"] = sum(len(i.points) for i in insertions)
+        early: list[Any] | None = None
+        # With placement first, each object's s-HPR can start on a second thread as soon as
+        # it is built, while the next one is constructed (the answers do not depend on it);
+        # the construction stage's time then includes that overlapped s-HPR work.
+        overlap = self.config.self_occlusion.enabled and _spare_core()
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            if self.config.construction.mode == "partition":
+                with stats.stage("drcpo.placement", len(frame)):
+                    boxes, accepted = self._place(frame, rows, None, rng, stats)
+                    rows = rows[accepted]
+                with stats.stage("drcpo.construction", 0) as record:
+                    if overlap:
+                        early = []
+                    objects = self._construct(rows, rng, stats, early, pool, boxes, frame)
+                    record["points_out"] = sum(len(o.points) for o in objects)
+            else:  # whole: the box grows while constructing, so place with the final size
+                with stats.stage("drcpo.construction", 0) as record:
+                    objects = self._construct(rows, rng, stats)
+                    record["points_out"] = sum(len(o.points) for o in objects)
+                with stats.stage("drcpo.placement", len(frame)):
+                    dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
+                    boxes, accepted = self._place(frame, rows, dims, rng, stats)
+                    rows, objects = rows[accepted], [objects[i] for i in accepted]
+            points_in = sum(len(o.points) for o in objects)
+            with stats.stage("drcpo.self_occlusion", points_in) as record:
+                insertions = self._self_occlusion(frame, rows, boxes, objects, stats, early)
+                record["points_out"] = sum(len(i.points) for i in insertions)
         with stats.stage("drcpo.insert", len(frame)) as record:
             points, owner, cleared_by = self._insert(frame, insertions)
             record["points_out"] = len(points)
@@ -984,9 +993,20 @@ class DRCPO(Transform):
             boxes, accepted = boxes[~occluded], accepted[~occluded]
         return boxes, accepted
 
-    def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
+    def _construct(
+        self,
+        rows: np.ndarray,
+        rng: np.random.Generator,
+        stats: Stats,
+        early: list[Any] | None = None,
+        pool: ThreadPoolExecutor | None = None,
+        boxes: np.ndarray | None = None,
+        frame: Frame | None = None,
+    ) -> list[Any]:
+        """Constructed objects; with ``early`` (a list), each object's s-HPR is also queued on
+        ``pool`` as soon as it is built (its future appended to ``early``)."""
         objects = []
-        for row in rows:
+        for k, row in enumerate(rows):
             name = str(self.database.names[row])
             built = construction.construct_object(
                 self.database,
@@ -998,7 +1018,25 @@ class DRCPO(Transform):
             )
             stats.construction(name, built.iterations)
             objects.append(built)
+            if early is not None:
+                early.append(
+                    pool.submit(self._object_s_hpr, built, boxes[k], frame.points.shape[1])
+                )
         return objects
+
+    def _placed_points(self, built: Any, box: np.ndarray, dim: int) -> np.ndarray:
+        """An object's constructed points placed in ``box``, with the frame's ``dim`` columns."""
+        return match_features(from_canonical(built.points, box), dim)
+
+    def _object_s_hpr(self, built: Any, box: np.ndarray, dim: int) -> np.ndarray:
+        """One object's placed points after s-HPR."""
+        placed = self._placed_points(built, box, dim)
+        if not len(placed):
+            return placed
+        visible = occlusion.self_occlusion(
+            placed, box, self.config.self_occlusion.radius_factor, method="reference"
+        )
+        return _rows(placed, visible)
 
     def _self_occlusion(
         self,
@@ -1007,23 +1045,35 @@ class DRCPO(Transform):
         boxes: np.ndarray,
         objects: Sequence[Any],
         stats: Stats,
+        early: Sequence[Any] | None = None,
     ) -> list[_Insertion]:
-        """Placed points of each object after s-HPR; objects left too sparse are dropped."""
+        """Placed points of each object after s-HPR; objects left too sparse are dropped.
+
+        ``early``: per object, the future of its s-HPR queued during construction; those not
+        started yet are taken back and done here, two at a time.
+        """
         settings = self.config.self_occlusion
         dim = frame.points.shape[1]
-        placed_objects = [
-            match_features(from_canonical(built.points, box), dim)
-            for box, built in zip(boxes, objects, strict=True)
-        ]
+        placed_objects: list[Any] = [None] * len(objects)
+        left = list(range(len(objects)))
+        if early is not None:
+            left = [k for k, future in enumerate(early) if future.cancel()]
+        for k in left:
+            placed_objects[k] = self._placed_points(objects[k], boxes[k], dim)
         if settings.enabled:
             # One Qhull hull per object (faster than the per-point method for objects), two
             # objects at a time.
-            pairs = zip(placed_objects, boxes, strict=True)
-            jobs = [(placed, box) for placed, box in pairs if len(placed)]
+            jobs = [(placed_objects[k], boxes[k]) for k in left if len(placed_objects[k])]
             masks = iter(
                 occlusion.self_occlusion_many(jobs, settings.radius_factor, method="reference")
             )
-            placed_objects = [_rows(p, next(masks)) if len(p) else p for p in placed_objects]
+            for k in left:
+                if len(placed_objects[k]):
+                    placed_objects[k] = _rows(placed_objects[k], next(masks))
+        if early is not None:
+            for k, future in enumerate(early):
+                if placed_objects[k] is None:
+                    placed_objects[k] = future.result()
         insertions = []
         for row, box, placed in zip(rows, boxes, placed_objects, strict=True):
             name = str(self.database.names[row])
