@@ -1095,6 +1095,55 @@ def _gather(
 
 
 @nb.njit(cache=True, nogil=True)
+def _gather_grown(
+    i,
+    cone,
+    radial_only,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    origin,
+    size,
+    rows,
+    columns,
+    s1,
+    s2,
+    t,
+):
+    """:func:`_gather` into buffers that are replaced by larger ones until every constraint
+    fits; returns the count and the (possibly new) buffers."""
+    while True:
+        count = _gather(
+            i,
+            cone,
+            radial_only,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            origin,
+            size,
+            rows,
+            columns,
+            s1,
+            s2,
+            t,
+        )
+        if count <= t.shape[0]:
+            return count, s1, s2, t
+        s1 = np.empty(2 * count)
+        s2 = np.empty(2 * count)
+        t = np.empty(2 * count)
+
+
+@nb.njit(cache=True, nogil=True)
 def _line_interval(a, b, c, fa, fb, da, db, lo, hi):
     """Clip the parameter interval ``[lo, hi]`` of the line ``f + lam d`` by the constraint
     ``a x + b y <= c``. Returns ``(lo, hi, ok)``; ``ok`` is False when the constraint excludes
@@ -1192,10 +1241,9 @@ def _classify(
     """States (hidden 0, visible 1, unresolved 2) of the sorted points ``todo``, which the
     plane normal to their ray leaves undecided (see :func:`_radial_pass`)."""
     state = np.empty(todo.shape[0], dtype=np.int64)
-    capacity = 256
-    s1 = np.empty(capacity)
-    s2 = np.empty(capacity)
-    t = np.empty(capacity)
+    s1 = np.empty(256)
+    s2 = np.empty(256)
+    t = np.empty(256)
     brutes = 0
     for slot in range(todo.shape[0]):
         i = todo[slot]
@@ -1205,8 +1253,8 @@ def _classify(
         # A narrow neighbourhood first: the points hiding a hidden point are usually its
         # nearest, and the full one can hold many times more.
         probe = _PROBE_NARROWING * first_cone[i]
-        while probe > 1e-6:
-            count = _gather(
+        if probe > 1e-6:
+            count, s1, s2, t = _gather_grown(
                 i,
                 probe,
                 False,
@@ -1225,14 +1273,8 @@ def _classify(
                 s2,
                 t,
             )
-            if count <= capacity:
-                if _min_tilt(s1, s2, t, count)[0] == 0:
-                    verdict = _STATE_HIDDEN
-                break
-            capacity = 2 * count
-            s1 = np.empty(capacity)
-            s2 = np.empty(capacity)
-            t = np.empty(capacity)
+            if _min_tilt(s1, s2, t, count)[0] == 0:
+                verdict = _STATE_HIDDEN
         while verdict == _STATE_UNRESOLVED:
             everything = cone >= _BRUTE_ANGLE
             if everything:
@@ -1240,7 +1282,7 @@ def _classify(
                     break
                 brutes += 1
                 cone = math.pi
-            count = _gather(
+            count, s1, s2, t = _gather_grown(
                 i,
                 cone,
                 False,
@@ -1259,30 +1301,6 @@ def _classify(
                 s2,
                 t,
             )
-            if count > capacity:
-                capacity = 2 * count
-                s1 = np.empty(capacity)
-                s2 = np.empty(capacity)
-                t = np.empty(capacity)
-                count = _gather(
-                    i,
-                    cone,
-                    False,
-                    rays,
-                    rel,
-                    ranges,
-                    rho,
-                    elevation,
-                    azimuth,
-                    starts,
-                    origin,
-                    size,
-                    rows,
-                    columns,
-                    s1,
-                    s2,
-                    t,
-                )
             status, a, b = _min_tilt(s1, s2, t, count)
             if status == 0:
                 verdict = _STATE_HIDDEN
