@@ -52,6 +52,7 @@ from drcpo.geometry import (
     bev_corners,
     bev_overlap_area,
     from_canonical,
+    rotate_points_z,
     wrap_angle,
 )
 from drcpo.ground import GroundModel
@@ -300,15 +301,8 @@ class GlobalRotation(Transform):
         with stats.stage(self.name, len(frame)):
             low, high = self.config.range
             angle = rng.uniform(low, high)
-            cos, sin = math.cos(angle), math.sin(angle)
-            points = frame.points.copy()
-            x, y = frame.points[:, 0].astype(np.float64), frame.points[:, 1].astype(np.float64)
-            points[:, 0] = cos * x - sin * y
-            points[:, 1] = sin * x + cos * y
-            boxes = frame.boxes.copy()
-            bx, by = frame.boxes[:, 0], frame.boxes[:, 1]
-            boxes[:, 0] = cos * bx - sin * by
-            boxes[:, 1] = sin * bx + cos * by
+            points = rotate_points_z(frame.points, angle)
+            boxes = rotate_points_z(frame.boxes, angle)
             boxes[:, 6] = wrap_angle(boxes[:, 6] + angle)
             return frame.replace(points=points, boxes=boxes)
 

@@ -11,8 +11,8 @@ Every function writes its file atomically (temporary file, then rename) and retu
 
 from __future__ import annotations
 
+import io
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +22,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon, Rectangle
 
-from drcpo.datasets.kitti_writer import default_mode
+from drcpo.datasets.kitti_writer import atomic_write_bytes
 from drcpo.geometry import bev_corners
 
 CLASS_COLOURS: dict[str, str] = {
@@ -81,19 +81,10 @@ class DistanceSeries:
 
 
 def _save(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-    os.close(handle)
-    try:
-        fig.savefig(tmp, dpi=dpi, format="png")
-        os.chmod(tmp, default_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    buffer = io.BytesIO()
+    fig.savefig(buffer, dpi=dpi, format="png")
+    return atomic_write_bytes(path, buffer.getvalue())
 
 
 def _draw_bev(ax, panel: BevPanel, extent: tuple[float, float, float, float]) -> None:
