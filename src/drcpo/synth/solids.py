@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drcpo.geometry import rotate_points_z
+
 BOX, ELLIPSOID, CYLINDER = 0, 1, 2
 
 #: name -> (albedo, extra dropout probability). Glass returns little; paint and signs a lot.
@@ -113,11 +115,7 @@ class Solids:
 
     def placed(self, x: float, y: float, z: float, yaw: float) -> Solids:
         """These solids (given in an object's frame) moved to pose ``(x, y, z, yaw)``."""
-        cos, sin = np.cos(yaw), np.sin(yaw)
-        c = self.centre
-        centre = np.column_stack(
-            [cos * c[:, 0] - sin * c[:, 1] + x, sin * c[:, 0] + cos * c[:, 1] + y, c[:, 2] + z]
-        )
+        centre = rotate_points_z(self.centre, yaw) + np.array([x, y, z])
         return Solids(self.kind, centre, self.half, self.yaw + yaw, self.material, self.owner)
 
     def horizontal_radius(self) -> np.ndarray:
@@ -197,20 +195,11 @@ class Solids:
 
 
 def _to_local(xyz: np.ndarray, centre: np.ndarray, yaw: float) -> np.ndarray:
-    d = xyz - centre
-    cos, sin = np.cos(yaw), np.sin(yaw)
-    return np.column_stack([cos * d[:, 0] + sin * d[:, 1], -sin * d[:, 0] + cos * d[:, 1], d[:, 2]])
+    return rotate_points_z(xyz - centre, -yaw)
 
 
 def _from_local(local: np.ndarray, centre: np.ndarray, yaw: float) -> np.ndarray:
-    cos, sin = np.cos(yaw), np.sin(yaw)
-    return np.column_stack(
-        [
-            cos * local[:, 0] - sin * local[:, 1] + centre[0],
-            sin * local[:, 0] + cos * local[:, 1] + centre[1],
-            local[:, 2] + centre[2],
-        ]
-    )
+    return rotate_points_z(local, yaw) + centre
 
 
 def _sample_solid(kind: int, half: np.ndarray, rng: np.random.Generator, spacing: float):
