@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import io
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -228,18 +228,3 @@ def density_figure(
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     return _save(fig, path, dpi)
-
-
-def class_colour(name: str) -> str:
-    return CLASS_COLOURS.get(name, OTHER_COLOUR)
-
-
-def series_by_group(
-    groups: Mapping[str, tuple[np.ndarray, np.ndarray]], colours: Mapping[str, str]
-) -> list[DistanceSeries]:
-    """:class:`DistanceSeries` from ``{label: (distance, points)}``."""
-    markers = "osD^v"
-    return [
-        DistanceSeries(label, d, n, colours.get(label, OTHER_COLOUR), markers[i % len(markers)])
-        for i, (label, (d, n)) in enumerate(groups.items())
-    ]
