@@ -55,8 +55,8 @@ from drcpo.geometry import (
     rotate_points_z,
     wrap_angle,
 )
-from drcpo.ground import GroundModel
 from drcpo.index import indexed_mask
+from drcpo.placement import frame_ground
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
@@ -1423,17 +1423,6 @@ def _facing_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarra
     world[..., 1] = s_ * local[..., 0] + c * local[..., 1] + boxes[:, None, None, 1]
     world[..., 2] = local[..., 2] + boxes[:, None, None, 2]
     return world, facing
-
-
-def frame_ground(frame: Frame) -> GroundModel:
-    """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
-
-    Uses a fixed RANSAC seed, so a frame always gets the same ground.
-    """
-    plane, calib = frame.metadata.get("plane"), frame.metadata.get("calib")
-    if plane is not None and calib is not None:
-        return GroundModel.from_points(frame.points, plane=plane, calib=calib)
-    return GroundModel.from_points(frame.points)
 
 
 # --------------------------------------------------------------------------------------------

@@ -165,7 +165,7 @@ def place_objects(
     dims = _check_dims(dims)
     source_z = _source_heights(source_boxes, len(dims), config)
     if ground is None:
-        ground = _frame_ground(frame)
+        ground = frame_ground(frame)
     obstacles = _Obstacles(frame.points, ground, config, dims)
     placed = np.full((len(dims), 7), np.nan)
     reasons = np.full(len(dims), "", dtype=object)
@@ -344,7 +344,11 @@ def _source_heights(
     return source_boxes[:, 2]
 
 
-def _frame_ground(frame: Frame) -> GroundModel:
+def frame_ground(frame: Frame) -> GroundModel:
+    """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
+
+    Uses a fixed RANSAC seed, so a frame always gets the same ground.
+    """
     plane, calib = frame.metadata.get("plane"), frame.metadata.get("calib")
     if plane is not None and calib is not None:
         return GroundModel.from_points(frame.points, plane=plane, calib=calib)
