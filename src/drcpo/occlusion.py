@@ -83,6 +83,7 @@ __all__ = [
     "HPR_METHODS",
     "HPR_PRESETS",
     "MAX_RADIUS",
+    "FrameGrid",
     "HPRPreset",
     "azimuth_focus",
     "external_occlusion",
@@ -211,9 +212,9 @@ def hidden_by_insertion(
     inserted objects may occlude) goes when it is hidden in the whole set but visible once the
     inserted points are taken out, so HPR's own verdicts on the original frame never delete a
     point. The same as :func:`hidden_point_removal` with ``query=inserted | behind``, then on
-    ``points[~inserted]`` for the hidden points of ``behind``. With the ``"local"`` method both
-    passes share one sorted set-up, and ``behind`` is decided without the inserted points
-    first, so that points hidden all along are not proven hidden twice.
+    ``points[~inserted]`` for the hidden points of ``behind``. With the ``"local"`` method this is
+    :meth:`FrameGrid.hidden_by_insertion`: both sets share one sorted grid, and each point
+    of ``behind`` is decided in one go, without the inserted points first.
 
     Args:
         points: ``(N, 3 + C)`` the frame after insertion (metres).
@@ -241,7 +242,18 @@ def hidden_by_insertion(
     if setup.size == 0:
         return removed
     if _resolve_method(method, setup) == "local":
-        return _hidden_by_insertion_local(setup, inserted, behind, workers)
+        original = np.flatnonzero(~inserted)
+        grid = FrameGrid.build(xyz[original], center, radius, spare=len(xyz) - len(original))
+        found = grid.hidden_by_insertion(
+            np.zeros(len(original), dtype=bool),
+            xyz[inserted],
+            behind[original],
+            method="local",
+            workers=workers,
+        )
+        if found is not None:
+            removed[original], removed[inserted] = found
+            return removed
     visible = hidden_point_removal(
         xyz, center, radius, method=method, query=wanted, workers=workers
     )
@@ -255,30 +267,6 @@ def hidden_by_insertion(
         )
         # Original points hidden even without the inserted objects stay.
         removed[suspects & ~before] = False
-    return removed
-
-
-def _hidden_by_insertion_local(
-    setup: _Setup, inserted: np.ndarray, behind: np.ndarray, workers: int
-) -> np.ndarray:
-    """:func:`hidden_by_insertion` with the per-point test, on one sorted set-up.
-
-    The points of ``behind`` are first decided without the inserted points (most are settled
-    by the cheap radial test); only those visible then are decided again with them, so the
-    ones hidden all along are never proven hidden twice. Each verdict is the per-point test's
-    on the same set as the two plain passes, so the answer is theirs.
-    """
-    removed = np.zeros(len(inserted), dtype=bool)
-    state = _LocalState.build(setup)
-    kept = ~inserted[setup.index]
-    candidates = np.zeros(len(inserted), dtype=bool)
-    if behind.any():
-        without = state if kept.all() else state.subset(kept)
-        rows = setup.index[kept]
-        candidates[rows] = without.visible(behind[rows], workers)  # False where not behind
-    wanted = inserted | candidates
-    if wanted.any():
-        removed[setup.index] = wanted[setup.index] & ~state.visible(wanted[setup.index], workers)
     return removed
 
 
@@ -788,26 +776,47 @@ def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
     return _LocalState.build(setup).visible(wanted, workers)
 
 
+def _first_cones(ranges: np.ndarray, r_min: float, rho_max: float) -> np.ndarray:
+    """Radius (radians) of the neighbourhood that can cross the plane normal to the ray of a
+    point at each of ``ranges`` (module doc), for any set whose ranges are at least ``r_min``
+    (a lower ``r_min`` only widens the cones). In place: no temporary per step."""
+    cone = np.subtract(ranges, r_min)
+    cone /= rho_max
+    np.clip(cone, 0, 2, out=cone)
+    cone /= 2.0
+    np.sqrt(cone, out=cone)
+    np.arcsin(cone, out=cone)
+    cone *= 2.0
+    return cone
+
+
+# The kernels' view of a point set, ``scene``: sorted rays, rel, ranges, flipped ranges,
+# elevation, azimuth, ``starts`` (one row of cell starts per member set: the set itself, or the
+# frame's points then inserted ones) and ``absent`` (points to skip; empty: none), then the
+# grid geometry (origin, row height, rows, columns).
+_NONE_ABSENT = np.zeros(0, dtype=bool)
+_ORIGINALS, _INSERTED, _BOTH = 1, 2, 3  # member sets a gather looks at (bit per starts row)
+
+
 class _LocalState:
     """The per-point test's inputs: the points sorted into the grid, as the kernels take them.
 
     Attributes:
+        setup: the set-up.
         order: ``(M,)`` set-up index of each sorted position.
-        args: the kernels' arguments (sorted rays, rel, ranges, flipped ranges, first cones,
-            elevation, azimuth, cell starts, grid geometry, ``r_min``, ``rho_max``).
+        first_cone: ``(M,)`` sorted first cones, radians.
+        scene: the kernels' view of the sorted points (see ``_NONE_ABSENT``).
+        bounds: ``(r_min, rho_max)``.
     """
 
-    def __init__(self, setup_fn, order: np.ndarray, args: tuple) -> None:
-        self._setup_fn = setup_fn
-        self._setup: _Setup | None = None
+    def __init__(
+        self, setup: _Setup, order: np.ndarray, first_cone: np.ndarray, scene: tuple, bounds
+    ) -> None:
+        self.setup = setup
         self.order = order
-        self.args = args
-
-    @property
-    def setup(self) -> _Setup:
-        if self._setup is None:
-            self._setup = self._setup_fn()
-        return self._setup
+        self.first_cone = first_cone
+        self.scene = scene
+        self.bounds = bounds
 
     @property
     def size(self) -> int:
@@ -818,90 +827,47 @@ class _LocalState:
         ranges, radius = setup.ranges, setup.radius
         r_min = float(ranges.min())
         rho_max = 2.0 * radius - r_min
-        # Radius of the neighbourhood that can cross the plane normal to the ray (module doc).
-        # (In place: the same operations without a temporary per step.)
-        first_cone = np.subtract(ranges, r_min)
-        first_cone /= rho_max
-        np.clip(first_cone, 0, 2, out=first_cone)
-        first_cone /= 2.0
-        np.sqrt(first_cone, out=first_cone)
-        np.arcsin(first_cone, out=first_cone)
-        first_cone *= 2.0
+        first_cone = _first_cones(ranges, r_min, rho_max)
         grid = _build_grid(setup.rays, first_cone)
         order = grid.order
         sorted_ranges = np.ascontiguousarray(ranges[order])
-        args = (
+        scene = (
             setup.rays.take(order, axis=0),  # take: much faster than fancy indexing of rows
             setup.rel.take(order, axis=0),
             sorted_ranges,
             2.0 * radius - sorted_ranges,
-            np.ascontiguousarray(first_cone[order]),
             grid.elevation,
             grid.azimuth,
-            grid.starts,
+            grid.starts[None],
+            _NONE_ABSENT,
             grid.origin,
             grid.size,
             grid.rows,
             grid.columns,
-            r_min,
-            rho_max,
         )
-        return cls(lambda: setup, order, args)
-
-    def subset(self, keep: np.ndarray) -> _LocalState:
-        """The state of the set-up's points where ``keep`` ``bool (M,)``, without re-sorting.
-
-        The kept points stay in their cells and order; ``r_min``, ``rho_max`` and the first
-        cones stay those of the whole set, which bound the subset's (a nearer point can only
-        widen a cone), so every verdict is still exact.
-        """
-        kept_sorted = keep[self.order]
-        positions = np.flatnonzero(kept_sorted)
-        renumber = np.cumsum(keep) - 1
-        order = renumber[self.order[positions]]
-        rays, rel, ranges, rho, cone, elevation, azimuth, starts, *rest = self.args
-        before = np.zeros(len(kept_sorted) + 1, dtype=np.int64)
-        np.cumsum(kept_sorted, out=before[1:])
-        args = (
-            rays.take(positions, axis=0),
-            rel.take(positions, axis=0),
-            ranges[positions],
-            rho[positions],
-            cone[positions],
-            elevation[positions],
-            azimuth[positions],
-            before[starts],
-            *rest,
-        )
-        parent = self
-
-        def setup_fn() -> _Setup:
-            full = parent.setup
-            return _Setup(
-                full.index[keep], full.rel[keep], full.ranges[keep], full.rays[keep], full.radius
-            )
-
-        return _LocalState(setup_fn, order, args)
+        return cls(setup, order, first_cone[order], scene, (r_min, rho_max))
 
     def visible(self, wanted: np.ndarray, workers: int) -> np.ndarray:
         """Visible flags ``(M,)`` of the set-up's points (``False`` where not wanted)."""
-        order, args = self.order, self.args
+        order, scene, cones = self.order, self.scene, self.first_cone
         todo = np.flatnonzero(wanted[order])
         parts = workers if len(todo) >= _PARALLEL_MIN else 1
-        settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, *args), todo, parts))
+        settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, cones, *scene), todo, parts))
         pending = todo[~settled]
         visible_sorted = np.zeros(self.size, dtype=bool)
         visible_sorted[todo[settled]] = True
         if len(pending):
             parts = workers if len(pending) >= _PARALLEL_MIN // 8 else 1
             state = np.concatenate(
-                _in_threads(lambda c: _classify(c, *args, _BRUTE_BUDGET), pending, parts)
+                _in_threads(
+                    lambda c: _classify(c, cones, *scene, *self.bounds, _BRUTE_BUDGET),
+                    pending,
+                    parts,
+                )
             )
             unresolved = state == _STATE_UNRESOLVED
             if unresolved.any():
-                state[unresolved] = _resolve_unresolved(
-                    pending[unresolved], args, self.setup, order
-                )
+                state[unresolved] = _resolve_unresolved(pending[unresolved], self)
             visible_sorted[pending] = state == _STATE_VISIBLE
         visible = np.zeros(self.size, dtype=bool)
         visible[order] = visible_sorted
@@ -921,24 +887,352 @@ def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
         return [kernel(chunks[0])] + [future.result() for future in others]
 
 
-def _resolve_unresolved(
-    unresolved: np.ndarray, args: tuple, setup: _Setup, order: np.ndarray
-) -> np.ndarray:
+def _shared_chunks(
+    kernel, items: np.ndarray, chunks: int, helper: ThreadPoolExecutor | None
+) -> list[np.ndarray]:
+    """``kernel`` over ``chunks`` contiguous chunks of ``items``, in order; with ``helper`` (a
+    running pool) one of its threads and the calling thread claim chunks until none is left, so
+    the work splits evenly whatever each chunk costs and however busy the other core is."""
+    parts = np.array_split(items, max(1, chunks))
+    results: list[np.ndarray | None] = [None] * len(parts)
+    claim = iter(range(len(parts)))  # next() on a range iterator is atomic under the GIL
+
+    def drain() -> None:
+        for k in claim:
+            results[k] = kernel(parts[k])
+
+    if helper is None or len(parts) == 1:
+        drain()
+    else:
+        other = helper.submit(drain)
+        drain()
+        other.result()
+    return results  # type: ignore[return-value]
+
+
+def _resolve_unresolved(unresolved: np.ndarray, state: _LocalState) -> np.ndarray:
     """States of the (sorted) points the neighbourhood search gave up on: a full scan each when
     they are few, else (and for any the scan cannot settle) one reference hull."""
-    state = np.full(len(unresolved), _STATE_UNRESOLVED, dtype=np.int64)
+    verdicts = np.full(len(unresolved), _STATE_UNRESOLVED, dtype=np.int64)
     if len(unresolved) <= 4 * _BRUTE_BUDGET:
-        state = _classify(unresolved, *args, len(unresolved) + 1)
-    left = state == _STATE_UNRESOLVED
+        verdicts = _classify(
+            unresolved, state.first_cone, *state.scene, *state.bounds, len(unresolved) + 1
+        )
+    left = verdicts == _STATE_UNRESOLVED
     if left.any():
-        distinct, inverse = setup.distinct()
+        distinct, inverse = state.setup.distinct()
         vertex = _hull_vertices(distinct.flipped())
         if vertex is None:  # cannot happen for a set the scan failed on; keep the points
-            state[left] = _STATE_VISIBLE
+            verdicts[left] = _STATE_VISIBLE
         else:
-            hull_says = vertex[inverse][order[unresolved[left]]]
-            state[left] = np.where(hull_says, _STATE_VISIBLE, _STATE_HIDDEN)
-    return state
+            hull_says = vertex[inverse][state.order[unresolved[left]]]
+            verdicts[left] = np.where(hull_says, _STATE_VISIBLE, _STATE_HIDDEN)
+    return verdicts
+
+
+# Grid cells of a FrameGrid, relative to the typical first neighbourhood: finer than the
+# generic grid's, since its scans read whole row runs of cells (measured on KITTI frames).
+_FRAME_ROW_HEIGHT = 0.5
+_FRAME_COLUMN_WIDTH = 0.25
+_PROBE_TARGET = 10.0  # neighbours expected in the small first probe of e-HPR's inserted scope
+_FRAME_CHUNKS = 6  # work items per call (claimed by the threads as they go)
+
+
+class FrameGrid:
+    """A frame's points seen from the e-HPR viewpoint, sorted once into the per-point test's
+    grid, for e-HPR's ``inserted`` scope on that frame with any inserted objects.
+
+    It depends only on the frame, so the DR.CPO pipeline builds it (on a second thread) while
+    objects are placed and constructed. :meth:`hidden_by_insertion` then adds the inserted
+    points to its cells (no re-sorting of the frame) and skips the frame points they displace;
+    :meth:`in_windows` selects points by direction cell by cell.
+
+    Attributes:
+        center: ``(3,)`` the viewpoint, metres.
+        radius: ``R``, metres.
+        size: number of frame points.
+        azimuth, elevation, distance: ``(N,)`` per frame point (in the caller's order):
+            ``arctan2(y, x)``, ``arctan2(z, hypot(x, y))`` (radians) and ``hypot(hypot(x, y),
+            z)`` (metres) of the point relative to the viewpoint.
+    """
+
+    def __init__(self, xyz: np.ndarray, center: np.ndarray, radius: float, spare: int) -> None:
+        self._xyz = xyz
+        self.center = center
+        self.radius = radius
+        n = len(xyz)
+        rel = xyz - center
+        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        if not np.isfinite(ranges).all():
+            row = int(np.flatnonzero(~np.isfinite(ranges))[0])
+            raise DataError(f"points: row {row} is too far from the viewpoint for float64")
+        horizontal = np.hypot(rel[:, 0], rel[:, 1])
+        self.azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        self.elevation = np.arctan2(rel[:, 2], horizontal)
+        self.distance = np.hypot(horizontal, rel[:, 2])
+        self._r_min = float(ranges.min(initial=np.inf))
+        self._r_max = float(ranges.max(initial=0.0))
+        self._geometry = self._cells_geometry(ranges)
+        _, _, rows, columns = self._geometry
+        self._order, starts = self._sort(self.elevation, self.azimuth)
+        self._starts = np.empty((2, rows * columns + 1), dtype=np.int64)
+        self._starts[0] = starts
+        # Sorted copies with room for the inserted points after the frame's.
+        order, total = self._order, n + spare
+        self._rays = np.empty((total, 3))
+        self._rel = np.empty((total, 3))
+        self._ranges = np.empty(total)
+        self._rho = np.empty(total)
+        self._elevation = np.empty(total)
+        self._azimuth = np.empty(total)
+        np.take(rel, order, axis=0, out=self._rel[:n])
+        np.take(ranges, order, out=self._ranges[:n])
+        np.subtract(2.0 * radius, self._ranges[:n], out=self._rho[:n])
+        with np.errstate(invalid="ignore", divide="ignore"):  # points at the viewpoint
+            np.divide(self._rel[:n], self._ranges[:n, None], out=self._rays[:n])
+        np.take(self.elevation, order, out=self._elevation[:n])
+        np.take(self.azimuth, order, out=self._azimuth[:n])
+        self._sorted_distance = self.distance[order]
+
+    @classmethod
+    def build(
+        cls,
+        points: np.ndarray,
+        viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+        radius: float = 100000.0,
+        *,
+        spare: int = 4096,
+    ) -> FrameGrid:
+        """The grid of ``points`` ``(N, 3 + C)`` (metres) seen from ``viewpoint`` ``(3,)`` with
+        e-HPR radius ``radius``; ``spare``: inserted points it takes without reallocating."""
+        return cls(_check_points(points), _check_viewpoint(viewpoint), _check_radius(radius), spare)
+
+    @property
+    def size(self) -> int:
+        return len(self._xyz)
+
+    def _cells_geometry(self, ranges: np.ndarray) -> tuple[float, float, int, int]:
+        n = len(ranges)
+        if n == 0:
+            return 0.0, 1.0, 1, 1
+        low, high = float(self.elevation.min()), float(self.elevation.max())
+        area = max(high - low, 1e-3) * 2 * math.pi
+        size = math.sqrt(area / n)
+        if 2.0 * self.radius > self._r_max * (1.0 + 1e-12):
+            # about a typical first neighbourhood, as the generic grid
+            rho_max = 2.0 * self.radius - self._r_min
+            median = _first_cones(np.array([np.median(ranges)]), self._r_min, rho_max)[0]
+            size = max(size, float(median))
+        size = min(size, 0.25)
+        height = size * _FRAME_ROW_HEIGHT
+        rows = int((high - low) / height) + 1
+        columns = max(1, int(2 * math.pi / (size * _FRAME_COLUMN_WIDTH)))
+        return low, height, rows, columns
+
+    def _cells(self, elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+        origin, height, rows, columns = self._geometry
+        # Rows are clamped: inserted points beyond the frame's elevations join its edge rows,
+        # which the kernels' cell ranges clamp the same way.
+        row = np.clip(np.floor((elevation - origin) / height), 0, rows - 1).astype(np.int64)
+        column = ((azimuth + np.pi) * (columns / (2 * math.pi))).astype(np.int64) % columns
+        return row * columns + column
+
+    def _sort(self, elevation: np.ndarray, azimuth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        _, _, rows, columns = self._geometry
+        cell = self._cells(elevation, azimuth)
+        starts = np.zeros(rows * columns + 1, dtype=np.int64)
+        np.cumsum(np.bincount(cell, minlength=rows * columns), out=starts[1:])
+        return _counting_sort(cell, starts), starts
+
+    def in_windows(self, windows: np.ndarray) -> np.ndarray:
+        """``bool (N,)``: points with ``az0 <= azimuth <= az1``, ``el0 <= elevation <= el1`` and
+        ``distance >= d`` for some row ``(az0, az1, el0, el1, d)`` of ``windows`` ``(K, 5)``
+        (radians, radians, metres; ``-pi <= az0``, ``az1 <= pi``)."""
+        windows = np.ascontiguousarray(windows, dtype=np.float64).reshape(-1, 5)
+        inside = np.zeros(self.size, dtype=bool)
+        if self.size and len(windows):
+            found = np.zeros(self.size, dtype=bool)
+            _window_members(
+                windows,
+                self._azimuth,
+                self._elevation,
+                self._sorted_distance,
+                self._starts,
+                *self._geometry,
+                found,
+            )
+            inside[self._order] = found
+        return inside
+
+    def hidden_by_insertion(
+        self,
+        cleared: np.ndarray,
+        inserted: np.ndarray,
+        behind: np.ndarray,
+        *,
+        method: str = "auto",
+        workers: int | None = None,
+        pool: ThreadPoolExecutor | None = None,
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """:func:`hidden_by_insertion` of the frame without its ``cleared`` points plus the
+        ``inserted`` ones, with the per-point test; ``None`` when ``method`` would not use it
+        on that set (too few points, ``R`` not far above the ranges, points at the viewpoint):
+        the caller then asks :func:`hidden_by_insertion`.
+
+        Args:
+            cleared: ``bool (N,)`` frame points taken out (room made for the objects).
+            inserted: ``(K, 3 + C)`` inserted points, metres.
+            behind: ``bool (N,)`` frame points whose removal is to be decided.
+            method: as in :func:`hidden_by_insertion`.
+            workers: threads (``None``: up to two of the CPUs this process may use).
+            pool: a running pool whose thread may take part (else one is started for the call
+                when ``workers > 1``).
+
+        Returns:
+            ``bool (N,)`` frame points and ``bool (K,)`` inserted points to remove.
+        """
+        n = self.size
+        cleared = _check_query(cleared, n)
+        behind = _check_query(behind, n) & ~cleared
+        xyz = _check_points(inserted)
+        workers = _check_workers(workers)
+        k = len(xyz)
+        removed, removed_inserted = np.zeros(n, dtype=bool), np.zeros(k, dtype=bool)
+        if k == 0 and not behind.any():
+            return removed, removed_inserted
+        rel = xyz - self.center
+        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        if not np.isfinite(ranges).all():
+            row = int(np.flatnonzero(~np.isfinite(ranges))[0])
+            raise DataError(f"inserted points: row {row} is too far from the viewpoint for float64")
+        r_min = min(self._r_min, float(ranges.min(initial=np.inf)))
+        r_max = max(self._r_max, float(ranges.max(initial=0.0)))
+        if not self._local_applies(n - int(cleared.sum()) + k, r_min, r_max, method):
+            return None
+        positions = self._add(rel, ranges)
+        rho_max = 2.0 * self.radius - r_min
+        absent = np.zeros(n + k, dtype=bool)
+        absent[:n] = cleared[self._order]
+        used = slice(0, n + k)
+        scene = (
+            self._rays[used],
+            self._rel[used],
+            self._ranges[used],
+            self._rho[used],
+            self._elevation[used],
+            self._azimuth[used],
+            self._starts,
+            absent,
+            *self._geometry,
+        )
+        queries = np.concatenate([np.flatnonzero(behind[self._order]), n + np.arange(k)])
+        cones = _first_cones(self._ranges[queries], r_min, rho_max)
+        parallel = workers > 1 and len(queries) >= _PARALLEL_MIN
+        helper = (pool or ThreadPoolExecutor(max_workers=1)) if parallel else None
+        chunks = _FRAME_CHUNKS if parallel else 1
+        slots = np.arange(len(queries))
+
+        def kernel(part: np.ndarray) -> np.ndarray:
+            return _insertion_verdicts(
+                queries[part], cones[part], n, *scene, r_min, rho_max, _BRUTE_BUDGET, _PROBE_TARGET
+            )
+
+        try:
+            verdicts = np.concatenate(_shared_chunks(kernel, slots, chunks, helper))
+        finally:
+            if helper is not None and helper is not pool:
+                helper.shutdown()
+        frame_rows = self._order[queries[queries < n]]
+        removed[frame_rows] = verdicts[: len(frame_rows)] == _VERDICT_REMOVE
+        removed_inserted[positions] = verdicts[len(frame_rows) :] == _VERDICT_REMOVE
+        if (verdicts >= _VERDICT_UNDECIDED_WITHOUT).any():
+            self._undecided(
+                verdicts, frame_rows, positions, cleared, xyz, removed, removed_inserted
+            )
+        return removed, removed_inserted
+
+    def _local_applies(self, count: int, r_min: float, r_max: float, method: str) -> bool:
+        """Whether :func:`hidden_point_removal` would take the per-point test for the frame
+        with the objects, and the set without them (``count`` points, ranges within ``[r_min,
+        r_max]``), and no point sits at the viewpoint (see :func:`_resolve_method`)."""
+        if method not in ("auto", "local") or r_min <= _AT_VIEWPOINT * (1.0 + r_max):
+            return False
+        if not 2.0 * self.radius > r_max * (1.0 + 1e-12):
+            return False
+        # "auto": many points, and R far above the ranges (the spread bounds the median's)
+        return method == "local" or (
+            count > AUTO_REFERENCE_MAX and r_max - r_min <= _LOCAL_MAX_CONE**2 * self.radius
+        )
+
+    def _add(self, rel: np.ndarray, ranges: np.ndarray) -> np.ndarray:
+        """Write the inserted points (``rel`` ``(K, 3)``, ``ranges`` ``(K,)``) after the frame's,
+        sorted into the same cells; returns each sorted one's index among the inserted."""
+        n, k = self.size, len(ranges)
+        if n + k > len(self._ranges):  # more than the spare room: grow (rare)
+            total = n + 2 * k
+            for name in ("_rays", "_rel", "_ranges", "_rho", "_elevation", "_azimuth"):
+                old = getattr(self, name)
+                grown = np.empty((total, *old.shape[1:]))
+                grown[:n] = old[:n]
+                setattr(self, name, grown)
+        horizontal = np.hypot(rel[:, 0], rel[:, 1])
+        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        elevation = np.arctan2(rel[:, 2], horizontal)
+        order, starts = self._sort(elevation, azimuth)
+        np.add(starts, n, out=self._starts[1])
+        np.take(rel, order, axis=0, out=self._rel[n : n + k])
+        np.take(ranges, order, out=self._ranges[n : n + k])
+        np.subtract(2.0 * self.radius, self._ranges[n : n + k], out=self._rho[n : n + k])
+        np.divide(self._rel[n : n + k], self._ranges[n : n + k, None], out=self._rays[n : n + k])
+        np.take(elevation, order, out=self._elevation[n : n + k])
+        np.take(azimuth, order, out=self._azimuth[n : n + k])
+        return order
+
+    def _undecided(
+        self,
+        verdicts: np.ndarray,
+        frame_rows: np.ndarray,
+        positions: np.ndarray,
+        cleared: np.ndarray,
+        inserted: np.ndarray,
+        removed: np.ndarray,
+        removed_inserted: np.ndarray,
+    ) -> None:
+        """Settle the points the kernel gave up on (its budget of full scans spent) with the
+        plain passes of :func:`hidden_point_removal`, in place."""
+        originals = np.flatnonzero(~cleared)
+        points = np.concatenate([self._xyz[originals], inserted])
+        row_of = np.full(self.size, -1, dtype=np.int64)
+        row_of[originals] = np.arange(len(originals))
+        frame_verdicts = verdicts[: len(frame_rows)]
+        inserted_verdicts = verdicts[len(frame_rows) :]
+        # Frame points undecided without the objects: visible without them?
+        without = frame_rows[frame_verdicts == _VERDICT_UNDECIDED_WITHOUT]
+        visible_before = np.zeros(0, dtype=bool)
+        if len(without):
+            query = np.zeros(len(originals), dtype=bool)
+            query[row_of[without]] = True
+            visible = hidden_point_removal(
+                points[: len(originals)], self.center, self.radius, method="local", query=query
+            )
+            visible_before = visible[row_of[without]]
+        # Points undecided with the objects (the frame's ones visible without them).
+        with_rows = np.concatenate(
+            [frame_rows[frame_verdicts == _VERDICT_UNDECIDED_WITH], without[visible_before]]
+        )
+        query = np.zeros(len(points), dtype=bool)
+        query[row_of[with_rows]] = True
+        undecided_inserted = positions[inserted_verdicts == _VERDICT_UNDECIDED_WITH]
+        query[len(originals) + undecided_inserted] = True
+        if query.any():
+            visible = hidden_point_removal(
+                points, self.center, self.radius, method="local", query=query
+            )
+            removed[with_rows] = ~visible[row_of[with_rows]]
+            removed_inserted[undecided_inserted] = ~visible[len(originals) + undecided_inserted]
+
+
+_VERDICT_KEEP, _VERDICT_REMOVE, _VERDICT_UNDECIDED_WITHOUT, _VERDICT_UNDECIDED_WITH = 0, 1, 2, 3
 
 
 @nb.njit(cache=True, nogil=True)
@@ -956,11 +1250,12 @@ def _tangent_basis(ux: float, uy: float, uz: float) -> tuple:
 @nb.njit(cache=True, nogil=True)
 def _cell_range(el, az, reach, origin, size, rows, columns):
     """Grid rows ``row_lo..row_hi`` and ``col_n`` columns from ``col_lo`` (cyclic) holding
-    every ray within ``reach`` radians of the ray at elevation ``el``, azimuth ``az``."""
+    every ray within ``reach`` radians of the ray at elevation ``el``, azimuth ``az``. Rows are
+    clamped both ways, as points beyond the grid's rows are stored in its edge rows."""
     if reach >= _BRUTE_ANGLE:
         return 0, rows - 1, 0, columns
-    row_lo = max(0, math.floor((el - reach - origin) / size))
-    row_hi = min(rows - 1, math.floor((el + reach - origin) / size))
+    row_lo = min(rows - 1, max(0, math.floor((el - reach - origin) / size)))
+    row_hi = max(0, min(rows - 1, math.floor((el + reach - origin) / size)))
     if math.sin(reach) >= math.cos(el):  # the cone holds a pole: every azimuth
         return row_lo, row_hi, 0, columns
     spread = math.asin(min(1.0, math.sin(reach) / math.cos(el))) * (1.0 + 1e-9) + 1e-12
@@ -971,22 +1266,38 @@ def _cell_range(el, az, reach, origin, size, rows, columns):
 
 
 @nb.njit(cache=True, nogil=True)
+def _row_runs(starts, member, row, col_lo, col_n, columns):
+    """Sorted positions of one grid row's cells ``col_lo .. col_lo + col_n - 1`` (cyclic) in
+    member set ``member``: two runs ``[lo0, hi0)`` then ``[lo1, hi1)``, in the cells' order."""
+    base = row * columns
+    first = (col_lo % columns + columns) % columns
+    end = first + col_n
+    if end <= columns:
+        return starts[member, base + first], starts[member, base + end], 0, 0
+    return (
+        starts[member, base + first],
+        starts[member, base + columns],
+        starts[member, base],
+        starts[member, base + end - columns],
+    )
+
+
+@nb.njit(cache=True, nogil=True)
 def _radial_pass(
     todo,
+    first_cone,
     rays,
     rel,
     ranges,
     rho,
-    first_cone,
     elevation,
     azimuth,
     starts,
+    absent,
     origin,
     size,
     rows,
     columns,
-    r_min,
-    rho_max,
 ):
     """``bool`` per point of ``todo``: visible by the plane normal to its ray (the pre-filter);
     ``False`` means undecided."""
@@ -998,6 +1309,7 @@ def _radial_pass(
             i,
             first_cone[i],
             True,
+            _ORIGINALS,
             rays,
             rel,
             ranges,
@@ -1005,6 +1317,7 @@ def _radial_pass(
             elevation,
             azimuth,
             starts,
+            absent,
             origin,
             size,
             rows,
@@ -1022,6 +1335,7 @@ def _gather(
     i,
     cone,
     radial_only,
+    members,
     rays,
     rel,
     ranges,
@@ -1029,6 +1343,7 @@ def _gather(
     elevation,
     azimuth,
     starts,
+    absent,
     origin,
     size,
     rows,
@@ -1044,7 +1359,8 @@ def _gather(
     ``t_j = |u_j - u_i|^2 / 2 - (r_i - r_j) / (2R - r_j)``. Returns the number of constraints
     (which may exceed the buffers: the caller grows them and asks again), or ``-1`` when
     ``radial_only`` and some point blocks the plane normal to the ray (``t_j`` not positive).
-    Exact duplicates of point ``i`` are skipped.
+    Only the member sets in the bits of ``members`` (rows of ``starts``) take part; exact
+    duplicates of point ``i`` and ``absent`` points are skipped.
     """
     ux, uy, uz = rays[i, 0], rays[i, 1], rays[i, 2]
     e1x, e1y, e1z, e2x, e2y, e2z = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -1056,41 +1372,45 @@ def _gather(
     chord2 = 4.0 * half * half * (1.0 + 1e-12) + 1e-300
     if reach >= math.pi:
         chord2 = 5.0
+    masked = absent.shape[0] > 0
     capacity = out_t.shape[0]
     count = 0
     row_lo, row_hi, col_lo, col_n = _cell_range(
         elevation[i], azimuth[i], reach, origin, size, rows, columns
     )
-    for row in range(row_lo, row_hi + 1):
-        for k in range(col_n):
-            column = ((col_lo + k) % columns + columns) % columns
-            cell = row * columns + column
-            for j in range(starts[cell], starts[cell + 1]):
-                if j == i:
-                    continue
-                dx = rays[j, 0] - ux
-                dy = rays[j, 1] - uy
-                dz = rays[j, 2] - uz
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 > chord2:
-                    continue
-                if (
-                    d2 == 0.0
-                    and rel[j, 0] == rel[i, 0]
-                    and rel[j, 1] == rel[i, 1]
-                    and rel[j, 2] == rel[i, 2]
-                ):
-                    continue  # an exact duplicate (equal points have equal rays)
-                t = 0.5 * d2 - (ri - ranges[j]) / rho[j]
-                if radial_only:
-                    if t <= _SLACK:
-                        return -1
-                    continue
-                if count < capacity:
-                    out_s1[count] = dx * e1x + dy * e1y + dz * e1z
-                    out_s2[count] = dx * e2x + dy * e2y + dz * e2z
-                    out_t[count] = t
-                count += 1
+    for member in range(starts.shape[0]):
+        if not members & (1 << member):
+            continue
+        for row in range(row_lo, row_hi + 1):
+            lo0, hi0, lo1, hi1 = _row_runs(starts, member, row, col_lo, col_n, columns)
+            for run in range(2):
+                lo, hi = (lo0, hi0) if run == 0 else (lo1, hi1)
+                for j in range(lo, hi):
+                    if j == i:
+                        continue
+                    dx = rays[j, 0] - ux
+                    dy = rays[j, 1] - uy
+                    dz = rays[j, 2] - uz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > chord2 or (masked and absent[j]):
+                        continue
+                    if (
+                        d2 == 0.0
+                        and rel[j, 0] == rel[i, 0]
+                        and rel[j, 1] == rel[i, 1]
+                        and rel[j, 2] == rel[i, 2]
+                    ):
+                        continue  # an exact duplicate (equal points have equal rays)
+                    t = 0.5 * d2 - (ri - ranges[j]) / rho[j]
+                    if radial_only:
+                        if t <= _SLACK:
+                            return -1
+                        continue
+                    if count < capacity:
+                        out_s1[count] = dx * e1x + dy * e1y + dz * e1z
+                        out_s2[count] = dx * e2x + dy * e2y + dz * e2z
+                        out_t[count] = t
+                    count += 1
     return count
 
 
@@ -1098,7 +1418,7 @@ def _gather(
 def _gather_grown(
     i,
     cone,
-    radial_only,
+    members,
     rays,
     rel,
     ranges,
@@ -1106,6 +1426,7 @@ def _gather_grown(
     elevation,
     azimuth,
     starts,
+    absent,
     origin,
     size,
     rows,
@@ -1120,7 +1441,8 @@ def _gather_grown(
         count = _gather(
             i,
             cone,
-            radial_only,
+            False,
+            members,
             rays,
             rel,
             ranges,
@@ -1128,6 +1450,7 @@ def _gather_grown(
             elevation,
             azimuth,
             starts,
+            absent,
             origin,
             size,
             rows,
@@ -1141,6 +1464,28 @@ def _gather_grown(
         s1 = np.empty(2 * count)
         s2 = np.empty(2 * count)
         t = np.empty(2 * count)
+
+
+@nb.njit(cache=True, nogil=True)
+def _probe_radius(
+    i, probe, target, members, elevation, azimuth, starts, origin, size, rows, columns
+):
+    """Radius (radians) around point ``i`` expected to hold about ``target`` points, from the
+    points of the cells around it within ``probe`` radians."""
+    row_lo, row_hi, col_lo, col_n = _cell_range(
+        elevation[i], azimuth[i], probe, origin, size, rows, columns
+    )
+    count = 0
+    for member in range(starts.shape[0]):
+        if members & (1 << member):
+            for row in range(row_lo, row_hi + 1):
+                lo0, hi0, lo1, hi1 = _row_runs(starts, member, row, col_lo, col_n, columns)
+                count += hi0 - lo0 + hi1 - lo1
+    if count == 0:
+        return probe
+    area = (row_hi - row_lo + 1) * size * col_n * (2.0 * math.pi / columns)
+    area *= max(math.cos(elevation[i]), 1e-3)
+    return math.sqrt(target * area / (math.pi * count))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1220,16 +1565,154 @@ def _danger_cone(alpha_tan, ri, r_min, rho_max):
 
 
 @nb.njit(cache=True, nogil=True)
-def _classify(
-    todo,
+def _decide(
+    i,
+    first_cone,
+    members,
+    probe_target,
     rays,
     rel,
     ranges,
     rho,
-    first_cone,
     elevation,
     azimuth,
     starts,
+    absent,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+    s1,
+    s2,
+    t,
+    brutes,
+    brute_budget,
+):
+    """State (hidden 0, visible 1, unresolved 2) of sorted point ``i`` among the member sets
+    ``members``, which the plane normal to its ray leaves undecided (see :func:`_radial_pass`).
+    Returns it with the full scans made so far and the (possibly grown) buffers.
+
+    Hidden is proven by a neighbourhood where no plane fits (hidden in a subset implies
+    hidden); visible by the least tilted plane whose danger cone the neighbourhood covers. With
+    ``probe_target``, a narrow probe holding about that many points is tried first.
+    """
+    ri = ranges[i]
+    cone = max(_FIRST_WIDENING * first_cone, 1e-6)
+    # A narrow neighbourhood first: the points hiding a hidden point are usually its
+    # nearest, and the full one can hold many times more.
+    probe = _PROBE_NARROWING * first_cone
+    if probe > 1e-6:
+        if probe_target > 0:
+            small = _probe_radius(
+                i,
+                probe,
+                probe_target,
+                members,
+                elevation,
+                azimuth,
+                starts,
+                origin,
+                size,
+                rows,
+                columns,
+            )
+            if 1e-6 < small < probe:
+                count, s1, s2, t = _gather_grown(
+                    i,
+                    small,
+                    members,
+                    rays,
+                    rel,
+                    ranges,
+                    rho,
+                    elevation,
+                    azimuth,
+                    starts,
+                    absent,
+                    origin,
+                    size,
+                    rows,
+                    columns,
+                    s1,
+                    s2,
+                    t,
+                )
+                if _min_tilt(s1, s2, t, count)[0] == 0:
+                    return _STATE_HIDDEN, brutes, s1, s2, t
+        count, s1, s2, t = _gather_grown(
+            i,
+            probe,
+            members,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            absent,
+            origin,
+            size,
+            rows,
+            columns,
+            s1,
+            s2,
+            t,
+        )
+        if _min_tilt(s1, s2, t, count)[0] == 0:
+            return _STATE_HIDDEN, brutes, s1, s2, t
+    while True:
+        everything = cone >= _BRUTE_ANGLE
+        if everything:
+            if brutes >= brute_budget:
+                return _STATE_UNRESOLVED, brutes, s1, s2, t
+            brutes += 1
+            cone = math.pi
+        count, s1, s2, t = _gather_grown(
+            i,
+            cone,
+            members,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            absent,
+            origin,
+            size,
+            rows,
+            columns,
+            s1,
+            s2,
+            t,
+        )
+        status, a, b = _min_tilt(s1, s2, t, count)
+        if status == 0:
+            return _STATE_HIDDEN, brutes, s1, s2, t
+        if everything:
+            return _STATE_VISIBLE, brutes, s1, s2, t
+        alpha, gamma = _danger_cone(math.sqrt(a * a + b * b), ri, r_min, rho_max)
+        if alpha + gamma <= cone * (1.0 - 1e-9):
+            return _STATE_VISIBLE, brutes, s1, s2, t
+        cone = max(2.0 * cone, 1.05 * (alpha + gamma))
+
+
+@nb.njit(cache=True, nogil=True)
+def _classify(
+    todo,
+    first_cone,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    absent,
     origin,
     size,
     rows,
@@ -1239,7 +1722,8 @@ def _classify(
     brute_budget,
 ):
     """States (hidden 0, visible 1, unresolved 2) of the sorted points ``todo``, which the
-    plane normal to their ray leaves undecided (see :func:`_radial_pass`)."""
+    plane normal to their ray leaves undecided (see :func:`_radial_pass`); at most
+    ``brute_budget`` full scans, the points that need more are left unresolved."""
     state = np.empty(todo.shape[0], dtype=np.int64)
     s1 = np.empty(256)
     s2 = np.empty(256)
@@ -1247,45 +1731,164 @@ def _classify(
     brutes = 0
     for slot in range(todo.shape[0]):
         i = todo[slot]
-        ri = ranges[i]
-        cone = max(_FIRST_WIDENING * first_cone[i], 1e-6)
-        verdict = _STATE_UNRESOLVED
-        # A narrow neighbourhood first: the points hiding a hidden point are usually its
-        # nearest, and the full one can hold many times more.
-        probe = _PROBE_NARROWING * first_cone[i]
-        if probe > 1e-6:
-            count, s1, s2, t = _gather_grown(
-                i,
-                probe,
-                False,
-                rays,
-                rel,
-                ranges,
-                rho,
-                elevation,
-                azimuth,
-                starts,
-                origin,
-                size,
-                rows,
-                columns,
-                s1,
-                s2,
-                t,
-            )
-            if _min_tilt(s1, s2, t, count)[0] == 0:
-                verdict = _STATE_HIDDEN
-        while verdict == _STATE_UNRESOLVED:
-            everything = cone >= _BRUTE_ANGLE
-            if everything:
-                if brutes >= brute_budget:
-                    break
-                brutes += 1
-                cone = math.pi
-            count, s1, s2, t = _gather_grown(
+        state[slot], brutes, s1, s2, t = _decide(
+            i,
+            first_cone[i],
+            _ORIGINALS,
+            0.0,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            absent,
+            origin,
+            size,
+            rows,
+            columns,
+            r_min,
+            rho_max,
+            s1,
+            s2,
+            t,
+            brutes,
+            brute_budget,
+        )
+    return state
+
+
+@nb.njit(cache=True, nogil=True)
+def _insertion_verdicts(
+    queries,
+    cones,
+    n_original,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    absent,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+    brute_budget,
+    probe_target,
+):
+    """e-HPR's inserted scope for the sorted points ``queries`` (first cones ``cones``): the
+    frame's points (positions below ``n_original``) go when visible without the inserted ones
+    and hidden with them, inserted points when hidden. Per query: keep 0, remove 1, or which
+    verdict it could not settle within ``brute_budget`` full scans: without the inserted
+    points 2, with them 3.
+
+    A frame point's plane normal to its ray is checked against the frame's points and the
+    inserted ones separately, so one scan decides both sets when it fits; otherwise each set
+    is decided as :func:`_classify` does.
+    """
+    verdicts = np.empty(queries.shape[0], dtype=np.int8)
+    s1 = np.empty(256)
+    s2 = np.empty(256)
+    t = np.empty(256)
+    empty = np.empty(0)
+    brutes = 0
+    for slot in range(queries.shape[0]):
+        i = queries[slot]
+        cone = cones[slot]
+        if i < n_original:
+            if (
+                _gather(
+                    i,
+                    cone,
+                    True,
+                    _ORIGINALS,
+                    rays,
+                    rel,
+                    ranges,
+                    rho,
+                    elevation,
+                    azimuth,
+                    starts,
+                    absent,
+                    origin,
+                    size,
+                    rows,
+                    columns,
+                    empty,
+                    empty,
+                    empty,
+                )
+                < 0
+            ):
+                state, brutes, s1, s2, t = _decide(
+                    i,
+                    cone,
+                    _ORIGINALS,
+                    probe_target,
+                    rays,
+                    rel,
+                    ranges,
+                    rho,
+                    elevation,
+                    azimuth,
+                    starts,
+                    absent,
+                    origin,
+                    size,
+                    rows,
+                    columns,
+                    r_min,
+                    rho_max,
+                    s1,
+                    s2,
+                    t,
+                    brutes,
+                    brute_budget,
+                )
+                if state == _STATE_HIDDEN:
+                    verdicts[slot] = _VERDICT_KEEP
+                    continue
+                if state == _STATE_UNRESOLVED:
+                    verdicts[slot] = _VERDICT_UNDECIDED_WITHOUT
+                    continue
+                # visible without the inserted points; the radial plane fails with them too
+            elif (
+                _gather(
+                    i,
+                    cone,
+                    True,
+                    _INSERTED,
+                    rays,
+                    rel,
+                    ranges,
+                    rho,
+                    elevation,
+                    azimuth,
+                    starts,
+                    absent,
+                    origin,
+                    size,
+                    rows,
+                    columns,
+                    empty,
+                    empty,
+                    empty,
+                )
+                >= 0
+            ):
+                verdicts[slot] = _VERDICT_KEEP
+                continue
+        elif (
+            _gather(
                 i,
                 cone,
-                False,
+                True,
+                _BOTH,
                 rays,
                 rel,
                 ranges,
@@ -1293,28 +1896,82 @@ def _classify(
                 elevation,
                 azimuth,
                 starts,
+                absent,
                 origin,
                 size,
                 rows,
                 columns,
-                s1,
-                s2,
-                t,
+                empty,
+                empty,
+                empty,
             )
-            status, a, b = _min_tilt(s1, s2, t, count)
-            if status == 0:
-                verdict = _STATE_HIDDEN
-                break
-            if everything:
-                verdict = _STATE_VISIBLE
-                break
-            alpha, gamma = _danger_cone(math.sqrt(a * a + b * b), ri, r_min, rho_max)
-            if alpha + gamma <= cone * (1.0 - 1e-9):
-                verdict = _STATE_VISIBLE
-                break
-            cone = max(2.0 * cone, 1.05 * (alpha + gamma))
-        state[slot] = verdict
-    return state
+            >= 0
+        ):
+            verdicts[slot] = _VERDICT_KEEP
+            continue
+        state, brutes, s1, s2, t = _decide(
+            i,
+            cone,
+            _BOTH,
+            probe_target,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            absent,
+            origin,
+            size,
+            rows,
+            columns,
+            r_min,
+            rho_max,
+            s1,
+            s2,
+            t,
+            brutes,
+            brute_budget,
+        )
+        if state == _STATE_HIDDEN:
+            verdicts[slot] = _VERDICT_REMOVE
+        elif state == _STATE_VISIBLE:
+            verdicts[slot] = _VERDICT_KEEP
+        else:
+            verdicts[slot] = _VERDICT_UNDECIDED_WITH
+    return verdicts
+
+
+@nb.njit(cache=True, nogil=True)
+def _window_members(
+    windows, azimuth, elevation, distance, starts, origin, height, rows, columns, out
+):
+    """Mark in ``out`` the sorted points of member set 0 inside any of ``windows`` (see
+    :meth:`FrameGrid.in_windows`), visiting only the cells each window overlaps, and one more
+    on every side so that rounding in the cell numbers cannot miss a point."""
+    step = 2.0 * math.pi / columns
+    for w in range(windows.shape[0]):
+        az0, az1, el0, el1, near = windows[w]
+        row_lo = max(0, math.floor((el0 - origin) / height) - 1)
+        row_hi = min(rows - 1, math.floor((el1 - origin) / height) + 1)
+        col_lo = math.floor((az0 + math.pi) / step) - 1
+        col_n = min(columns, math.floor((az1 + math.pi) / step) + 2 - col_lo)
+        if az1 < az0:
+            continue
+        for row in range(row_lo, row_hi + 1):
+            lo0, hi0, lo1, hi1 = _row_runs(starts, 0, row, col_lo, col_n, columns)
+            for run in range(2):
+                lo, hi = (lo0, hi0) if run == 0 else (lo1, hi1)
+                for j in range(lo, hi):
+                    if (
+                        azimuth[j] >= az0
+                        and azimuth[j] <= az1
+                        and elevation[j] >= el0
+                        and elevation[j] <= el1
+                        and distance[j] >= near
+                    ):
+                        out[j] = True
 
 
 # ----------------------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -900,6 +901,7 @@ class DRCPO(Transform):
         # the construction stage's time then includes that overlapped s-HPR work.
         overlap = self.config.self_occlusion.enabled and _spare_core()
         with ThreadPoolExecutor(max_workers=1) as pool:
+            frame_grid = self._frame_grid(frame, rows, pool)
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
                     boxes, accepted = self._place(frame, rows, None, rng, stats)
@@ -921,16 +923,32 @@ class DRCPO(Transform):
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 insertions = self._self_occlusion(frame, rows, boxes, objects, stats, early)
                 record["points_out"] = sum(len(i.points) for i in insertions)
-        with stats.stage("drcpo.insert", len(frame)) as record:
-            points, owner, cleared_by = self._insert(frame, insertions)
-            record["points_out"] = len(points)
-        with stats.stage("drcpo.external_occlusion", len(points)) as record:
-            keep = self._external_occlusion(points, owner, insertions)
-            record["points_out"] = int(keep.sum())
-        with stats.stage("drcpo.labels", int(keep.sum())) as record:
-            out = self._settle(frame, points, owner, keep, cleared_by, insertions, stats)
-            record["points_out"] = len(out)
+            with stats.stage("drcpo.insert", len(frame)) as record:
+                points, owner, cleared_by = self._insert(frame, insertions)
+                record["points_out"] = len(points)
+            with stats.stage("drcpo.external_occlusion", len(points)) as record:
+                grid = frame_grid() if frame_grid is not None and insertions else None
+                helper = pool if _spare_core() else None
+                keep = self._external_occlusion(points, owner, insertions, grid, cleared_by, helper)
+                record["points_out"] = int(keep.sum())
+            with stats.stage("drcpo.labels", int(keep.sum())) as record:
+                out = self._settle(frame, points, owner, keep, cleared_by, insertions, stats, grid)
+                record["points_out"] = len(out)
         return out
+
+    def _frame_grid(
+        self, frame: Frame, rows: np.ndarray, pool: ThreadPoolExecutor
+    ) -> Callable[[], occlusion.FrameGrid] | None:
+        """e-HPR's grid of the frame's points (scope ``inserted``), as a call that returns it:
+        on two cores it is built on ``pool`` meanwhile (it does not depend on the objects),
+        else when first asked for. ``None`` when e-HPR will not need it."""
+        settings = self.config.external_occlusion
+        needed = settings.enabled and settings.scope == "inserted" and settings.mode == "hpr"
+        if not needed or len(rows) == 0:
+            return None
+        radius, viewpoint = self.e_hpr_setting()
+        build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius)
+        return pool.submit(build).result if _spare_core() else build
 
     def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
         """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
@@ -1096,7 +1114,13 @@ class DRCPO(Transform):
         return points, owner, cleared_by
 
     def _external_occlusion(
-        self, points: np.ndarray, owner: np.ndarray, insertions: Sequence[_Insertion]
+        self,
+        points: np.ndarray,
+        owner: np.ndarray,
+        insertions: Sequence[_Insertion],
+        grid: occlusion.FrameGrid | None = None,
+        cleared_by: np.ndarray | None = None,
+        pool: ThreadPoolExecutor | None = None,
     ) -> np.ndarray:
         """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule.
 
@@ -1104,6 +1128,8 @@ class DRCPO(Transform):
         for the inserted points and the original points in the view windows of the inserted
         boxes (the directions they cover), each exactly against the whole frame; inserted
         points hidden go, and original points hidden with the objects but visible without them.
+        With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see
+        :meth:`_insert`), the frame's points are not sorted again; ``pool`` may lend a thread.
         """
         settings = self.config.external_occlusion
         keep = np.ones(len(points), dtype=bool)
@@ -1115,9 +1141,12 @@ class DRCPO(Transform):
             return keep
         radius, viewpoint = self.e_hpr_setting()
         inserted = owner >= 0
-        behind = ~inserted & view_windows(
-            points, _grown([i.box for i in insertions]), viewpoint, behind=True
-        )
+        windows = _window_spans(_grown([i.box for i in insertions]), viewpoint, behind=True)
+        if settings.mode == "hpr" and grid is not None and cleared_by is not None:
+            found = self._hidden_in_grid(grid, windows, cleared_by, points[inserted], pool)
+            if found is not None:
+                return ~found
+        behind = ~inserted & _in_windows(points, windows, viewpoint)
         if settings.mode == "hpr":
             return ~occlusion.hidden_by_insertion(points, inserted, behind, viewpoint, radius)
         visible = self._visible(points, query=inserted | behind)
@@ -1132,6 +1161,25 @@ class DRCPO(Transform):
             before = self._visible(points[original], query=wanted)
             keep[original[wanted & before]] = False
         return keep
+
+    def _hidden_in_grid(
+        self,
+        grid: occlusion.FrameGrid,
+        windows: np.ndarray | None,
+        cleared_by: np.ndarray,
+        inserted: np.ndarray,
+        pool: ThreadPoolExecutor | None,
+    ) -> np.ndarray | None:
+        """:func:`~drcpo.occlusion.hidden_by_insertion` of the points after insertion (the
+        frame's points not cleared, then the ``inserted`` ones) on the frame's grid; ``None``
+        when the grid's method does not apply."""
+        cleared = cleared_by >= 0
+        behind = ~cleared & (grid.in_windows(windows) if windows is not None else True)
+        found = grid.hidden_by_insertion(cleared, inserted, behind, pool=pool)
+        if found is None:
+            return None
+        removed_frame, removed_inserted = found
+        return np.concatenate([removed_frame[~cleared], removed_inserted])
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
@@ -1158,13 +1206,15 @@ class DRCPO(Transform):
         cleared_by: np.ndarray,
         insertions: Sequence[_Insertion],
         stats: Stats,
+        grid: occlusion.FrameGrid | None = None,
     ) -> Frame:
         """The output frame: drop inserted objects and original boxes left with too few points.
 
         An inserted object with fewer than ``min_points_after`` points after e-HPR is dropped
         with all its points, and the frame points it displaced or (scope ``inserted``) hid
         come back, so it leaves no trace. An original box is dropped when it lost points and
-        is left with fewer than ``min_points_after``, unless it had fewer already.
+        is left with fewer than ``min_points_after``, unless it had fewer already. ``grid``:
+        the frame's e-HPR grid, if built (its directions of the frame's points are reused).
         """
         minimum = self.config.min_points_after
         # Points in the box itself count (construction may leave some a few cm outside).
@@ -1189,7 +1239,11 @@ class DRCPO(Transform):
                 # come back.
                 hidden = np.flatnonzero(removed & (cleared_by < 0))
                 _, viewpoint = self.e_hpr_setting()
-                core = view_windows(frame.points[hidden], _grown([i.box for i in kept]), viewpoint)
+                windows = _window_spans(_grown([i.box for i in kept]), viewpoint)
+                if grid is not None:
+                    core = grid.in_windows(windows)[hidden] if windows is not None else True
+                else:
+                    core = _in_windows(frame.points[hidden], windows, viewpoint)
                 removed[hidden[~core]] = False
         for insertion, gone in zip(insertions, dropped, strict=True):
             if gone:
@@ -1249,34 +1303,68 @@ def view_windows(
     With ``behind``, only points at least as far from the viewpoint as the box's nearest point
     count (nothing nearer can be occluded by it).
     """
-    inside = np.zeros(len(points), dtype=bool)
+    return _in_windows(points, _window_spans(boxes, viewpoint, behind), viewpoint)
+
+
+def _window_spans(
+    boxes: np.ndarray | Sequence[np.ndarray], viewpoint: np.ndarray, behind: bool = False
+) -> np.ndarray | None:
+    """The view windows of ``(M, 7)`` boxes (see :func:`view_windows`) as ``(K, 5)`` rows
+    (azimuth from, azimuth to, elevation from, elevation to, nearest distance), radians and
+    metres: a window across the azimuth seam at +-pi is split in two, and the nearest distance
+    is ``-inf`` unless ``behind``. ``None`` when the viewpoint lies inside a footprint (every
+    direction)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    if len(points) == 0 or len(boxes) == 0:
-        return inside
+    if len(boxes) == 0:
+        return np.zeros((0, 5))
     centre, az_low, az_high, el_low, el_high, nearest = _box_windows(boxes, viewpoint)
-    if not np.isfinite(nearest).all():  # the viewpoint is inside a footprint: every direction
-        return np.ones(len(points), dtype=bool)
-    rel = points[:, :3].astype(np.float64) - viewpoint
-    azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-    # Two comparisons per point and window: cheaper than sorting the azimuths for the few
-    # windows a frame has.
+    if not np.isfinite(nearest).all():
+        return None
+    low, high = centre + az_low, centre + az_high
+    if not behind:
+        nearest = np.full(len(boxes), -np.inf)
+    spans = []
     for m in range(len(boxes)):
-        low, high = centre[m] + az_low[m], centre[m] + az_high[m]
-        spans = [(low, high)]
-        if low < -math.pi:  # the window crosses the azimuth seam at +-pi
-            spans = [(-math.pi, high), (low + 2 * math.pi, math.pi)]
-        elif high > math.pi:
-            spans = [(low, math.pi), (-math.pi, high - 2 * math.pi)]
-        for start, stop in spans:
-            rows = np.flatnonzero((azimuth >= start) & (azimuth <= stop))
-            local = rel.take(rows, axis=0)
-            horizontal = np.hypot(local[:, 0], local[:, 1])
-            elevation = np.arctan2(local[:, 2], horizontal)
-            hit = (elevation >= el_low[m]) & (elevation <= el_high[m])
-            if behind:
-                hit &= np.hypot(horizontal, local[:, 2]) >= nearest[m]
-            inside[rows[hit]] = True
+        parts = [(low[m], high[m])]
+        if low[m] < -math.pi:  # the window crosses the azimuth seam at +-pi
+            parts = [(-math.pi, high[m]), (low[m] + 2 * math.pi, math.pi)]
+        elif high[m] > math.pi:
+            parts = [(low[m], math.pi), (-math.pi, high[m] - 2 * math.pi)]
+        spans += [(start, stop, el_low[m], el_high[m], nearest[m]) for start, stop in parts]
+    return np.array(spans, dtype=np.float64)
+
+
+def _in_windows(
+    points: np.ndarray, windows: np.ndarray | None, viewpoint: np.ndarray
+) -> np.ndarray:
+    """``bool (N,)``: points ``(N, 3+)`` in any of ``windows`` (:func:`_window_spans`; ``None``:
+    every direction) seen from ``viewpoint`` ``(3,)``."""
+    if windows is None:
+        return np.ones(len(points), dtype=bool)
+    inside = np.zeros(len(points), dtype=bool)
+    if len(points) and len(windows):
+        rel = points[:, :3].astype(np.float64) - viewpoint
+        horizontal = np.hypot(rel[:, 0], rel[:, 1])
+        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        elevation = np.arctan2(rel[:, 2], horizontal)
+        _window_scan(azimuth, elevation, np.hypot(horizontal, rel[:, 2]), windows, inside)
     return inside
+
+
+@nb.njit(cache=True, nogil=True)
+def _window_scan(azimuth, elevation, distance, windows, inside):  # pragma: no cover - numba
+    # Per point, the windows in order until one holds it (radians, metres).
+    for i in range(azimuth.shape[0]):
+        for w in range(windows.shape[0]):
+            if (
+                azimuth[i] >= windows[w, 0]
+                and azimuth[i] <= windows[w, 1]
+                and elevation[i] >= windows[w, 2]
+                and elevation[i] <= windows[w, 3]
+                and distance[i] >= windows[w, 4]
+            ):
+                inside[i] = True
+                break
 
 
 def _box_windows(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, ...]:
