@@ -1,10 +1,19 @@
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from drcpo.datasets.kitti import Calibration
 from drcpo.errors import ConfigError, DataError
 from drcpo.geometry import rotation_matrix_z
-from drcpo.ground import KITTI_SENSOR_HEIGHT, GroundConfig, GroundModel, road_plane_to_lidar
+from drcpo.ground import (
+    KITTI_SENSOR_HEIGHT,
+    GroundConfig,
+    GroundModel,
+    _bin_lowest_points,
+    _fill_heights,
+    _ground_cells,
+    road_plane_to_lidar,
+)
 
 
 def tilted(xy):
@@ -123,6 +132,72 @@ def test_empty_or_degenerate_frames_fall_back():
         True,
         False,
     ]
+
+
+def scipy_ground_cells(minima, config):
+    """The slope-cone test as a scipy grey erosion of the whole grid (reference)."""
+    radius = max(int(np.ceil(config.window / config.cell_size)), 1)
+    offsets = np.arange(-radius, radius + 1) * config.cell_size
+    distance = np.hypot(offsets[:, None], offsets[None, :])
+    footprint = distance <= radius * config.cell_size + 1e-9
+    finite = np.where(np.isfinite(minima), minima, 1e9)
+    structure = np.where(footprint, -config.max_slope * distance, 0)
+    cone = ndimage.grey_erosion(finite, footprint=footprint, structure=structure)
+    return np.isfinite(minima) & (minima <= cone + config.tolerance)
+
+
+def scipy_fill_heights(minima, ground, plane_z, config):
+    """Heights filled from scipy's exact Euclidean feature transform (reference)."""
+    distance, (ix, iy) = ndimage.distance_transform_edt(~ground, return_indices=True)
+    borrowed = minima[ix, iy] - plane_z[ix, iy] + plane_z
+    near = distance * config.cell_size <= config.fill_radius
+    return np.where(ground, minima, np.where(near, borrowed, plane_z))
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (2, 7), (5, 3), (23, 31), (60, 45)])
+def test_grid_steps_match_scipy_bit_for_bit(rng, shape):
+    # Integer heights and sparse ground make exact ties (equidistant ground cells, cones
+    # touching the tolerance) common; the borders reflect as scipy's "reflect" mode does.
+    for _ in range(20):
+        config = GroundConfig(
+            window=float(rng.choice([1.0, 2.0, 4.0, 9.0])),
+            max_slope=float(rng.choice([0.0, 0.5, 1.0])),
+            tolerance=float(rng.choice([0.0, 0.5, 1.0])),
+            fill_radius=float(rng.choice([0.0, 1.0, 2.5, 10.0])),
+        )
+        minima = rng.integers(-3, 4, shape).astype(float)
+        minima[rng.random(shape) < rng.uniform(0.1, 0.9)] = np.inf
+        ground = _ground_cells(minima, config)
+        np.testing.assert_array_equal(ground, scipy_ground_cells(minima, config))
+        sparse = rng.random(shape) < rng.uniform(0.02, 0.3)
+        sparse.flat[rng.integers(0, sparse.size)] = True
+        plane_z = rng.normal(0, 1, shape)
+        heights = rng.normal(0, 1, shape)
+        np.testing.assert_array_equal(
+            _fill_heights(heights, sparse, plane_z, config),
+            scipy_fill_heights(heights, sparse, plane_z, config),
+        )
+
+
+def test_lowest_points_per_cell_in_the_points_dtype(rng):
+    for dtype in (np.float32, np.float64):
+        xyz = rng.uniform(-3, 3, (500, 3)).astype(dtype)
+        xyz[:5, 2] = xyz[:5, 2].min() - 1  # ties: the last of them is kept
+        xyz[5, 2] = np.nan
+        xyz[6, 0] = 1e3  # out of range
+        origin, shape, lowest, occupied = _bin_lowest_points(xyz, 10.0, 0.5)
+        keep = np.isfinite(xyz[:, 2]) & (np.abs(xyz[:, :2]) <= 10.0).all(axis=1)
+        x, y, z = xyz[keep, 0], xyz[keep, 1], xyz[keep, 2]
+        np.testing.assert_array_equal(origin, np.floor([x.min() / 0.5, y.min() / 0.5]) * 0.5)
+        ix = ((x - dtype(origin[0])) * dtype(2.0)).astype(np.int32)
+        iy = ((y - dtype(origin[1])) * dtype(2.0)).astype(np.int32)
+        assert shape == (ix.max() + 1, iy.max() + 1)
+        cells = ix * shape[1] + iy
+        np.testing.assert_array_equal(occupied, np.unique(cells))
+        for c, row in zip(occupied, lowest, strict=True):
+            members = np.flatnonzero(cells == c)
+            last = members[z[members] == z[members].min()][-1]
+            np.testing.assert_array_equal(row, [x[last], y[last], z[last]])
 
 
 def test_bad_input_is_rejected():

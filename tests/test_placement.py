@@ -1,14 +1,25 @@
+import math
+
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_corners, bev_overlap_area, points_in_boxes
 from drcpo.ground import GroundModel
 from drcpo.placement import (
+    _DIRECTIONS,
     REASONS,
+    OcclusionMap,
     PlacementConfig,
+    _cells,
+    _facing_samples,
+    _in_fov,
     _Obstacles,
+    bev_collisions,
+    box_members,
     place_objects,
     sample_poses,
 )
@@ -106,7 +117,7 @@ def test_obstacle_counts_match_brute_force(rng):
     ground = GroundModel.from_points(frame.points)
     boxes = sample_poses(sizes(50), rng)
     boxes[:, 2] = ground.height_at(boxes[:, :2]) + boxes[:, 5] / 2
-    obstacles = _Obstacles(frame.points, ground, AREA, sizes(50))
+    obstacles = _Obstacles(frame.points, ground, AREA.ground_tolerance)
     expected = nonground_counts(frame, ground, boxes)
     np.testing.assert_array_equal(obstacles.count(boxes), expected)
     assert expected.max() > 10
@@ -248,3 +259,192 @@ def test_real_kitti_frames(kitti_sample):
     gaps = np.abs(gaps)
     assert len(gaps) >= 12
     assert np.mean(gaps < 0.3) >= 0.75, np.round(gaps, 2)
+
+
+# --------------------------------------------------------------------------------------------
+# Kernels against their numpy references
+# --------------------------------------------------------------------------------------------
+finite = st.floats(-20, 20, allow_nan=False)
+sizes_ = st.floats(0.1, 8, allow_nan=False)
+heading = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+def overlap_depth(a, b):
+    """Smallest overlap (metres) of the two footprints' projections on their edge normals."""
+    depth = np.inf
+    for box in (a, b):
+        for angle in (box[6], box[6] + np.pi / 2):
+            axis = np.array([np.cos(angle), np.sin(angle)])
+            pa, pb = bev_corners(a)[0] @ axis, bev_corners(b)[0] @ axis
+            depth = min(depth, min(pa.max(), pb.max()) - max(pa.min(), pb.min()))
+    return depth
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.tuples(finite, finite, sizes_, sizes_, heading),
+    st.tuples(finite, finite, sizes_, sizes_, heading),
+)
+def test_collisions_agree_with_the_overlap_area(a, b):
+    box_a = np.array([a[0], a[1], 0.0, a[2], a[3], 1.0, a[4]])
+    box_b = np.array([b[0], b[1], 0.0, b[2], b[3], 1.0, b[4]])
+    collide = bev_collisions(box_a, box_b)[0, 0]
+    area = bev_overlap_area(box_a, box_b)[0, 0]
+    if abs(overlap_depth(box_a, box_b)) > 1e-9:  # else a rounding tie either way
+        assert collide == (area > 0), (area, overlap_depth(box_a, box_b))
+    assert bev_collisions(box_b, box_a)[0, 0] == collide
+    assert bev_collisions(box_a, box_a)[0, 0]  # identical boxes collide
+
+
+def test_touching_boxes_do_not_collide(rng):
+    box = np.array([10.0, 5.0, 0.0, 4.0, 2.0, 1.5, 0.0])
+    for shift in ([4.0, 0.0], [0.0, 2.0], [4.0, 2.0], [-4.0, -2.0]):  # edge or corner contact
+        other = box.copy()
+        other[:2] += shift
+        assert not bev_collisions(box, other)[0, 0]
+        assert bev_overlap_area(box, other)[0, 0] == 0
+        other[:2] -= np.sign(shift) * 1e-6
+        assert bev_collisions(box, other)[0, 0]
+    many = np.column_stack(
+        [rng.uniform(0, 30, (200, 2)), np.zeros(200), rng.uniform(0.5, 5, (200, 3))]
+    )
+    many = np.column_stack([many, rng.uniform(-np.pi, np.pi, 200)])
+    np.testing.assert_array_equal(bev_collisions(many, many), bev_overlap_area(many) > 0)
+
+
+def test_box_members_match_points_in_boxes(rng):
+    points = np.column_stack(
+        [rng.uniform(-5, 45, (20000, 2)), rng.uniform(-3, 2, 20000), rng.random(20000)]
+    ).astype(np.float32)
+    points[:20, 0] = np.nan
+    boxes = sample_poses(sizes(90), rng, PlacementConfig(x_range=(0, 40), y_range=(-5, 45)))
+    boxes[:, 2] = rng.uniform(-1.5, 0.5, len(boxes))
+    # Points on faces and corners (the closed-box rule) and boxes sharing points.
+    corners = bev_corners(boxes[:5])
+    points[20:40, :2] = corners.reshape(-1, 2)
+    points[20:40, 2] = np.repeat(boxes[:5, 2], 4)
+    boxes[-1] = boxes[0]
+    point, box = box_members(points, boxes)
+    expected = points_in_boxes(points, boxes)
+    assert expected.sum() > 500
+    found = np.zeros_like(expected)
+    found[point, box] = True
+    np.testing.assert_array_equal(found, expected)
+    assert len(point) == expected.sum()
+
+
+def test_field_of_view_test_matches_the_corner_azimuths(rng):
+    boxes = sample_poses(sizes(500), rng, PlacementConfig(x_range=(-20, 50)))
+    boxes[::7, :2] = np.nan
+    half = np.deg2rad(41.0)
+    corners = bev_corners(np.nan_to_num(boxes))
+    expected = (np.abs(np.arctan2(corners[..., 1], corners[..., 0])) <= half).all(axis=1)
+    expected &= np.isfinite(boxes[:, 0])
+    np.testing.assert_array_equal(_in_fov(boxes, half), expected)
+
+
+def numpy_cells(offsets):
+    """Row and column of float32 offsets from the viewpoint, vectorised (reference)."""
+    rel = np.asarray(offsets, dtype=np.float32)
+    azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+    elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
+    column = np.floor((azimuth + math.pi) / OcclusionMap.AZIMUTH_STEP).astype(np.int64)
+    row = np.floor((elevation + math.pi / 2) / OcclusionMap.ELEVATION_STEP).astype(np.int64)
+    return np.clip(row, 0, OcclusionMap.ROWS - 1), column % OcclusionMap.COLUMNS
+
+
+def test_fast_cells_match_the_trigonometry(rng):
+    offsets = rng.normal(0, 30, (200000, 3)).astype(np.float32)
+    # Directions on and next to every cell boundary, the azimuth seam and straight up/down.
+    edges = np.arange(OcclusionMap.COLUMNS + 1) * np.float32(
+        OcclusionMap.AZIMUTH_STEP
+    ) - np.float32(math.pi)
+    for nudge in (-1e-6, 0.0, 1e-6):
+        offsets = np.concatenate(
+            [
+                offsets,
+                np.column_stack(
+                    [np.cos(edges + nudge), np.sin(edges + nudge), rng.normal(0, 0.3, len(edges))]
+                ).astype(np.float32)
+                * 20,
+            ]
+        )
+    lifts = np.arange(OcclusionMap.ROWS + 1) * np.float32(OcclusionMap.ELEVATION_STEP) - np.float32(
+        math.pi / 2
+    )
+    for nudge in (-1e-6, 0.0, 1e-6):
+        offsets = np.concatenate(
+            [
+                offsets,
+                np.column_stack(
+                    [np.cos(lifts + nudge), np.zeros(len(lifts)), np.sin(lifts + nudge)]
+                ).astype(np.float32)
+                * 20,
+            ]
+        )
+    offsets = np.concatenate(
+        [offsets, [[-5, 0, 0], [-5, -0.0, 1], [0, 0, 3], [0, 0, -3], [0, 0, 0]]]
+    ).astype(np.float32)
+    constants = np.array(
+        [
+            math.pi,
+            math.pi / 2,
+            OcclusionMap.AZIMUTH_STEP,
+            OcclusionMap.ELEVATION_STEP,
+            0.5,
+            0,
+            0,
+            0,
+        ],
+        dtype=np.float32,
+    )
+    cells = _cells(offsets, *_DIRECTIONS, constants, OcclusionMap.ROWS)
+    row, column = numpy_cells(offsets)
+    np.testing.assert_array_equal(cells[:, 0], row)
+    np.testing.assert_array_equal(cells[:, 1], column)
+
+
+def numpy_occluded(points, viewpoint, boxes, cleared=None, tolerance=0.5):
+    """The z-buffer over all points' cells, then the share of hidden facing samples."""
+    points = np.asarray(points)
+    if cleared is not None:
+        points = points[~points_in_boxes(points, cleared).any(axis=1)]
+    rel = points[:, :3].astype(np.float32) - viewpoint.astype(np.float32)
+    row, column = numpy_cells(rel)
+    ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+    nearest = np.full(OcclusionMap.ROWS * OcclusionMap.COLUMNS, np.inf, np.float32)
+    np.minimum.at(nearest, row * OcclusionMap.COLUMNS + column, ranges)
+    samples, facing = _facing_samples(boxes, viewpoint)
+    rel = samples.reshape(-1, 3).astype(np.float32) - viewpoint.astype(np.float32)
+    row, column = numpy_cells(rel)
+    ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+    hidden = (nearest[row * OcclusionMap.COLUMNS + column] + tolerance < ranges).reshape(
+        *facing.shape, -1
+    )
+    seen = facing[..., None] & np.ones_like(hidden)
+    total = seen.sum(axis=(1, 2))
+    return np.divide(
+        (hidden & seen).sum(axis=(1, 2)), total, out=np.zeros(len(boxes)), where=total > 0
+    )
+
+
+def test_occlusion_map_matches_a_full_z_buffer(rng):
+    # A dense sheet (1 cm spacing) 6 m ahead hides what stands right behind it.
+    u, v = np.meshgrid(np.linspace(-2, 2, 400), np.linspace(-1.7, 1.3, 300), indexing="ij")
+    sheet = np.column_stack([np.full(u.size, 6.0), u.ravel(), v.ravel(), np.zeros(u.size)])
+    walls = [wall(rng, 20, 22, -15, 15, n=6000), sheet]
+    points = scene(rng, existing_boxes(), extra=walls).points
+    boxes = sample_poses(sizes(40), rng, PlacementConfig(x_range=(-30, 60), y_range=(-30, 30)))
+    boxes[:, 2] = uneven(boxes[:, :2]) + boxes[:, 5] / 2
+    boxes[:4, :2] = [[15, 0], [30, 2], [40, -3], [35, 25]]  # behind the walls, and aside
+    viewpoint = np.array([0.0, 0.0, 0.3])
+    shares = []
+    for cleared in (None, boxes[::3]):
+        for tolerance in (0.5, 0.0, -0.3):
+            share = OcclusionMap(points, viewpoint, tolerance, cleared=cleared).occluded(boxes)
+            np.testing.assert_array_equal(
+                share, numpy_occluded(points, viewpoint, boxes, cleared, tolerance)
+            )
+            shares.append(share)
+    assert 0 < (shares[0] == 1).sum() < len(boxes) and ((shares[0] > 0) & (shares[0] < 1)).any()
+    assert (shares[3][::3] <= shares[0][::3]).all()  # cleared boxes hide less of themselves

@@ -1,6 +1,6 @@
 """Ground height estimated from a frame's own points (for placing objects on the ground).
 
-Method (all vectorised over a bird's-eye-view grid, a few milliseconds for a KITTI sweep):
+Method (over a bird's-eye-view grid; about a millisecond for a KITTI sweep):
 
 1. Lowest point per BEV cell (default 1 m cells) of the points within ``max_range``.
 2. Frame-wide plane: RANSAC over the cells' lowest points (explicit ``rng``; normals within
@@ -27,10 +27,12 @@ Without any usable point (empty frame) the model is the given road plane, or fla
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import lru_cache
 
+import numba
 import numpy as np
-from scipy import ndimage
 
 from drcpo.errors import ConfigError, DataError
 
@@ -153,19 +155,16 @@ class GroundModel:
         """
         config = config or GroundConfig()
         given = None if plane is None else road_plane_to_lidar(plane, calib)
-        x, y, z = _usable_points(points, config.max_range)
-        if len(z) == 0:
+        cs = config.cell_size
+        binned = _bin_lowest_points(points, config.max_range, cs)
+        if binned is None:
             if given is not None:
                 return cls.from_plane(given, source="road_plane")
             return cls.flat(config.fallback_height)
-        cs = config.cell_size
-        origin = np.floor(np.array([x.min(), y.min()], dtype=np.float64) / cs) * cs
-        flat, shape = _cell_index(x, y, origin, cs)
-        lowest = _lowest_points(flat, x, y, z, shape[0] * shape[1])
-        occupied = np.isfinite(lowest[:, 2])
+        origin, shape, lowest, occupied = binned
         if given is None:
             rng = np.random.default_rng(0) if rng is None else rng
-            fitted = _ransac_plane(lowest[occupied], rng, config)
+            fitted = _ransac_plane(lowest, rng, config)
             if fitted is None:
                 return cls.flat(config.fallback_height)
             frame_plane = fitted
@@ -174,12 +173,14 @@ class GroundModel:
         centres = _cell_centres(origin, cs, shape).reshape(-1, 2)
         plane_z = (centres @ frame_plane[:2] + frame_plane[2]).reshape(shape)
         # A cell's lowest point sits anywhere in it; carry it to the centre along the plane.
-        shift = np.where(occupied[:, None], centres - lowest[:, :2], 0.0) @ frame_plane[:2]
-        minima = (lowest[:, 2] + shift).reshape(shape)
-        outlier = (minima < plane_z - config.max_below_plane) | (
-            minima > plane_z + config.max_above_plane
-        )
-        minima[outlier] = np.inf
+        # Only occupied cells have one (the others stay at inf).
+        shift = (centres[occupied] - lowest[:, :2]) @ frame_plane[:2]
+        low = lowest[:, 2] + shift
+        level = plane_z.reshape(-1)[occupied]
+        outlier = (low < level - config.max_below_plane) | (low > level + config.max_above_plane)
+        low[outlier] = np.inf
+        minima = np.full(shape, np.inf)
+        minima.reshape(-1)[occupied] = low
         ground = _ground_cells(minima, config)
         if ground.sum() < 3:
             return cls.from_plane(frame_plane, source="plane" if given is None else "road_plane")
@@ -259,44 +260,12 @@ def _check_xy(xy: np.ndarray) -> np.ndarray:
     return xy[:, :2]
 
 
-def _usable_points(
-    points: np.ndarray, max_range: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """x, y, z columns of the finite points within ``max_range`` in x and y."""
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 3:
-        raise DataError(f"points must have shape (N, 3+), got {points.shape}")
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    # NaN fails every comparison, so the range test also drops non-finite x and y.
-    keep = (np.abs(x) <= max_range) & (np.abs(y) <= max_range) & np.isfinite(z)
-    if keep.all():
-        return x, y, z
-    return x[keep], y[keep], z[keep]
-
-
-def _cell_index(
-    x: np.ndarray, y: np.ndarray, origin: np.ndarray, cell_size: float
-) -> tuple[np.ndarray, tuple[int, int]]:
-    """Flat BEV cell ``int32 (N,)`` of each point and the grid's shape.
-
-    Works in the points' own dtype and in place: each temporary the size of a KITTI sweep costs
-    about a millisecond of page faults on small VMs.
-    """
-    scaled = np.subtract(x, float(origin[0]))
-    scaled *= 1.0 / cell_size
-    ix = scaled.astype(np.int32)
-    np.subtract(y, float(origin[1]), out=scaled)
-    scaled *= 1.0 / cell_size
-    iy = scaled.astype(np.int32)
-    shape = (int(ix.max()) + 1, int(iy.max()) + 1)
-    ix *= shape[1]
-    ix += iy
-    return ix, shape
-
-
 def _cell_centres(origin: np.ndarray, cell_size: float, shape: tuple[int, int]) -> np.ndarray:
-    ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
-    return np.stack([ix, iy], axis=-1) * cell_size + origin + cell_size / 2.0
+    """``float64 (nx, ny, 2)`` x, y of the cell centres."""
+    centres = np.empty((*shape, 2))
+    centres[..., 0] = (np.arange(shape[0]) * cell_size + origin[0] + cell_size / 2.0)[:, None]
+    centres[..., 1] = np.arange(shape[1]) * cell_size + origin[1] + cell_size / 2.0
+    return centres
 
 
 def _ransac_plane(
@@ -313,38 +282,53 @@ def _ransac_plane(
         if len(z) > _RANSAC_SCORED
         else seeds
     )
-    p0, p1, p2 = seeds[picks[:, 0]], seeds[picks[:, 1]], seeds[picks[:, 2]]
-    normals = np.cross(p1 - p0, p2 - p0)
-    length = np.linalg.norm(normals, axis=1)
-    upright = np.abs(normals[:, 2]) >= np.cos(np.deg2rad(config.max_tilt_deg)) * length
-    usable = upright & (length > 1e-9)
-    if not usable.any():
+    cos_tilt = float(np.cos(np.deg2rad(config.max_tilt_deg)))
+    normals, offsets, length = _plane_hypotheses(seeds, picks, cos_tilt)
+    if len(normals) == 0:
         return _least_squares_plane(seeds)
-    normals, p0, length = normals[usable], p0[usable], length[usable]
-    offsets = (normals * p0).sum(axis=1)
-    distance = scored @ normals.T
-    distance -= offsets
-    np.abs(distance, out=distance)
-    best = int(np.argmax((distance <= config.ransac_threshold * length).sum(axis=0)))
-    inliers = (
-        np.abs(seeds @ normals[best] - offsets[best]) <= config.ransac_threshold * length[best]
-    )
+    # The distances go through the same BLAS product as always (its rounding decides ties).
+    limit = config.ransac_threshold * length
+    best = _most_inliers(scored @ normals.T, offsets, limit)
+    inliers = np.abs(seeds @ normals[best] - offsets[best]) <= limit[best]
     chosen = seeds[inliers]
     return _least_squares_plane(chosen) if len(chosen) >= 3 else _least_squares_plane(seeds)
 
 
-def _lowest_points(
-    cells: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, count: int
-) -> np.ndarray:
-    """``(count, 3)`` x, y, z of the lowest point of each cell (inf z for empty cells)."""
-    low_z = np.full(count, np.inf, dtype=z.dtype)
-    np.minimum.at(low_z, cells, z)
-    at_min = np.flatnonzero(z == low_z[cells])
-    # Ties keep one of the tied points (the last written); any lowest point will do.
-    low_x, low_y = np.full(count, np.inf), np.full(count, np.inf)
-    low_x[cells[at_min]] = x[at_min]
-    low_y[cells[at_min]] = y[at_min]
-    return np.column_stack([low_x, low_y, low_z.astype(np.float64)])
+@numba.njit(cache=True, nogil=True)
+def _plane_hypotheses(seeds, picks, cos_tilt):  # pragma: no cover - numba
+    # Normals (p1 - p0) x (p2 - p0) of the picked triples, their lengths and the offsets
+    # n . p0, of the triples whose normal is within the tilt limit of vertical, in pick order.
+    count = picks.shape[0]
+    normals = np.empty((count, 3))
+    offsets = np.empty(count)
+    length = np.empty(count)
+    kept = 0
+    for h in range(count):
+        a, b, c = seeds[picks[h, 0]], seeds[picks[h, 1]], seeds[picks[h, 2]]
+        u0, u1, u2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        v0, v1, v2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        norm = math.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if abs(n2) >= cos_tilt * norm and norm > 1e-9:
+            normals[kept, 0], normals[kept, 1], normals[kept, 2] = n0, n1, n2
+            offsets[kept] = n0 * a[0] + n1 * a[1] + n2 * a[2]
+            length[kept] = norm
+            kept += 1
+    return normals[:kept].copy(), offsets[:kept].copy(), length[:kept].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _most_inliers(distance, offsets, limit):  # pragma: no cover - numba
+    # Column with the most |distance - offset| <= limit (the first on ties).
+    best, best_count = 0, -1
+    for h in range(distance.shape[1]):
+        count = 0
+        for s in range(distance.shape[0]):
+            if abs(distance[s, h] - offsets[h]) <= limit[h]:
+                count += 1
+        if count > best_count:
+            best, best_count = h, count
+    return best
 
 
 def _least_squares_plane(xyz: np.ndarray) -> np.ndarray:
@@ -353,26 +337,214 @@ def _least_squares_plane(xyz: np.ndarray) -> np.ndarray:
     return coef
 
 
-def _ground_cells(minima: np.ndarray, config: GroundConfig) -> np.ndarray:
-    """Cells whose minimum is not above a lower neighbour's slope cone (plus tolerance)."""
-    radius = max(int(np.ceil(config.window / config.cell_size)), 1)
-    offsets = np.arange(-radius, radius + 1) * config.cell_size
+def _bin_lowest_points(
+    points: np.ndarray, max_range: float, cell_size: float
+) -> tuple[np.ndarray, tuple[int, int], np.ndarray, np.ndarray] | None:
+    """Lowest point of each BEV cell of the finite points within ``max_range`` in x and y.
+
+    Returns the grid's origin ``(2,)`` (its lower corner, a multiple of ``cell_size``), its
+    shape, the lowest points ``float64 (S, 3)`` of the ``S`` occupied cells and their flat cell
+    indices ``int64 (S,)`` (ascending); ``None`` without any such point. A cell's lowest point
+    is the last of its points at the lowest height (any lowest point would do).
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise DataError(f"points must have shape (N, 3+), got {points.shape}")
+    if points.dtype not in (np.float32, np.float64):
+        points = points.astype(np.float64)
+    # The range test and the cell arithmetic run in the points' own dtype, as numpy runs
+    # them with Python scalars (the cells must not move with the dtype of the thresholds).
+    limit, scale = np.array([max_range, 1.0 / cell_size], dtype=points.dtype)
+    found = _bin_lowest(points, limit, scale, float(cell_size))
+    if found is None:
+        return None
+    origin, nx, ny, lowest, occupied = found
+    return origin, (int(nx), int(ny)), lowest, occupied
+
+
+@numba.njit(cache=True, nogil=True)
+def _bin_lowest(points, limit, scale, cell_size):  # pragma: no cover - numba
+    # Two passes: the usable points' bounds fix the grid, then each cell keeps its lowest.
+    first = True
+    x_min = x_max = y_min = y_max = points[0, 0] if points.shape[0] else limit
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        # NaN fails every comparison, so the range test also drops non-finite x and y.
+        if abs(x) <= limit and abs(y) <= limit and np.isfinite(z):
+            if first:
+                x_min = x_max = x
+                y_min = y_max = y
+                first = False
+            else:
+                x_min, x_max = min(x_min, x), max(x_max, x)
+                y_min, y_max = min(y_min, y), max(y_max, y)
+    if first:
+        return None
+    origin = np.empty(2)
+    origin[0] = math.floor(np.float64(x_min) / cell_size) * cell_size
+    origin[1] = math.floor(np.float64(y_min) / cell_size) * cell_size
+    offset = np.empty(2, points.dtype)  # the origin in the points' dtype
+    offset[0], offset[1] = origin[0], origin[1]
+    # Cells grow with x and y (rounding is monotone), so the extreme points give the shape.
+    nx = int((x_max - offset[0]) * scale) + 1
+    ny = int((y_max - offset[1]) * scale) + 1
+    low_z = np.full(nx * ny, np.inf, dtype=points.dtype)
+    low_x = np.full(nx * ny, np.inf)
+    low_y = np.full(nx * ny, np.inf)
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if not (abs(x) <= limit and abs(y) <= limit and np.isfinite(z)):
+            continue
+        cell = np.int64(np.int32((x - offset[0]) * scale)) * ny + np.int32((y - offset[1]) * scale)
+        if z <= low_z[cell]:
+            low_z[cell] = z
+            low_x[cell] = x
+            low_y[cell] = y
+    count = 0
+    for c in range(nx * ny):
+        if np.isfinite(low_z[c]):
+            count += 1
+    lowest = np.empty((count, 3))
+    occupied = np.empty(count, np.int64)
+    k = 0
+    for c in range(nx * ny):
+        if np.isfinite(low_z[c]):
+            lowest[k, 0], lowest[k, 1], lowest[k, 2] = low_x[c], low_y[c], low_z[c]
+            occupied[k] = c
+            k += 1
+    return origin, nx, ny, lowest, occupied
+
+
+@lru_cache(maxsize=16)
+def _slope_cone(window: float, cell_size: float, slope: float) -> tuple[np.ndarray, ...]:
+    """Cell offsets ``int64 (F,)`` along x and y within ``window`` and the cone's depth there:
+    ``-slope * distance`` (metres)."""
+    radius = max(int(np.ceil(window / cell_size)), 1)
+    offsets = np.arange(-radius, radius + 1) * cell_size
     distance = np.hypot(offsets[:, None], offsets[None, :])
-    footprint = distance <= radius * config.cell_size + 1e-9
-    # Grey erosion computes min over the footprint of (f(x + y) - s(y)), so s = -slope * |y|
-    # yields the lowest neighbouring minimum raised along the allowed slope.
-    finite = np.where(np.isfinite(minima), minima, 1e9)
-    cone = ndimage.grey_erosion(
-        finite, footprint=footprint, structure=np.where(footprint, -config.max_slope * distance, 0)
-    )
-    return np.isfinite(minima) & (minima <= cone + config.tolerance)
+    footprint = distance <= radius * cell_size + 1e-9
+    depth = np.where(footprint, -slope * distance, 0)[footprint]
+    dx, dy = np.nonzero(footprint)
+    return dx - radius, dy - radius, depth
+
+
+def _ground_cells(minima: np.ndarray, config: GroundConfig) -> np.ndarray:
+    """Cells whose minimum is not above a lower neighbour's slope cone (plus tolerance).
+
+    The cone is a grey erosion of the minima by a cone-shaped structuring element (scipy's
+    ``grey_erosion`` with ``reflect`` borders, unknown cells at 1e9): the lowest neighbouring
+    minimum raised along the allowed slope. Only occupied cells need it, and a cell stops at
+    the first neighbour whose cone it rises above.
+    """
+    dx, dy, depth = _slope_cone(config.window, config.cell_size, config.max_slope)
+    ground = np.zeros(minima.shape, dtype=bool)
+    _cone_test(minima, dx, dy, depth, float(config.tolerance), ground)
+    return ground
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _reflect(index, size):  # pragma: no cover - numba
+    """``index`` mirrored into ``[0, size)`` as ``(d c b a | a b c d | d c b a)``."""
+    if 0 <= index < size:
+        return index
+    index %= 2 * size
+    return index if index < size else 2 * size - 1 - index
+
+
+@numba.njit(cache=True, nogil=True)
+def _cone_test(minima, dx, dy, depth, tolerance, ground):  # pragma: no cover - numba
+    # minimum <= min_k(f_k - depth_k) + tolerance  <=>  minimum <= (f_k - depth_k) + tolerance
+    # for every k (rounding is monotone), so the first violation decides.
+    nx, ny = minima.shape
+    for i in range(nx):
+        for j in range(ny):
+            low = minima[i, j]
+            if not np.isfinite(low):
+                continue
+            ok = True
+            for k in range(dx.shape[0]):
+                value = minima[_reflect(i + dx[k], nx), _reflect(j + dy[k], ny)]
+                if not np.isfinite(value):
+                    value = 1e9
+                if low > (value - depth[k]) + tolerance:
+                    ok = False
+                    break
+            ground[i, j] = ok
 
 
 def _fill_heights(
     minima: np.ndarray, ground: np.ndarray, plane_z: np.ndarray, config: GroundConfig
 ) -> np.ndarray:
-    """Cell heights: ground cells keep their minimum; others borrow from the nearest one."""
-    distance, (ix, iy) = ndimage.distance_transform_edt(~ground, return_indices=True)
-    borrowed = minima[ix, iy] - plane_z[ix, iy] + plane_z
-    near = distance * config.cell_size <= config.fill_radius
-    return np.where(ground, minima, np.where(near, borrowed, plane_z))
+    """Cell heights: ground cells keep their minimum; others borrow from the nearest one.
+
+    The nearest ground cell is the one of scipy's exact Euclidean feature transform
+    (``distance_transform_edt``), ties included: least distance, then least y index, then
+    least x index.
+    """
+    heights = np.empty(minima.shape)
+    _borrow_heights(
+        minima, ground, plane_z, float(config.cell_size), float(config.fill_radius), heights
+    )
+    return heights
+
+
+@numba.njit(cache=True, nogil=True)
+def _borrow_heights(minima, ground, plane_z, cell_size, fill_radius, heights):  # pragma: no cover
+    nx, ny = ground.shape
+    # Along x: the nearest ground cell of the same column (ties: the lower x), in two sweeps
+    # over whole rows (the grid is row-major).
+    nearest_x = np.empty((nx, ny), np.int64)
+    seen = np.full(ny, -1, np.int64)
+    for i in range(nx):
+        for j in range(ny):
+            if ground[i, j]:
+                seen[j] = i
+            nearest_x[i, j] = seen[j]
+    seen[:] = -1
+    for i in range(nx - 1, -1, -1):
+        for j in range(ny):
+            if ground[i, j]:
+                seen[j] = i
+            after, before = seen[j], nearest_x[i, j]
+            if after >= 0 and (before < 0 or after - i < i - before):
+                nearest_x[i, j] = after
+    # Along y: the lower envelope of the columns' parabolas (j - q)^2 + (i - x_q)^2, with
+    # exact rational breakpoints; at a breakpoint the lower column wins.
+    site = np.empty(ny, np.int64)
+    rise = np.empty(ny, np.int64)
+    num = np.empty(ny, np.int64)
+    den = np.empty(ny, np.int64)
+    for i in range(nx):
+        top = -1
+        for q in range(ny):
+            if nearest_x[i, q] < 0:
+                continue
+            fq = (i - nearest_x[i, q]) ** 2
+            while True:
+                if top < 0:
+                    top = 0
+                    site[0], rise[0] = q, fq
+                    break
+                v = site[top]
+                n = (fq + q * q) - (rise[top] + v * v)
+                d = 2 * (q - v)
+                if top > 0 and n * den[top] <= num[top] * d:
+                    top -= 1
+                    continue
+                top += 1
+                site[top], rise[top], num[top], den[top] = q, fq, n, d
+                break
+        k = 0
+        for j in range(ny):
+            while k < top and num[k + 1] < j * den[k + 1]:
+                k += 1
+            if ground[i, j]:
+                heights[i, j] = minima[i, j]
+                continue
+            q = site[k]
+            r = nearest_x[i, q]
+            distance = math.sqrt(np.float64((r - i) * (r - i)) + np.float64((q - j) * (q - j)))
+            if distance * cell_size <= fill_radius:
+                heights[i, j] = minima[r, q] - plane_z[r, q] + plane_z[i, j]
+            else:
+                heights[i, j] = plane_z[i, j]

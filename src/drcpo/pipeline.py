@@ -57,7 +57,7 @@ from drcpo.geometry import (
     wrap_angle,
 )
 from drcpo.index import indexed_mask
-from drcpo.placement import frame_ground
+from drcpo.placement import OcclusionMap, _facing_samples, frame_ground  # noqa: F401
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
@@ -979,27 +979,18 @@ class DRCPO(Transform):
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        _, viewpoint = self.e_hpr_setting()
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            # The z-buffer cells of the frame's points do not depend on the placement: on two
-            # cores they are computed meanwhile (the same numbers either way).
-            pending = None
-            if check and _spare_core():
-                pending = pool.submit(OcclusionMap.point_cells, frame.points, viewpoint)
-            result = placement.place_objects(
-                frame, dims, source, rng, self._placement[fov], frame_ground(frame)
-            )
-            cells = pending.result() if pending is not None else None
+        result = placement.place_objects(
+            frame, dims, source, rng, self._placement[fov], frame_ground(frame)
+        )
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
         boxes, accepted = result.boxes, result.accepted
         if check and len(boxes):
-            clear = np.flatnonzero(~BoxQuery(frame.points).inside_any(boxes))
-            if cells is None:
-                cells = OcclusionMap.point_cells(frame.points, viewpoint)
-            cells = tuple(values[clear] for values in cells)
-            occluded = OcclusionMap(None, viewpoint, cells=cells).occluded(boxes) >= limit
+            # The frame's points inside the placed boxes make room for them: they hide nothing.
+            _, viewpoint = self.e_hpr_setting()
+            z_buffer = OcclusionMap(frame.points, viewpoint, cleared=boxes)
+            occluded = z_buffer.occluded(boxes) >= limit
             for i in accepted[occluded]:
                 stats.rejected(self.name, names[i], "occluded")
             boxes, accepted = boxes[~occluded], accepted[~occluded]
@@ -1388,129 +1379,6 @@ def _box_windows(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, 
     vertical = np.maximum(np.maximum(bottom, 0.0), -top)
     nearest = np.where(near > 0, np.hypot(near, vertical), np.inf)
     return centre, spread.min(axis=1), spread.max(axis=1), el_low, el_high, nearest
-
-
-class OcclusionMap:
-    """Nearest range per (azimuth, elevation) cell of a point cloud seen from a viewpoint: a
-    z-buffer used to reject placements hidden behind the frame before anything is built.
-
-    Cells are ``0.2 x 0.4`` degrees (about a KITTI HDL-64E's resolution). A box sample counts
-    as occluded when its cell holds a point at least ``depth_tolerance`` metres nearer; cells
-    without points occlude nothing, so gaps in the frame keep boxes visible.
-    """
-
-    AZIMUTH_STEP = math.radians(0.2)
-    ELEVATION_STEP = math.radians(0.4)
-
-    COLUMNS = math.ceil(2 * math.pi / AZIMUTH_STEP)
-    ROWS = math.ceil(math.pi / ELEVATION_STEP) + 1
-
-    def __init__(
-        self,
-        points: np.ndarray | None,
-        viewpoint: np.ndarray,
-        depth_tolerance: float = 0.5,
-        *,
-        cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    ) -> None:
-        """``points (N, 3+)``, or their :meth:`point_cells` (``points`` then ``None``)."""
-        self.viewpoint = np.asarray(viewpoint, dtype=np.float64)
-        self.tolerance = depth_tolerance
-        self.columns, self.rows = self.COLUMNS, self.ROWS
-        if cells is None:
-            cells = self.point_cells(points, self.viewpoint)
-        row, column, ranges = cells
-        # Only the window of rows and columns the points occupy is stored (a whole sphere's
-        # cells are megabytes to fault in); cells outside it hold no point and occlude nothing.
-        self.origin = (int(row.min(initial=0)), int(column.min(initial=0)))
-        self.shape = (
-            int(row.max(initial=0)) - self.origin[0] + 1,
-            int(column.max(initial=0)) - self.origin[1] + 1,
-        )
-        self.nearest = np.full(self.shape[0] * self.shape[1], np.inf, dtype=np.float32)
-        np.minimum.at(self.nearest, self._window_cells(row, column)[0], ranges)
-
-    def _window_cells(self, row: np.ndarray, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat window cell of each ``(row, column)`` and whether it lies in the window."""
-        row, column = row - self.origin[0], column - self.origin[1]
-        inside = (row >= 0) & (row < self.shape[0]) & (column >= 0) & (column < self.shape[1])
-        return np.where(inside, row * self.shape[1] + column, 0), inside
-
-    @classmethod
-    def point_cells(
-        cls, points: np.ndarray, viewpoint: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Row, column (``int64 (N,)``) and range (``float32 (N,)``, metres) of each point."""
-        return cls._cells_from(np.asarray(points)[:, :3], np.asarray(viewpoint, np.float64))
-
-    def _cells(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return self._cells_from(xyz, self.viewpoint)
-
-    @classmethod
-    def _cells_from(
-        cls, xyz: np.ndarray, viewpoint: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # float32 is ample for 0.2-degree cells and halves the trigonometry's cost.
-        rel = np.asarray(xyz, dtype=np.float32).reshape(-1, 3) - viewpoint.astype(np.float32)
-        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
-        column = np.floor((azimuth + math.pi) / cls.AZIMUTH_STEP).astype(np.int64)
-        row = np.floor((elevation + math.pi / 2) / cls.ELEVATION_STEP).astype(np.int64)
-        return np.clip(row, 0, cls.ROWS - 1), column % cls.COLUMNS, ranges
-
-    def occluded(self, boxes: np.ndarray) -> np.ndarray:
-        """``float64 (M,)``: share of each box's sensor-facing surface samples occluded."""
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        samples, facing = _facing_samples(boxes, self.viewpoint)  # (M, F, K, 3), (M, F)
-        row, column, ranges = self._cells(samples)
-        cells, inside = self._window_cells(row, column)
-        nearest = np.where(inside, self.nearest[cells], np.float32(np.inf))
-        hidden = (nearest + self.tolerance < ranges).reshape((*facing.shape, -1))
-        seen = facing[..., None] & np.ones_like(hidden)
-        total = seen.sum(axis=(1, 2))
-        return np.divide(
-            (hidden & seen).sum(axis=(1, 2)), total, out=np.zeros(len(boxes)), where=total > 0
-        )
-
-
-def _face_templates(steps: tuple[int, int] = (12, 8)) -> tuple[np.ndarray, np.ndarray]:
-    """Unit-box grids on the four sides and the top: ``(5, K, 3)`` and the faces' outward
-    ``(axis, sign)`` pairs ``(5, 2)`` (the bottom rests on the ground, no one sees it)."""
-    u, v = np.meshgrid(np.linspace(-0.5, 0.5, steps[0]), np.linspace(-0.5, 0.5, steps[1]))
-    faces = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0))
-    grids = np.zeros((len(faces), u.size, 3))
-    for f, (axis, sign) in enumerate(faces):
-        u_axis, v_axis = (a for a in range(3) if a != axis)
-        grids[f, :, u_axis], grids[f, :, v_axis], grids[f, :, axis] = (
-            u.ravel(),
-            v.ravel(),
-            0.5 * sign,
-        )
-    return grids, np.array(faces)
-
-
-_FACE_GRIDS, _FACES = _face_templates()
-
-
-def _facing_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Samples ``(M, 5, K, 3)`` on the sides and top of each box in the LiDAR frame, and which
-    of those faces look towards ``viewpoint``: ``bool (M, 5)``."""
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    rel = viewpoint - boxes[:, :3]
-    view = np.column_stack(
-        [rel[:, 0] * cos + rel[:, 1] * sin, -rel[:, 0] * sin + rel[:, 1] * cos, rel[:, 2]]
-    )
-    axes, signs = _FACES[:, 0].astype(int), _FACES[:, 1]
-    facing = signs * view[:, axes] > boxes[:, 3:6][:, axes] / 2.0
-    local = _FACE_GRIDS[None] * boxes[:, None, None, 3:6]
-    world = np.empty_like(local)
-    c, s_ = cos[:, None, None], sin[:, None, None]
-    world[..., 0] = c * local[..., 0] - s_ * local[..., 1] + boxes[:, None, None, 0]
-    world[..., 1] = s_ * local[..., 0] + c * local[..., 1] + boxes[:, None, None, 1]
-    world[..., 2] = local[..., 2] + boxes[:, None, None, 2]
-    return world, facing
 
 
 # --------------------------------------------------------------------------------------------

@@ -20,13 +20,14 @@ Objects are tried up to ``max_tries`` times (a fresh pose each time); the paper 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
-from drcpo.geometry import bev_corners, bev_overlap_area, points_in_boxes
 from drcpo.ground import GroundModel
 
 REASONS = ("out_of_range", "collision", "obstacle")
@@ -34,7 +35,7 @@ HEIGHT_MODES = ("ground", "source")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 _FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view
-_OBSTACLE_CELL = 1.0  # metres; BEV cells used to preselect frame points near candidate boxes
+_MEMBER_CELLS = 256  # most BEV cells along a side of the grid that finds points near boxes
 
 
 @dataclass(frozen=True)
@@ -166,7 +167,7 @@ def place_objects(
     source_z = _source_heights(source_boxes, len(dims), config)
     if ground is None:
         ground = frame_ground(frame)
-    obstacles = _Obstacles(frame.points, ground, config, dims)
+    obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
     placed = np.full((len(dims), 7), np.nan)
     reasons = np.full(len(dims), "", dtype=object)
     rejected = dict.fromkeys(REASONS, 0)
@@ -215,84 +216,204 @@ def _judge(
     else:
         boxes[live, 2] = source_z[pending[live]]
     if len(occupied) and len(live):
-        hit = (bev_overlap_area(boxes[live], occupied) > 0).any(axis=1)
+        hit = bev_collisions(boxes[live], occupied).any(axis=1)
         verdict[live[hit]] = "collision"
         live = live[~hit]
     blocked = obstacles.count(boxes[live]) > config.max_nonground_points
     verdict[live[blocked]] = "obstacle"
     live = live[~blocked]
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
-    overlap = bev_overlap_area(boxes[live]) > 0
     kept = np.zeros(len(live), dtype=bool)
-    for i in range(len(live)):
-        kept[i] = not (overlap[i, :i] & kept[:i]).any()
+    if len(live):
+        candidates = boxes[live]
+        _first_come(candidates, *_heading_terms(candidates), kept)
     verdict[live[~kept]] = "collision"
     return verdict
 
 
 class _Obstacles:
-    """Non-ground frame points near candidate boxes, selected through a coarse BEV grid.
+    """Counts of non-ground frame points in candidate boxes.
 
-    The grid covers the placement area grown by the largest box's reach, plus a border row of
-    cells on every side that collects the points outside it and is never selected.
+    The points in each box are found in one pass over the frame (a coarse BEV grid of the
+    boxes' bounding squares, see :func:`box_members`); only those are tested against the
+    ground, with :meth:`GroundModel.is_ground`.
     """
 
-    def __init__(
-        self, points: np.ndarray, ground: GroundModel, config: PlacementConfig, dims: np.ndarray
-    ) -> None:
+    def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float) -> None:
         self.points = points
         self.ground = ground
-        self.tolerance = config.ground_tolerance
-        reach = float(np.hypot(dims[:, 0], dims[:, 1]).max(initial=0.0)) / 2.0 + _OBSTACLE_CELL
-        self.origin = np.array([config.x_range[0] - reach, config.y_range[0] - reach])
-        span = np.array([config.x_range[1] + reach, config.y_range[1] + reach]) - self.origin
-        inner = np.ceil(span / _OBSTACLE_CELL).astype(int)
-        self.shape = (int(inner[0]) + 2, int(inner[1]) + 2)
-        self._cells: np.ndarray | None = None
-
-    def _point_cells(self) -> np.ndarray:
-        """Flat cell ``int32 (N,)`` of every frame point, computed once, in place.
-
-        Temporaries the size of a sweep cost about a millisecond each of page faults on small
-        VMs, hence the in-place arithmetic in the points' own dtype.
-        """
-        if self._cells is None:
-            scaled = np.subtract(self.points[:, 0], float(self.origin[0]))
-            self._cells = self._axis_cells(scaled, self.shape[0])
-            np.subtract(self.points[:, 1], float(self.origin[1]), out=scaled)
-            self._cells *= self.shape[1]
-            self._cells += self._axis_cells(scaled, self.shape[1])
-        return self._cells
-
-    @staticmethod
-    def _axis_cells(scaled: np.ndarray, count: int) -> np.ndarray:
-        """Cells 1 .. count - 2 inside, 0 and count - 1 outside (NaN goes to cell 0)."""
-        scaled *= 1.0 / _OBSTACLE_CELL
-        np.floor(scaled, out=scaled)
-        scaled += 1.0
-        # fmax/fmin drop NaN in favour of the bound, so non-finite points land in the border.
-        np.fmax(scaled, 0.0, out=scaled)
-        np.fmin(scaled, count - 1, out=scaled)
-        return scaled.astype(np.int32)
+        self.tolerance = tolerance
 
     def count(self, boxes: np.ndarray) -> np.ndarray:
         """Non-ground frame points inside each of ``boxes`` ``(M, 7)``: ``int64 (M,)``."""
         if len(boxes) == 0 or len(self.points) == 0:
             return np.zeros(len(boxes), dtype=np.int64)
-        cells = self._point_cells()
-        wanted = np.zeros(self.shape, dtype=bool)
-        radius = np.hypot(boxes[:, 3], boxes[:, 4]) / 2.0
-        low = np.floor((boxes[:, :2] - radius[:, None] - self.origin) / _OBSTACLE_CELL) + 1
-        high = np.floor((boxes[:, :2] + radius[:, None] - self.origin) / _OBSTACLE_CELL) + 2
-        inner = np.array(self.shape) - 1
-        low = np.clip(low, 1, inner).astype(np.int64)
-        high = np.clip(high, 1, inner).astype(np.int64)
-        for (x0, y0), (x1, y1) in zip(low, high, strict=True):
-            wanted[x0:x1, y0:y1] = True
-        # take: several times faster than boolean indexing of point rows
-        candidates = self.points.take(np.flatnonzero(wanted.reshape(-1)[cells]), axis=0)
-        above = candidates[~self.ground.is_ground(candidates, self.tolerance)]
-        return points_in_boxes(above, boxes).sum(axis=0).astype(np.int64)
+        point, box = box_members(self.points, boxes)
+        above = ~self.ground.is_ground(self.points.take(point, axis=0), self.tolerance)
+        return np.bincount(box[above], minlength=len(boxes)).astype(np.int64)
+
+
+def box_members(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, box) pair with the point inside the box: ``int64 (P,)`` point indices
+    (ascending) and ``int64 (P,)`` box indices.
+
+    Same arithmetic and boundary rule (closed boxes) as
+    :func:`drcpo.geometry.points_in_boxes`, in one pass over the ``(N, 3+)`` points: each
+    point looks up the boxes whose axis-aligned BEV bounds cover its cell of a coarse grid.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    if len(boxes) == 0 or len(points) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return _members(points, boxes, *_heading_terms(boxes), _MEMBER_CELLS)
+
+
+def _heading_terms(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """numpy's cos and sin ``(M,)`` of the headings (the kernels must not use libm's, which
+    may differ in the last bit)."""
+    heading = np.ascontiguousarray(boxes[:, 6])
+    return np.cos(heading), np.sin(heading)
+
+
+# The numba helpers below take scalars only: arrays passed to an inlined helper are
+# reference-counted on every call, which costs more than the arithmetic in hot loops.
+@numba.njit(cache=True, nogil=True, inline="always")
+def _inside(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin):  # pragma: no cover - numba
+    # points_in_boxes' test, operation for operation (float64, closed box).
+    ox, oy, oz = px - cx, py - cy, pz - cz
+    local_x = ox * cos + oy * sin
+    local_y = -ox * sin + oy * cos
+    return abs(local_x) <= dx / 2.0 and abs(local_y) <= dy / 2.0 and abs(oz) <= dz / 2.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _members(points, boxes, cos, sin, max_cells):  # pragma: no cover - numba
+    # A grid over the boxes' axis-aligned BEV bounds lists, per cell, the boxes covering it.
+    # The bounds have some slack: float rounding must not push a point inside a box out.
+    count = boxes.shape[0]
+    reach = np.empty((count, 2))
+    for m in range(count):
+        c, s = abs(cos[m]), abs(sin[m])
+        reach[m, 0] = (boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 * (1.0 + 1e-9) + 1e-6
+        reach[m, 1] = (boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 * (1.0 + 1e-9) + 1e-6
+    x0, x1 = np.min(boxes[:, 0] - reach[:, 0]), np.max(boxes[:, 0] + reach[:, 0])
+    y0, y1 = np.min(boxes[:, 1] - reach[:, 1]), np.max(boxes[:, 1] + reach[:, 1])
+    cell = max(0.5, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
+    nx, ny = int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1
+    spans = np.empty((count, 4), np.int64)
+    start = np.zeros(nx * ny + 1, np.int64)
+    for m in range(count):
+        spans[m, 0] = int((boxes[m, 0] - reach[m, 0] - x0) / cell)
+        spans[m, 1] = min(int((boxes[m, 0] + reach[m, 0] - x0) / cell), nx - 1)
+        spans[m, 2] = int((boxes[m, 1] - reach[m, 1] - y0) / cell)
+        spans[m, 3] = min(int((boxes[m, 1] + reach[m, 1] - y0) / cell), ny - 1)
+        for i in range(spans[m, 0], spans[m, 1] + 1):
+            for j in range(spans[m, 2], spans[m, 3] + 1):
+                start[i * ny + j + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    listed = np.empty(start[nx * ny], np.int64)
+    fill = start[:-1].copy()
+    for m in range(count):
+        for i in range(spans[m, 0], spans[m, 1] + 1):
+            for j in range(spans[m, 2], spans[m, 3] + 1):
+                listed[fill[i * ny + j]] = m
+                fill[i * ny + j] += 1
+    found_point = np.empty(64, np.int64)
+    found_box = np.empty(64, np.int64)
+    found = 0
+    for i in range(points.shape[0]):
+        px, py = np.float64(points[i, 0]), np.float64(points[i, 1])
+        if not (x0 <= px <= x1 and y0 <= py <= y1):  # NaN fails too
+            continue
+        c = int((px - x0) / cell) * ny + int((py - y0) / cell)
+        if start[c] == start[c + 1]:
+            continue
+        pz = np.float64(points[i, 2])
+        for k in range(start[c], start[c + 1]):
+            m = listed[k]
+            if _inside(
+                px,
+                py,
+                pz,
+                boxes[m, 0],
+                boxes[m, 1],
+                boxes[m, 2],
+                boxes[m, 3],
+                boxes[m, 4],
+                boxes[m, 5],
+                cos[m],
+                sin[m],
+            ):
+                if found == found_point.shape[0]:
+                    found_point = np.concatenate((found_point, np.empty_like(found_point)))
+                    found_box = np.concatenate((found_box, np.empty_like(found_box)))
+                found_point[found], found_box[found] = i, m
+                found += 1
+    return found_point[:found].copy(), found_box[:found].copy()
+
+
+def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
+    """``bool (A, B)``: whether the BEV footprints of ``(A, 7)`` and ``(B, 7)`` boxes overlap,
+    i.e. their interiors intersect (:func:`drcpo.geometry.bev_overlap_area` ``> 0``; boxes that
+    only touch do not collide).
+
+    A separating-axis test on the four edge normals, exact up to float rounding (footprints
+    within about 1e-12 m of touching may go either way, as the overlap area's own rounding does).
+    """
+    boxes_a = np.asarray(boxes_a, dtype=np.float64).reshape(-1, 7)
+    boxes_b = np.asarray(boxes_b, dtype=np.float64).reshape(-1, 7)
+    out = np.zeros((len(boxes_a), len(boxes_b)), dtype=bool)
+    if out.size:
+        _collisions(boxes_a, *_heading_terms(boxes_a), boxes_b, *_heading_terms(boxes_b), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _projected_half(u_x, u_y, length, width, c, s):  # pragma: no cover - numba
+    # Half the extent along the unit axis (u_x, u_y) of a length x width footprint whose
+    # length runs along (c, s).
+    return length / 2.0 * abs(u_x * c + u_y * s) + width / 2.0 * abs(-u_x * s + u_y * c)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _overlap(ax, ay, al, aw, ca, sa, bx, by, bl, bw, cb, sb):  # pragma: no cover - numba
+    # Interiors intersect <=> on every edge normal of either footprint the projections overlap
+    # by more than zero (convex polygons: a separating line can be taken along an edge).
+    dx, dy = bx - ax, by - ay
+    reach = math.hypot(al, aw) / 2.0 + math.hypot(bl, bw) / 2.0
+    if dx * dx + dy * dy >= reach * reach:
+        return False
+    if abs(dx * ca + dy * sa) >= al / 2.0 + _projected_half(ca, sa, bl, bw, cb, sb):
+        return False
+    if abs(-dx * sa + dy * ca) >= aw / 2.0 + _projected_half(-sa, ca, bl, bw, cb, sb):
+        return False
+    if abs(dx * cb + dy * sb) >= bl / 2.0 + _projected_half(cb, sb, al, aw, ca, sa):
+        return False
+    return abs(-dx * sb + dy * cb) < bw / 2.0 + _projected_half(-sb, cb, al, aw, ca, sa)
+
+
+@numba.njit(cache=True, nogil=True)
+def _collisions(a, ca, sa, b, cb, sb, out):  # pragma: no cover - numba
+    for i in range(a.shape[0]):
+        for j in range(b.shape[0]):
+            out[i, j] = _overlap(
+                a[i, 0], a[i, 1], a[i, 3], a[i, 4], ca[i], sa[i],
+                b[j, 0], b[j, 1], b[j, 3], b[j, 4], cb[j], sb[j],
+            )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _first_come(boxes, cos, sin, kept):  # pragma: no cover - numba
+    # Each box is kept unless it overlaps an earlier box that was kept.
+    for i in range(boxes.shape[0]):
+        kept[i] = True
+        for j in range(i):
+            if kept[j] and _overlap(
+                boxes[i, 0], boxes[i, 1], boxes[i, 3], boxes[i, 4], cos[i], sin[i],
+                boxes[j, 0], boxes[j, 1], boxes[j, 3], boxes[j, 4], cos[j], sin[j],
+            ):  # fmt: skip
+                kept[i] = False
+                break
 
 
 def _draw_positions(
@@ -312,9 +433,26 @@ def _draw_positions(
 
 def _in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:
     """``bool (K,)``: every BEV corner at an azimuth within ``half_angle`` (NaN rows: False)."""
-    corners = bev_corners(np.nan_to_num(boxes))
-    azimuth = np.abs(np.arctan2(corners[..., 1], corners[..., 0]))
-    return (azimuth <= half_angle).all(axis=1) & np.isfinite(boxes[:, 0])
+    inside = np.zeros(len(boxes), dtype=bool)
+    if len(boxes):
+        _fov_test(boxes, *_heading_terms(boxes), float(half_angle), inside)
+    return inside
+
+
+@numba.njit(cache=True, nogil=True)
+def _fov_test(boxes, cos, sin, half_angle, inside):  # pragma: no cover - numba
+    # The corners as geometry.bev_corners computes them (counter-clockwise from front-left).
+    for m in range(boxes.shape[0]):
+        if not np.isfinite(boxes[m, 0]):
+            continue
+        inside[m] = True
+        for corner_x, corner_y in ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5)):
+            local_x, local_y = corner_x * boxes[m, 3], corner_y * boxes[m, 4]
+            x = (cos[m] * local_x - sin[m] * local_y) + boxes[m, 0]
+            y = (sin[m] * local_x + cos[m] * local_y) + boxes[m, 1]
+            if not abs(math.atan2(y, x)) <= half_angle:
+                inside[m] = False
+                break
 
 
 def _check_dims(dims: np.ndarray) -> np.ndarray:
@@ -353,3 +491,398 @@ def frame_ground(frame: Frame) -> GroundModel:
     if plane is not None and calib is not None:
         return GroundModel.from_points(frame.points, plane=plane, calib=calib)
     return GroundModel.from_points(frame.points)
+
+
+# Occlusion by the frame ----------------------------------------------------------------------
+class OcclusionMap:
+    """Nearest range per (azimuth, elevation) cell of a point cloud seen from a viewpoint: a
+    z-buffer used to reject placements hidden behind the frame before anything is built.
+
+    Cells are ``0.2 x 0.4`` degrees (about a KITTI HDL-64E's resolution). A box sample counts
+    as occluded when its cell holds a point at least ``depth_tolerance`` metres nearer; cells
+    without points occlude nothing, so gaps in the frame keep boxes visible. Non-finite points
+    occlude nothing either.
+
+    The buffer is filled lazily, only in the cells the queried boxes' samples fall in, and only
+    with the points nearer than those samples: one pass over the points per query, most of them
+    set aside by a cheap direction test (no trigonometry) before their cell is computed.
+
+    Args:
+        points: ``(N, 3+)`` points, metres (not copied).
+        viewpoint: ``(3,)`` sensor position, metres.
+        depth_tolerance: metres a point must lie in front of a sample to hide it.
+        cleared: ``(M, 7)`` boxes whose points are left out (the frame's points inside placed
+            boxes are removed to make room for the objects).
+    """
+
+    AZIMUTH_STEP = math.radians(0.2)
+    ELEVATION_STEP = math.radians(0.4)
+
+    COLUMNS = math.ceil(2 * math.pi / AZIMUTH_STEP)
+    ROWS = math.ceil(math.pi / ELEVATION_STEP) + 1
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        viewpoint: np.ndarray,
+        depth_tolerance: float = 0.5,
+        *,
+        cleared: np.ndarray | None = None,
+    ) -> None:
+        self.points = np.asarray(points)
+        if self.points.ndim != 2 or self.points.shape[1] < 3:
+            raise DataError(f"points must have shape (N, 3+), got {self.points.shape}")
+        self.viewpoint = np.asarray(viewpoint, dtype=np.float64).reshape(3)
+        self.tolerance = depth_tolerance
+        cleared = np.zeros((0, 7)) if cleared is None else cleared
+        self.cleared = np.asarray(cleared, dtype=np.float64).reshape(-1, 7)
+
+    def occluded(self, boxes: np.ndarray) -> np.ndarray:
+        """``float64 (M,)``: share of each box's sensor-facing surface samples occluded."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        share = np.zeros(len(boxes))
+        if len(boxes) == 0:
+            return share
+        # The cell arithmetic is float32, as the azimuth and elevation always were.
+        constants = np.array(
+            [
+                math.pi,
+                math.pi / 2,
+                self.AZIMUTH_STEP,
+                self.ELEVATION_STEP,
+                self.tolerance,
+                *self.viewpoint,
+            ],
+            dtype=np.float32,
+        )
+        _occluded_share(
+            self.points,
+            self.cleared,
+            *_heading_terms(self.cleared),
+            boxes,
+            *_heading_terms(boxes),
+            self.viewpoint,
+            _FACE_GRIDS,
+            _FACES[:, 0].astype(np.int64),
+            _FACES[:, 1].copy(),
+            constants,
+            _DIRECTIONS,
+            _AZIMUTH_FIRST,
+            _AZIMUTH_SECOND,
+            share,
+        )
+        return share
+
+
+def _face_templates(steps: tuple[int, int] = (12, 8)) -> tuple[np.ndarray, np.ndarray]:
+    """Unit-box grids on the four sides and the top: ``(5, K, 3)`` and the faces' outward
+    ``(axis, sign)`` pairs ``(5, 2)`` (the bottom rests on the ground, no one sees it)."""
+    u, v = np.meshgrid(np.linspace(-0.5, 0.5, steps[0]), np.linspace(-0.5, 0.5, steps[1]))
+    faces = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0))
+    grids = np.zeros((len(faces), u.size, 3))
+    for f, (axis, sign) in enumerate(faces):
+        u_axis, v_axis = (a for a in range(3) if a != axis)
+        grids[f, :, u_axis], grids[f, :, v_axis], grids[f, :, axis] = (
+            u.ravel(),
+            v.ravel(),
+            0.5 * sign,
+        )
+    return grids, np.array(faces)
+
+
+_FACE_GRIDS, _FACES = _face_templates()
+
+
+def _facing_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``(M, 5, K, 3)`` on the sides and top of each box in the LiDAR frame, and which
+    of those faces look towards ``viewpoint``: ``bool (M, 5)``.
+
+    :meth:`OcclusionMap.occluded` computes the same samples (the facing ones only) in numba.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    rel = viewpoint - boxes[:, :3]
+    view = np.column_stack(
+        [rel[:, 0] * cos + rel[:, 1] * sin, -rel[:, 0] * sin + rel[:, 1] * cos, rel[:, 2]]
+    )
+    axes, signs = _FACES[:, 0].astype(int), _FACES[:, 1]
+    facing = signs * view[:, axes] > boxes[:, 3:6][:, axes] / 2.0
+    local = _FACE_GRIDS[None] * boxes[:, None, None, 3:6]
+    world = np.empty_like(local)
+    c, s_ = cos[:, None, None], sin[:, None, None]
+    world[..., 0] = c * local[..., 0] - s_ * local[..., 1] + boxes[:, None, None, 0]
+    world[..., 1] = s_ * local[..., 0] + c * local[..., 1] + boxes[:, None, None, 1]
+    world[..., 2] = local[..., 2] + boxes[:, None, None, 2]
+    return world, facing
+
+
+_ANGLE_SLACK = 1e-5  # radians; far above the float32 cell arithmetic's error (~1e-6)
+_BINS = 8192  # pseudo-angle bins of each direction table; narrower than a cell (< 1e-3 rad)
+
+
+def _direction_table(
+    edges: np.ndarray, step: float, offset: float, count: int
+) -> tuple[np.ndarray, ...]:
+    """Per pseudo-angle bin (between consecutive angles of ``edges``, radians): the first cell
+    ``floor((angle + offset) / step)`` (float32 constants) its directions may fall in, give or
+    take the slack, and whether a cell boundary lies in it (0 or 1; -1: undecided, a seam).
+    Also the unit vectors (cos, sin) of the ``count + 1`` cell boundaries."""
+    step64, offset64 = float(np.float32(step)), float(np.float32(offset))
+    low = np.floor((edges[:-1] - _ANGLE_SLACK + offset64) / step64).astype(np.int64)
+    high = np.floor((edges[1:] + _ANGLE_SLACK + offset64) / step64).astype(np.int64)
+    crosses = high - low
+    crosses[(crosses < 0) | (crosses > 1)] = -1
+    bound = np.arange(count + 1) * step64 - offset64
+    return low, crosses, np.cos(bound), np.sin(bound)
+
+
+def _azimuth_table() -> tuple[np.ndarray, ...]:
+    p = np.arange(_BINS + 1) * (4.0 / _BINS)  # the inverse of _pseudo_angle at the bin edges
+    x = np.select([p < 1, p < 2, p < 3], [1 - p, 1 - p, p - 3], p - 3)
+    y = np.select([p < 1, p < 2, p < 3], [p, 2 - p, 2 - p], p - 4)
+    edges = np.arctan2(y, x)
+    edges[-1] = 0.0  # a full turn: the last bin ends just below azimuth 0
+    return _direction_table(edges, OcclusionMap.AZIMUTH_STEP, math.pi, OcclusionMap.COLUMNS)
+
+
+def _elevation_table() -> tuple[np.ndarray, ...]:
+    q = np.arange(_BINS + 1) * (2.0 / _BINS) - 1.0  # the inverse of z / (h + |z|)
+    edges = np.arctan2(q, np.where(q < 0, 1 + q, 1 - q))
+    return _direction_table(edges, OcclusionMap.ELEVATION_STEP, math.pi / 2, OcclusionMap.ROWS)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _pseudo_angle(x, y):  # pragma: no cover - numba
+    # Monotone in the angle of (x, y) from +x counter-clockwise, in [0, 4); no trigonometry,
+    # and selects rather than branches (the quadrants of a sweep's points are unpredictable).
+    share = abs(y) / (abs(x) + abs(y))
+    base = 0.0 if x >= 0.0 and y >= 0.0 else (4.0 if x >= 0.0 else 2.0)
+    return base + share if (x >= 0.0) == (y >= 0.0) else base - share
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_of(x, y, z, constants, columns, rows):  # pragma: no cover - numba
+    # Row and column of one float32 offset from the viewpoint, exactly as numpy computes them
+    # on float32 arrays (arctan2, hypot, then the float32 cell arithmetic).
+    azimuth = np.float32(math.atan2(y, x))
+    elevation = np.float32(math.atan2(z, np.float32(np.hypot(x, y))))
+    column = math.floor(np.float32(np.float32(azimuth + constants[0]) / constants[2]))
+    row = math.floor(np.float32(np.float32(elevation + constants[1]) / constants[3]))
+    return min(max(row, 0), rows - 1), column % columns
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _side(first, crosses, bound_cos, bound_sin, a, b, length):  # pragma: no cover - numba
+    # The cell of direction (a, b) (angle atan2(b, a)) among first and first + 1, given the
+    # unit vector of the boundary between them when one may lie in the direction's bin
+    # (crosses); -1 when the direction lies within the slack of that boundary.
+    if crosses == 0:
+        return first
+    if crosses < 0:
+        return -1
+    turn = bound_cos * b - bound_sin * a  # > 0: past the boundary
+    margin = _ANGLE_SLACK * length
+    if turn > margin:
+        return first + 1
+    if turn < -margin:
+        return first
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _cells(
+    offsets, az_low, az_cross, az_cos, az_sin, el_low, el_cross, el_cos, el_sin, constants, rows
+):  # pragma: no cover - numba
+    # Row and column ``int64 (n, 2)`` of float32 offsets ``(n, 3)`` from the viewpoint, as
+    # _cell_of computes them, through the pseudo-angle tables and at most one boundary test
+    # per angle; _cell_of decides the directions within the slack of a boundary.
+    columns = az_cos.shape[0] - 1
+    out = np.empty((offsets.shape[0], 2), np.int64)
+    for i in range(offsets.shape[0]):
+        x, y, z = offsets[i, 0], offsets[i, 1], offsets[i, 2]
+        fx, fy, fz = np.float64(x), np.float64(y), np.float64(z)
+        horizontal = math.sqrt(fx * fx + fy * fy)
+        row = column = -1
+        if horizontal > 0.0:
+            b = min(int(_pseudo_angle(fx, fy) * (_BINS / 4.0)), _BINS - 1)
+            first = az_low[b]
+            column = _side(
+                first, az_cross[b], az_cos[first + 1], az_sin[first + 1], fx, fy, horizontal
+            )
+            e = min(int((fz / (horizontal + abs(fz)) + 1.0) * (_BINS / 2.0)), _BINS - 1)
+            first = el_low[e]
+            length = math.sqrt(fx * fx + fy * fy + fz * fz)
+            row = _side(
+                first, el_cross[e], el_cos[first + 1], el_sin[first + 1], horizontal, fz, length
+            )
+        if column >= 0 and 0 < row < rows - 1:
+            out[i, 0], out[i, 1] = row, column % columns
+        else:
+            out[i, 0], out[i, 1] = _cell_of(x, y, z, constants, columns, rows)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _occluded_share(
+    points,
+    cleared,
+    cleared_cos,
+    cleared_sin,
+    boxes,
+    cos,
+    sin,
+    viewpoint,
+    grids,
+    axes,
+    signs,
+    constants,
+    tables,
+    az_first,
+    az_second,
+    share,
+):  # pragma: no cover - numba
+    columns, rows = tables[2].shape[0] - 1, tables[6].shape[0] - 1
+    # 1. The samples of the faces that look at the viewpoint: offset and range of each.
+    count, per_face = boxes.shape[0], grids.shape[1]
+    sample_box = np.empty(count * grids.shape[0] * per_face, np.int64)
+    offsets = np.empty((sample_box.shape[0], 3), np.float32)
+    total = 0
+    vx, vy, vz = constants[5], constants[6], constants[7]
+    for m in range(count):
+        rel_x, rel_y = viewpoint[0] - boxes[m, 0], viewpoint[1] - boxes[m, 1]
+        view = (
+            rel_x * cos[m] + rel_y * sin[m],
+            -rel_x * sin[m] + rel_y * cos[m],
+            viewpoint[2] - boxes[m, 2],
+        )
+        for f in range(grids.shape[0]):
+            if not signs[f] * view[axes[f]] > boxes[m, 3 + axes[f]] / 2.0:
+                continue
+            for k in range(per_face):
+                local_x = grids[f, k, 0] * boxes[m, 3]
+                local_y = grids[f, k, 1] * boxes[m, 4]
+                local_z = grids[f, k, 2] * boxes[m, 5]
+                x = cos[m] * local_x - sin[m] * local_y + boxes[m, 0]
+                y = sin[m] * local_x + cos[m] * local_y + boxes[m, 1]
+                offsets[total, 0] = np.float32(x) - vx
+                offsets[total, 1] = np.float32(y) - vy
+                offsets[total, 2] = np.float32(local_z + boxes[m, 2]) - vz
+                sample_box[total] = m
+                total += 1
+    if total == 0:
+        return
+    offsets = offsets[:total]
+    sample_cell = _cells(offsets, *tables, constants, rows)
+    # 2. Per column, the rows wanted and the range within which a point may hide a sample;
+    #    the wanted cells get consecutive slots, column by column.
+    low = np.full(columns, rows, np.int64)
+    high = np.full(columns, -1, np.int64)
+    reach = np.full(columns, -1.0)  # squared
+    sample_range = np.empty(total, np.float32)
+    depth = max(-np.float64(constants[4]), 0.0) + 1e-3
+    el_offset, el_step = np.float64(constants[1]), np.float64(constants[3])
+    for t in range(total):
+        x, y, z = offsets[t, 0], offsets[t, 1], offsets[t, 2]
+        sample_range[t] = np.float32(math.sqrt(x * x + y * y + z * z))  # as einsum sums
+        r, c = sample_cell[t, 0], sample_cell[t, 1]
+        low[c] = min(low[c], r)
+        high[c] = max(high[c], r)
+        reach[c] = max(reach[c], (np.float64(sample_range[t]) + depth) ** 2)
+    slot = np.zeros(columns, np.int64)
+    slope_low = np.full(columns, np.inf)  # elevations of the wanted rows, as z / horizontal
+    slope_high = np.full(columns, -np.inf)
+    slots = 0
+    for c in range(columns):
+        slot[c] = slots
+        if high[c] < 0:
+            continue
+        slots += high[c] - low[c] + 1
+        down = low[c] * el_step - el_offset - _ANGLE_SLACK
+        up = (high[c] + 1) * el_step - el_offset + _ANGLE_SLACK
+        slope_low[c] = -np.inf if low[c] == 0 or down <= -math.pi / 2 else math.tan(down)
+        slope_high[c] = np.inf if high[c] >= rows - 2 or up >= math.pi / 2 else math.tan(up)
+    # 3. The points that may hide a sample: in a wanted column's direction bin, near enough
+    #    and within its rows' elevations (no trigonometry: most points stop here).
+    candidate = np.empty(points.shape[0], np.int64)
+    near = np.empty((points.shape[0], 3), np.float32)
+    found = 0
+    for i in range(points.shape[0]):
+        x = np.float32(points[i, 0]) - vx
+        y = np.float32(points[i, 1]) - vy
+        fx, fy = np.float64(x), np.float64(y)
+        if fx != 0.0 or fy != 0.0:
+            b = min(int(_pseudo_angle(fx, fy) * (_BINS / 4.0)), _BINS - 1)
+            if b < 0:  # NaN
+                continue
+            first, second = az_first[b], az_second[b]
+            if first >= 0:  # else a seam bin: no shortcut
+                if high[first] < 0 and high[second] < 0:
+                    continue
+                z = np.float32(points[i, 2]) - vz
+                fz = np.float64(z)
+                if fx * fx + fy * fy + fz * fz > max(reach[first], reach[second]):
+                    continue
+                horizontal = math.sqrt(fx * fx + fy * fy)
+                if fz < horizontal * min(slope_low[first], slope_low[second]):
+                    continue
+                if fz > horizontal * max(slope_high[first], slope_high[second]):
+                    continue
+        z = np.float32(points[i, 2]) - vz
+        if not np.isfinite(fx + fy + np.float64(z)):
+            continue
+        candidate[found] = i
+        near[found, 0], near[found, 1], near[found, 2] = x, y, z
+        found += 1
+    # 4. Their cells, and the nearest range in each wanted cell of the points not cleared.
+    near = near[:found]
+    cell = _cells(near, *tables, constants, rows)
+    nearest = np.full(slots, np.inf, np.float32)
+    for n in range(found):
+        r, c = cell[n, 0], cell[n, 1]
+        if not low[c] <= r <= high[c]:
+            continue
+        w = slot[c] + r - low[c]
+        x, y, z = near[n, 0], near[n, 1], near[n, 2]
+        distance = np.float32(math.sqrt(x * x + y * y + z * z))
+        if distance >= nearest[w]:
+            continue
+        i = candidate[n]
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        gone = False
+        for k in range(cleared.shape[0]):
+            if _inside(
+                px,
+                py,
+                pz,
+                cleared[k, 0],
+                cleared[k, 1],
+                cleared[k, 2],
+                cleared[k, 3],
+                cleared[k, 4],
+                cleared[k, 5],
+                cleared_cos[k],
+                cleared_sin[k],
+            ):
+                gone = True
+                break
+        if not gone:
+            nearest[w] = distance
+    # 5. Each box's share of hidden samples.
+    hidden = np.zeros(count, np.int64)
+    seen = np.zeros(count, np.int64)
+    tolerance = constants[4]
+    for t in range(total):
+        m = sample_box[t]
+        seen[m] += 1
+        r, c = sample_cell[t, 0], sample_cell[t, 1]
+        if np.float32(nearest[slot[c] + r - low[c]] + tolerance) < sample_range[t]:
+            hidden[m] += 1
+    for m in range(count):
+        if seen[m] > 0:
+            share[m] = hidden[m] / seen[m]
+
+
+_DIRECTIONS = (*_azimuth_table(), *_elevation_table())
+# The columns of each azimuth bin (first -1: a seam bin), wrapped, for the points' quick test.
+_AZIMUTH_FIRST = np.where(_DIRECTIONS[1] >= 0, _DIRECTIONS[0] % OcclusionMap.COLUMNS, -1)
+_AZIMUTH_SECOND = (_DIRECTIONS[0] + np.maximum(_DIRECTIONS[1], 0)) % OcclusionMap.COLUMNS
