@@ -3,8 +3,10 @@ import pytest
 
 from drcpo.construction import (
     ConstructionConfig,
-    _gather_partition_points,
+    _gather,
+    _numpy_sum,
     construct_object,
+    construct_objects,
 )
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError, DataError
@@ -202,27 +204,38 @@ def test_gather_kernel_matches_partition_index(database, rng):
     rows = rng.integers(0, 60, 40)
     cells = rng.integers(0, 120, 40)
     for mirror in (False, True):
-        got, per_pair = _gather_partition_points(
-            np.asarray(database.points),
-            database.offsets,
-            rows.astype(np.int64),
-            cells.astype(np.int64),
-            dims,
-            np.array(grid),
-            mirror,
-            0.05,
-        )
-        expected = []
+        refs, count, near = np.zeros(1, np.int64), 0, np.zeros(1, np.int64)
+        per_pair = []
         for row, cell in zip(rows, cells, strict=True):
-            points = database.object_points(row)
-            points = mirror_points(points) if mirror else points
-            inside = (np.abs(points[:, :3].astype(np.float64)) <= dims / 2 + 0.05).all(axis=1)
-            points = points[inside]
-            expected.append(points[partition_index(points, dims, grid) == cell])
-        np.testing.assert_array_equal(per_pair, [len(e) for e in expected])
-        key = np.lexsort(got.T)
-        want = np.concatenate(expected)
-        np.testing.assert_array_equal(got[key], want[np.lexsort(want.T)])
+            refs, after, near = _gather(
+                np.asarray(database.points),
+                database.offsets,
+                row,
+                cell,
+                2 if mirror else 1,
+                dims,
+                np.array(grid),
+                0.05,
+                refs,
+                count,
+                near,
+            )
+            per_pair.append(refs[count:after])
+            count = after
+        for row, cell, got in zip(rows, cells, per_pair, strict=True):
+            stored = np.arange(database.offsets[row], database.offsets[row + 1])
+            # Each point, then its mirror image (odd reference), in stored order.
+            want = np.stack([2 * stored, 2 * stored + 1], axis=1)[:, : 2 if mirror else 1]
+            want = want.reshape(-1)
+            np.testing.assert_array_equal(got, want[partition_mask(database, want, dims, cell)])
+
+
+def partition_mask(database, refs, dims, cell, grid=(10, 4, 3), margin=0.05):
+    """Which referenced points (``2 * row + mirrored``) lie in ``cell`` within the margin."""
+    points = np.asarray(database.points)[refs >> 1].copy()
+    points[refs & 1 == 1, 1] *= -1
+    inside = (np.abs(points[:, :3].astype(np.float64)) <= dims / 2 + margin).all(axis=1)
+    return inside & (partition_index(points, dims, grid) == cell)
 
 
 def test_bad_input_is_rejected(database, rng):
@@ -278,3 +291,233 @@ def test_real_kitti_database_with_its_index(kitti_sample, tmp_path):
             assert out.points.shape[1] == database.points.shape[1]
             constructed += 1
     assert constructed >= 4
+
+
+# The implementation before the compiled kernels (numpy, one object at a time), kept as the
+# plain statement of what construct_object(s) must reproduce bit for bit: the same points in
+# the same order, the same draws from the rng.
+
+
+def reference_construct(database, row, candidate_rows, rng, config, class_max_counts):
+    """``(points, dims, iterations, added_from, coverage_initial, coverage)``."""
+    row = int(row) % len(database)
+    name = str(database.names[row])
+    dims = np.asarray(database.boxes[row, 3:6], dtype=np.float64)
+    candidates = np.asarray(candidate_rows).reshape(-1)
+    candidates = candidates[candidates >= 0].astype(np.int64)
+    mirror = name in config.mirrored_classes
+    grid = config.grid(name)
+    source = np.asarray(database.object_points(row))
+    source = mirror_points(source) if mirror else source.copy()
+    if config.mode == "partition":
+        source = source[reference_inside(source, dims, config.margin)]
+    densities = ReferenceDensities(partition_counts(source, dims, grid), class_max_counts)
+    initial = current = densities.coverage()
+    chunks, contributors, iterations = [source], [], 0
+    if config.mode == "partition":
+        while candidates.size and iterations < config.max_iterations and current < config.coverage:
+            deficient = densities.deficient()
+            drawn = candidates[rng.integers(0, len(candidates), size=len(deficient))]
+            per_pair = []
+            for candidate, cell in zip(drawn, deficient, strict=True):
+                points = np.asarray(database.object_points(int(candidate)))
+                copies = [points, mirror_points(points)[len(points) :]] if mirror else [points]
+                both = np.stack(copies, axis=1).reshape(-1, points.shape[1])
+                keep = reference_inside(both, dims, config.margin)
+                keep &= partition_index(both, dims, grid) == cell
+                chunks.append(both[keep])
+                per_pair.append(int(keep.sum()))
+            per_pair = np.array(per_pair, dtype=np.int64)
+            iterations += 1
+            densities.counts[deficient] += per_pair
+            contributors.append(drawn[per_pair > 0])
+            current = densities.coverage()
+        points = np.concatenate(chunks)
+        out_dims = dims.copy()
+    else:
+        order = rng.permutation(candidates)[: config.max_iterations] if candidates.size else []
+        for candidate in order:
+            if current >= config.coverage:
+                break
+            added = np.asarray(database.object_points(int(candidate)))
+            added = mirror_points(added) if mirror else added.copy()
+            iterations += 1
+            densities.counts += partition_counts(added, dims, grid)
+            chunks.append(added)
+            if len(added):
+                contributors.append(np.array([candidate], dtype=np.int64))
+            current = densities.coverage()
+        points = np.concatenate(chunks)
+        extent = 2.0 * np.abs(points[:, :3].astype(np.float64)).max(axis=0, initial=0.0)
+        out_dims = np.maximum(dims, extent)
+    added_from = np.zeros(0, dtype=np.int64)
+    if contributors:
+        used = np.concatenate(contributors).astype(np.int64)
+        added_from = used[np.sort(np.unique(used, return_index=True)[1])]
+    return points, out_dims, iterations, added_from, initial, current
+
+
+def reference_inside(points, dims, margin):
+    return (np.abs(points[:, :3].astype(np.float64)) <= dims / 2.0 + margin).all(axis=1)
+
+
+class ReferenceDensities:
+    def __init__(self, counts, class_max_counts):
+        n = len(counts)
+        if class_max_counts is None:
+            scale = np.full(n, float(max(counts.max(initial=0), 1)))
+        else:
+            scale = np.asarray(class_max_counts, dtype=np.float64).reshape(-1)[:n]
+        self.fillable = scale > 0
+        self.scale = np.where(self.fillable, scale, 1.0)
+        self.counts = counts.astype(np.int64)
+        density = self.counts / self.scale
+        occupied = self.fillable & (self.counts > 0)
+        self.threshold = float(density[occupied].mean()) if occupied.any() else 0.0
+
+    def above(self):
+        return self.fillable & (self.counts / self.scale > self.threshold)
+
+    def coverage(self):
+        fillable = int(self.fillable.sum())
+        return float(self.above().sum() / fillable) if fillable else 1.0
+
+    def deficient(self):
+        return np.flatnonzero(self.fillable & ~self.above())
+
+
+def assert_same_as_reference(out, expected):
+    points, dims, iterations, added_from, initial, final = expected
+    assert out.points.dtype == points.dtype
+    np.testing.assert_array_equal(out.points, points)
+    np.testing.assert_array_equal(out.dims, dims)
+    assert out.iterations == iterations
+    assert out.added_from.dtype == np.int64
+    np.testing.assert_array_equal(out.added_from, added_from)
+    assert (out.coverage_initial, out.coverage) == (initial, final)
+
+
+REFERENCE_CONFIGS = [
+    ConstructionConfig(),
+    ConstructionConfig(mirrored_classes=()),
+    ConstructionConfig(coverage=1.0, max_iterations=4),
+    ConstructionConfig(max_iterations=0),
+    # 160 partitions: the threshold's mean is summed in numpy's pairwise order beyond 128.
+    ConstructionConfig(margin=0.0, grids={"Car": (10, 4, 4), "Pedestrian": (1, 1, 1)}),
+    ConstructionConfig(mode="whole"),
+    ConstructionConfig(mode="whole", mirrored_classes=("Pedestrian",)),
+    ConstructionConfig(mode="whole", coverage=1.0, max_iterations=3),
+    ConstructionConfig(mode="whole", max_iterations=0),
+]
+
+
+def reference_case(database, config, seed, count=24):
+    """Random objects, candidate lists (some empty, padded or repeating) and normalisers (the
+    class maxima, some partitions never fillable, none at all, or the object's own)."""
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(-len(database), len(database), count)
+    candidates, scales = [], []
+    for row in rows:
+        pool = candidates_of(database, row % len(database))
+        size = int(rng.integers(0, min(30, len(pool))))
+        line = rng.choice(pool, size=size, replace=bool(rng.integers(0, 2)))
+        if rng.uniform() < 0.2:
+            line = np.concatenate([line, [-1] * 5])
+        candidates.append(line if rng.uniform() > 0.1 else [-1, -1])
+        name = str(database.names[row])
+        mirrored = name in config.mirrored_classes
+        scale = class_max_counts_for(database, name, config.grid(name), mirrored)
+        kind = rng.integers(0, 4)
+        if kind == 1:
+            scale = np.where(rng.uniform(size=len(scale)) < 0.4, 0, scale)
+        scales.append({0: scale, 1: scale, 2: np.zeros_like(scale), 3: None}[int(kind)])
+    return rows, candidates, scales
+
+
+def class_max_counts_for(database, name, grid, mirrored):
+    counts = []
+    for row in database.rows_of_class(name):
+        points = database.object_points(row)
+        points = mirror_points(points) if mirrored else points
+        counts.append(partition_counts(points, database.boxes[row, 3:6], grid))
+    return np.max(counts, axis=0)
+
+
+@pytest.mark.parametrize("config", REFERENCE_CONFIGS, ids=repr)
+def test_matches_the_reference_implementation(database, config):
+    rows, candidates, scales = reference_case(database, config, REFERENCE_CONFIGS.index(config))
+    expected_rng, single_rng, batch_rng = (np.random.default_rng(11) for _ in range(3))
+    expected = [
+        reference_construct(database, row, cands, expected_rng, config, scale)
+        for row, cands, scale in zip(rows, candidates, scales, strict=True)
+    ]
+    batch = construct_objects(database, rows, candidates, batch_rng, config, scales)
+    for k, (row, cands, scale) in enumerate(zip(rows, candidates, scales, strict=True)):
+        single = construct_object(database, row, cands, single_rng, config, scale)
+        assert_same_as_reference(single, expected[k])
+        assert_same_as_reference(batch[k], expected[k])
+    state = expected_rng.bit_generator.state
+    assert single_rng.bit_generator.state == state == batch_rng.bit_generator.state
+    if config.max_iterations:
+        assert sum(e[2] for e in expected) > 0  # the case does construct
+
+
+def test_points_on_cell_cuts_and_margins_match_the_reference():
+    """Coordinates on the cuts between partitions and on the margin, and their float32
+    neighbours, fall in the same partitions as numpy's cell rule puts them."""
+    rng = np.random.default_rng(3)
+    dims, grid, margin = np.array([4.0, 1.7, 1.5]), (10, 4, 3), 0.05
+    axes = []
+    for d, n in zip(dims, grid, strict=True):
+        cuts = np.concatenate([np.arange(n + 1) * d / n - d / 2, [-d / 2 - margin, d / 2 + margin]])
+        near = np.float32(cuts)
+        axes.append(
+            np.concatenate([near, np.nextafter(near, np.float32(-9)), np.nextafter(near, 9)])
+        )
+    chunks = [
+        np.column_stack([rng.choice(a, 150) for a in axes] + [np.full(150, k)]).astype(np.float32)
+        for k in range(12)
+    ]
+    offsets = np.concatenate([[0], np.cumsum([len(c) for c in chunks])])
+    boxes = np.tile([0.0, 0.0, 0.0, *dims, 0.0], (12, 1))
+    edge = GroundTruthDatabase.from_arrays(np.concatenate(chunks), offsets, ["Car"] * 12, boxes)
+    for config in (ConstructionConfig(coverage=1.0), ConstructionConfig(mode="whole")):
+        for row in range(12):
+            cands = np.delete(np.arange(12), row)
+            scale = np.full(120, 30.0)
+            a, b = np.random.default_rng(row), np.random.default_rng(row)
+            expected = reference_construct(edge, row, cands, a, config, scale)
+            assert_same_as_reference(construct_object(edge, row, cands, b, config, scale), expected)
+
+
+def test_batches_take_the_index_layout_and_class_maxima_by_name(database):
+    rows = np.array([3, 61, 7, 70, 3])
+    width = 12
+    padded = np.full((len(rows), width), -1, dtype=np.int32)
+    lines = [candidates_of(database, row)[: 2 + 2 * k] for k, row in enumerate(rows)]
+    for k, line in enumerate(lines):
+        padded[k, : len(line)] = line
+    maxima = {"Car": class_max_counts(database, "Car")}  # Pedestrian: their own maxima
+    scales = [maxima.get(str(database.names[row])) for row in rows]
+    a, b = np.random.default_rng(4), np.random.default_rng(4)
+    batch = construct_objects(database, rows, padded, a, None, maxima)
+    for k, row in enumerate(rows):
+        single = construct_object(database, row, lines[k], b, None, scales[k])
+        np.testing.assert_array_equal(batch[k].points, single.points)
+        np.testing.assert_array_equal(batch[k].added_from, single.added_from)
+        assert batch[k].coverage == single.coverage
+    assert a.bit_generator.state == b.bit_generator.state
+    assert construct_objects(database, [], np.zeros((0, 5), np.int32), a) == []
+    with pytest.raises(DataError, match="candidate lists"):
+        construct_objects(database, rows, padded[:2], a)
+    with pytest.raises(DataError, match="class_max_counts"):
+        construct_objects(database, rows, padded, a, None, [None])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_threshold_sum_is_numpys_pairwise_sum(seed):
+    values = np.random.default_rng(seed).integers(0, 60, 700) / 37.0
+    for n in [*range(0, 140), 255, 256, 257, 300, 513, 700]:
+        assert _numpy_sum(values, n) == values[:n].sum(), n
+        if n:
+            assert _numpy_sum(values, n) / n == values[:n].mean(), n

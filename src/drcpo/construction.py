@@ -23,24 +23,26 @@ Partitions in which no object of the class has a point (class maximum 0) can nev
 they are left out of both the draw and the coverage fraction. Without ``class_max_counts`` the
 object's own largest partition count normalises its densities, which leaves the comparison with
 the mean, and so every decision, unchanged up to the candidate index's per-partition weighting.
+
+Implementation: :func:`construct_objects` builds a batch of objects in one compiled (numba) call
+that reads the candidates' points straight from the (memory-mapped) database and draws from the
+``Generator`` exactly as the plain numpy formulation does (``rng.integers(0, K, size)`` per
+iteration in ``partition`` mode, ``rng.permutation`` per object in ``whole`` mode), so results
+are bit-identical to it: same points in the same order, same thresholds (summed in numpy's
+pairwise order), same rng state afterwards. ``tests/test_construction.py`` keeps that
+formulation as the reference.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
 from drcpo.errors import ConfigError, DataError
-from drcpo.partitions import (
-    DEFAULT_MIRRORED,
-    Grid,
-    grid_for,
-    mirror_points,
-    partition_counts,
-)
+from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for
 
 MODES = ("partition", "whole")
 
@@ -145,153 +147,178 @@ def construct_object(
         :class:`ConstructedObject`. An object without candidates (or with
         ``max_iterations = 0``) comes back with its (mirrored) points and 0 iterations.
     """
+    return construct_objects(database, [row], [candidate_rows], rng, config, [class_max_counts])[0]
+
+
+def construct_objects(
+    database,
+    rows: Sequence[int] | np.ndarray,
+    candidate_rows: Sequence[np.ndarray] | np.ndarray,
+    rng: np.random.Generator,
+    config: ConstructionConfig | None = None,
+    class_max_counts: Mapping[str, np.ndarray] | Sequence[np.ndarray | None] | None = None,
+) -> list[ConstructedObject]:
+    """:func:`construct_object` for several objects in one compiled call.
+
+    The objects draw from ``rng`` one after the other, so the result (and ``rng``'s state
+    afterwards) is that of calling :func:`construct_object` on each in turn. Every input is
+    checked before anything is drawn.
+
+    Args:
+        database: a :class:`drcpo.database.GroundTruthDatabase`.
+        rows: ``(S,)`` database rows of the source objects.
+        candidate_rows: ``(S, K)`` candidate rows per object, ``-1`` padded (the candidate
+            index's ``candidates[rows]``), or ``S`` sequences of rows.
+        rng: the only source of randomness.
+        config: :class:`ConstructionConfig` (paper defaults when ``None``).
+        class_max_counts: per class name (the index's ``max_counts``; a class left out uses its
+            objects' own maxima), or per object (``None`` entries likewise), or ``None``.
+
+    Returns:
+        The :class:`ConstructedObject` of each row, in order. Their arrays are views into
+        arrays shared by the batch.
+    """
     config = config or ConstructionConfig()
     n_objects = len(database)
-    if not -n_objects <= int(row) < n_objects:
-        raise DataError(f"object row {row} is out of range for a database of {n_objects}")
-    row = int(row) % n_objects
-    name = str(database.names[row])
-    dims = np.asarray(database.boxes[row, 3:6], dtype=np.float64)
-    if not (np.isfinite(dims).all() and (dims > 0).all()):
-        raise DataError(f"database object {row} has a degenerate box size {dims.tolist()}")
-    candidates = _valid_candidates(candidate_rows, n_objects, row)
-    mirror = name in config.mirrored_classes
-    source = np.asarray(database.object_points(row))
-    source = mirror_points(source) if mirror else source.copy()
-    grid = config.grid(name)
-    if config.mode == "partition":
-        return _construct_partition(
-            database, source, dims, grid, candidates, rng, config, mirror, class_max_counts
-        )
-    return _construct_whole(
-        database, source, dims, grid, candidates, rng, config, mirror, class_max_counts
-    )
-
-
-def _valid_candidates(candidate_rows: np.ndarray, n_objects: int, row: int) -> np.ndarray:
-    rows = np.asarray(candidate_rows).reshape(-1)
-    if rows.size and not np.issubdtype(rows.dtype, np.integer):
-        raise DataError(f"candidate rows of object {row} must be integers, got {rows.dtype}")
-    rows = rows[rows >= 0].astype(np.int64)
-    if rows.size and rows.max() >= n_objects:
-        raise DataError(
-            f"candidate row {int(rows.max())} of object {row} is out of range for a database "
-            f"of {n_objects} objects (index built for another database?)"
-        )
-    return rows
-
-
-class _Densities:
-    """Partition counts of the growing object and the fixed threshold of the stop rule."""
-
-    def __init__(self, counts: np.ndarray, class_max_counts: np.ndarray | None) -> None:
-        n = len(counts)
-        if class_max_counts is None:
-            scale = np.full(n, float(max(counts.max(initial=0), 1)))
-        else:
-            scale = np.asarray(class_max_counts, dtype=np.float64).reshape(-1)
-            if len(scale) < n or (len(scale) > n and scale[n:].any()):
-                raise DataError(
-                    f"class_max_counts has {len(scale)} entries; the grid has {n} partitions"
-                )
-            scale = scale[:n]
-        self.fillable = scale > 0
-        self.scale = np.where(self.fillable, scale, 1.0)
-        self.counts = counts.astype(np.int64)
-        density = self.counts / self.scale
-        occupied = self.fillable & (self.counts > 0)
-        self.threshold = float(density[occupied].mean()) if occupied.any() else 0.0
-
-    def above(self) -> np.ndarray:
-        return self.fillable & (self.counts / self.scale > self.threshold)
-
-    def coverage(self) -> float:
-        fillable = int(self.fillable.sum())
-        return float(self.above().sum() / fillable) if fillable else 1.0
-
-    def deficient(self) -> np.ndarray:
-        return np.flatnonzero(self.fillable & ~self.above())
-
-
-def _construct_partition(
-    database, source, dims, grid, candidates, rng, config, mirror, class_max_counts
-) -> ConstructedObject:
-    source = source[_inside(source, dims, config.margin)]
-    densities = _Densities(partition_counts(source, dims, grid), class_max_counts)
-    initial = current = densities.coverage()
-    chunks, contributors, iterations = [source], [], 0
+    rows = _valid_rows(rows, n_objects)
+    dims = np.asarray(database.boxes, dtype=np.float64)[rows, 3:6]
+    degenerate = ~(np.isfinite(dims) & (dims > 0)).all(axis=1)
+    if degenerate.any():
+        k = int(np.argmax(degenerate))
+        raise DataError(f"database object {rows[k]} has a degenerate box size {dims[k].tolist()}")
+    candidates = _candidate_matrix(candidate_rows, rows, n_objects)
+    grids, mirror, scales, own_scale = _class_settings(database, rows, config, class_max_counts)
+    if len(rows) == 0:
+        return []
     points, offsets = _database_arrays(database)
-    while candidates.size and iterations < config.max_iterations and current < config.coverage:
-        deficient = densities.deficient()
-        drawn = candidates[rng.integers(0, len(candidates), size=len(deficient))]
-        gathered, per_pair = _gather_partition_points(
+    if config.mode == "partition":
+        out = _construct_partition(
             points,
             offsets,
-            drawn,
-            deficient,
+            rows,
+            candidates,
             dims,
-            np.asarray(grid, dtype=np.int64),
+            grids,
             mirror,
+            scales,
+            own_scale,
             float(config.margin),
+            config.max_iterations,
+            float(config.coverage),
+            rng,
         )
-        iterations += 1
-        densities.counts[deficient] += per_pair
-        chunks.append(gathered)
-        contributors.append(drawn[per_pair > 0])
-        current = densities.coverage()
-    return ConstructedObject(
-        points=np.concatenate(chunks) if len(chunks) > 1 else chunks[0],
-        dims=dims.copy(),
-        iterations=iterations,
-        added_from=_first_use(contributors),
-        coverage_initial=initial,
-        coverage=current,
+    else:
+        orders = _whole_orders(candidates, rng, config.max_iterations)
+        out = _construct_whole(
+            points, offsets, rows, orders, dims, grids, mirror, scales, own_scale, config.coverage
+        )
+    return _objects(*out)
+
+
+def _valid_rows(rows, n_objects: int) -> np.ndarray:
+    rows = np.asarray(rows).reshape(-1)
+    if rows.dtype.kind not in "iu":
+        rows = np.array([int(r) for r in rows.tolist()], dtype=np.int64)
+    outside = (rows < -n_objects) | (rows >= n_objects)
+    if outside.any():
+        row = rows[int(np.argmax(outside))]
+        raise DataError(f"object row {row} is out of range for a database of {n_objects}")
+    return rows.astype(np.int64) % max(n_objects, 1)
+
+
+def _candidate_matrix(candidate_rows, rows: np.ndarray, n_objects: int) -> np.ndarray:
+    """``int64 (S, K)`` candidate rows per object, ``-1`` padded (any negative is a pad)."""
+    if isinstance(candidate_rows, np.ndarray) and candidate_rows.ndim == 2:
+        if len(candidate_rows):
+            _check_integers(candidate_rows, rows[0] if len(rows) else -1)
+        matrix = candidate_rows.astype(np.int64, copy=False)
+    else:
+        lines = [np.asarray(line).reshape(-1) for line in candidate_rows]
+        if len(lines) == len(rows):
+            for row, line in zip(rows, lines, strict=True):
+                _check_integers(line, row)
+        matrix = np.full((len(lines), max(map(len, lines), default=0)), -1, dtype=np.int64)
+        for k, line in enumerate(lines):
+            matrix[k, : len(line)] = line
+    if len(matrix) != len(rows):
+        raise DataError(f"{len(matrix)} candidate lists for {len(rows)} objects")
+    if matrix.size and matrix.max() >= n_objects:
+        k = int(np.argmax((matrix >= n_objects).any(axis=1)))
+        raise DataError(
+            f"candidate row {int(matrix[k].max())} of object {rows[k]} is out of range for a "
+            f"database of {n_objects} objects (index built for another database?)"
+        )
+    return matrix
+
+
+def _check_integers(candidates: np.ndarray, row: int) -> None:
+    if candidates.size and not np.issubdtype(candidates.dtype, np.integer):
+        raise DataError(f"candidate rows of object {row} must be integers, got {candidates.dtype}")
+
+
+def _class_settings(database, rows, config, class_max_counts):
+    """Per object: grid ``(S, 3)``, mirrored ``(S,)``, density normalisers ``(S, P_max)`` and
+    whether to use the object's own maximum instead ``(S,)``."""
+    classes: dict[str, int] = {}
+    of_class = np.array(
+        [classes.setdefault(name, len(classes)) for name in database.names[rows].tolist()],
+        dtype=np.int64,
     )
+    grids = np.array([config.grid(name) for name in classes], dtype=np.int64).reshape(-1, 3)
+    mirror = np.array([name in config.mirrored_classes for name in classes], dtype=np.bool_)
+    n_cells = grids.prod(axis=1)
+    if class_max_counts is None or isinstance(class_max_counts, Mapping):
+        given = class_max_counts or {}
+        values = [given.get(name) for name in classes]
+        owner, cells = of_class, n_cells
+    else:
+        values = list(class_max_counts)
+        if len(values) != len(rows):
+            raise DataError(f"{len(values)} class_max_counts for {len(rows)} objects")
+        owner, cells = np.arange(len(rows)), n_cells[of_class]
+    scales = np.zeros((len(values), int(n_cells.max(initial=1))), dtype=np.float64)
+    own_scale = np.array([value is None for value in values], dtype=np.bool_)
+    for k in np.flatnonzero(~own_scale):
+        scales[k, : cells[k]] = _normaliser(values[k], int(cells[k]))
+    return grids[of_class], mirror[of_class], scales[owner], own_scale[owner]
 
 
-def _construct_whole(
-    database, source, dims, grid, candidates, rng, config, mirror, class_max_counts
-) -> ConstructedObject:
-    densities = _Densities(partition_counts(source, dims, grid), class_max_counts)
-    initial = current = densities.coverage()
-    chunks, contributors, iterations = [source], [], 0
-    order = rng.permutation(candidates)[: config.max_iterations] if candidates.size else candidates
-    for candidate in order:
-        if current >= config.coverage:
-            break
-        added = np.asarray(database.object_points(int(candidate)))
-        added = mirror_points(added) if mirror else added.copy()
-        iterations += 1
-        densities.counts += partition_counts(added, dims, grid)
-        chunks.append(added)
-        if len(added):
-            contributors.append(np.array([candidate], dtype=np.int64))
-        current = densities.coverage()
-    points = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
-    extent = 2.0 * np.abs(points[:, :3].astype(np.float64)).max(axis=0, initial=0.0)
-    return ConstructedObject(
-        points=points,
-        dims=np.maximum(dims, extent),
-        iterations=iterations,
-        added_from=_first_use(contributors),
-        coverage_initial=initial,
-        coverage=current,
-    )
+def _normaliser(values, n_cells: int) -> np.ndarray:
+    scale = np.asarray(values, dtype=np.float64).reshape(-1)
+    if len(scale) < n_cells or (len(scale) > n_cells and scale[n_cells:].any()):
+        raise DataError(
+            f"class_max_counts has {len(scale)} entries; the grid has {n_cells} partitions"
+        )
+    return scale[:n_cells]
 
 
-def _inside(points: np.ndarray, dims: np.ndarray, margin: float) -> np.ndarray:
-    """``bool (N,)``: canonical points within ``margin`` of the box (closed, float64)."""
-    half = dims / 2.0 + margin
-    xyz = np.abs(points[:, :3].astype(np.float64))
-    return (xyz <= half).all(axis=1)
+def _whole_orders(candidates: np.ndarray, rng: np.random.Generator, limit: int) -> np.ndarray:
+    """``int64 (S, <= limit)``: each object's candidates in drawn order (without replacement),
+    ``-1`` padded; one permutation per object with candidates, even when ``limit`` is 0."""
+    orders = np.full((len(candidates), min(limit, candidates.shape[1])), -1, dtype=np.int64)
+    for k, line in enumerate(candidates):
+        valid = line[line >= 0]
+        if valid.size:
+            order = rng.permutation(valid)[:limit]
+            orders[k, : len(order)] = order
+    return orders
 
 
-def _first_use(contributors: list[np.ndarray]) -> np.ndarray:
-    if not contributors:
-        return np.zeros(0, dtype=np.int64)
-    rows = np.concatenate(contributors).astype(np.int64)
-    _, first = np.unique(rows, return_index=True)
-    return rows[np.sort(first)]
+def _objects(points, point_offsets, dims, iterations, added, added_offsets, initial, final):
+    ends, added_ends = point_offsets.tolist(), added_offsets.tolist()
+    return [
+        ConstructedObject(
+            points=points[ends[k] : ends[k + 1]],
+            dims=dims[k],
+            iterations=rounds,
+            added_from=added[added_ends[k] : added_ends[k + 1]],
+            coverage_initial=before,
+            coverage=after,
+        )
+        for k, (rounds, before, after) in enumerate(
+            zip(iterations.tolist(), initial.tolist(), final.tolist(), strict=True)
+        )
+    ]
 
 
 def _database_arrays(database) -> tuple[np.ndarray, np.ndarray]:
@@ -299,53 +326,445 @@ def _database_arrays(database) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(database.points), np.asarray(database.offsets, dtype=np.int64)
 
 
-@numba.njit(cache=True, nogil=True)
-def _gather_partition_points(points, offsets, rows, cells, dims, grid, mirror, margin):
-    """Points of candidate ``rows[j]`` that fall in cell ``cells[j]`` of the source box.
+# Compiled kernels -------------------------------------------------------------------------
+# Points are referenced as 2 * (row in ``database.points``) + (1 for the mirror image) while
+# objects grow; the rows are copied out once at the end.
 
-    Same cell rule and float64 arithmetic as :func:`drcpo.partitions.partition_index`, applied
-    to each candidate point and (when ``mirror``) its mirror image; points more than ``margin``
-    outside the box are skipped. Returns the gathered rows ``(T, C)`` (mirror images have y
-    negated) and the number gathered per pair ``(len(rows),)``.
+
+@numba.njit(cache=True, nogil=True)
+def _construct_partition(
+    points,
+    offsets,
+    rows,
+    candidates,
+    dims,
+    grids,
+    mirror,
+    scales,
+    own_scale,
+    margin,
+    max_iterations,
+    coverage,
+    rng,
+):
+    """``partition`` mode for every object of ``rows`` in turn (see the module docstring).
+
+    Each iteration draws one candidate per deficient partition (ascending partition order, as
+    ``rng.integers(0, K, size)`` draws), then adds the points that each drawn candidate (and
+    its mirror image) has in that partition of the source box, in stored order, each mirror
+    image right after its point. Returns what :func:`_objects` takes.
     """
-    copies = 2 if mirror else 1
-    total = 0
-    for j in range(rows.shape[0]):
-        total += offsets[rows[j] + 1] - offsets[rows[j]]
-    out = np.empty((total * copies, points.shape[1]), dtype=points.dtype)
-    per_pair = np.zeros(rows.shape[0], dtype=np.int64)
+    n = rows.shape[0]
+    refs = np.empty(_capacity(offsets, rows), dtype=np.int64)
+    added = np.empty(64, dtype=np.int64)
+    n_refs = n_added = 0
+    ref_offsets, added_offsets, iterations, initial, final = _per_object(n)
+    slot = np.empty(offsets.shape[0] - 1, dtype=np.int64)  # see _add_once
+    pool = np.empty(candidates.shape[1], dtype=np.int64)
+    near = np.empty(1024, dtype=np.int64)
+    for s in range(n):
+        copies = 2 if mirror[s] else 1
+        counts = np.zeros(grids[s, 0] * grids[s, 1] * grids[s, 2], dtype=np.int64)
+        refs, n_refs = _add_source(
+            points, offsets, rows[s], copies, dims[s], grids[s], margin, counts, refs, n_refs
+        )
+        scale, fillable = _normalisers(counts, scales[s], own_scale[s])
+        threshold = _threshold(counts, scale, fillable)
+        current = initial[s] = _coverage(counts, scale, fillable, threshold)
+        n_pool = 0
+        for j in range(candidates.shape[1]):
+            if candidates[s, j] >= 0:
+                pool[n_pool] = candidates[s, j]
+                n_pool += 1
+        rounds = 0
+        while n_pool > 0 and rounds < max_iterations and current < coverage:
+            deficient = _deficient(counts, scale, fillable, threshold)
+            drawn = np.empty(deficient.shape[0], dtype=np.int64)
+            for j in range(drawn.shape[0]):
+                drawn[j] = pool[rng.integers(0, n_pool)]
+            for j in range(drawn.shape[0]):
+                cell = deficient[j]
+                before = n_refs
+                refs, n_refs, near = _gather(
+                    points,
+                    offsets,
+                    drawn[j],
+                    cell,
+                    copies,
+                    dims[s],
+                    grids[s],
+                    margin,
+                    refs,
+                    n_refs,
+                    near,
+                )
+                counts[cell] += n_refs - before
+                if n_refs > before:
+                    added, n_added = _add_once(added, n_added, added_offsets[s], drawn[j], slot)
+            rounds += 1
+            current = _coverage(counts, scale, fillable, threshold)
+        ref_offsets[s + 1], added_offsets[s + 1] = n_refs, n_added
+        iterations[s], final[s] = rounds, current
+    out = _copy_rows(points, refs, n_refs)
+    return out, ref_offsets, dims.copy(), iterations, added[:n_added], added_offsets, initial, final
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_source(points, offsets, row, copies, dims, grid, margin, counts, refs, n_refs):
+    """Adds the points of ``row`` within ``margin`` of the box (then, with 2 ``copies``, their
+    mirror images) and counts them in ``grid`` cells."""
+    d0, d1, d2 = dims[0], dims[1], dims[2]
     nx, ny, nz = grid[0], grid[1], grid[2]
-    hx, hy, hz = dims[0] / 2.0 + margin, dims[1] / 2.0 + margin, dims[2] / 2.0 + margin
-    k = 0
-    for j in range(rows.shape[0]):
-        target = cells[j]
-        tx = target // (ny * nz)
-        ty = (target // nz) % ny
-        tz = target % nz
-        for i in range(offsets[rows[j]], offsets[rows[j] + 1]):
-            x = np.float64(points[i, 0])
-            z = np.float64(points[i, 2])
-            if abs(x) > hx or abs(z) > hz:
-                continue
-            if _cell(x, dims[0], nx) != tx or _cell(z, dims[2], nz) != tz:
-                continue
-            for c in range(copies):
-                y = np.float64(points[i, 1]) if c == 0 else -np.float64(points[i, 1])
-                if abs(y) > hy or _cell(y, dims[1], ny) != ty:
-                    continue
-                out[k, :] = points[i, :]
-                if c == 1:
-                    out[k, 1] = -points[i, 1]
-                k += 1
-                per_pair[j] += 1
-    return out[:k], per_pair
+    hx, hy, hz = d0 / 2.0 + margin, d1 / 2.0 + margin, d2 / 2.0 + margin
+    start, stop = offsets[row], offsets[row + 1]
+    refs = _reserve(refs, n_refs + copies * (stop - start))
+    kept = 0
+    for i in range(start, stop):
+        x, y, z = _xyz(points, i, 0)
+        # A mirror image is inside exactly when its point is, in the same x and z cells.
+        if abs(x) <= hx and abs(y) <= hy and abs(z) <= hz:
+            refs[n_refs + kept] = 2 * i
+            kept += 1
+            cx, cz = _cell(x, d0, nx), _cell(z, d2, nz)
+            counts[(cx * ny + _cell(y, d1, ny)) * nz + cz] += 1
+            if copies == 2:
+                counts[(cx * ny + _cell(-y, d1, ny)) * nz + cz] += 1
+    if copies == 2:
+        for k in range(n_refs, n_refs + kept):
+            refs[k + kept] = refs[k] + 1
+    return refs, n_refs + copies * kept
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_once(added, n_added, first, row, slot):
+    """Appends ``row`` to ``added`` unless it is among ``added[first:n_added]``. ``slot[row]``
+    remembers where ``row`` was put; it is only trusted when ``added`` agrees, so ``slot``
+    needs no clearing (nor initialising) between objects."""
+    k = slot[row]
+    if first <= k < n_added and added[k] == row:
+        return added, n_added
+    added = _reserve(added, n_added + 1)
+    added[n_added] = row
+    slot[row] = n_added
+    return added, n_added + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather(points, offsets, row, cell, copies, dims, grid, margin, refs, n_refs, near):
+    """Appends to ``refs`` the points of ``row`` (and, with 2 ``copies``, their mirror images)
+    that lie in ``cell`` of a box of size ``dims`` cut by ``grid`` and within ``margin`` of the
+    box, in stored order. ``near`` is scratch space; returns ``(refs, n_refs, near)`` (either
+    may have been replaced by a longer copy)."""
+    d0, d1, d2 = dims[0], dims[1], dims[2]
+    nx, ny, nz = grid[0], grid[1], grid[2]
+    tx, ty, tz = cell // (ny * nz), (cell // nz) % ny, cell % nz
+    hx, hy, hz = d0 / 2.0 + margin, d1 / 2.0 + margin, d2 / 2.0 + margin
+    bx, by, bz = _band(tx, d0, nx, hx), _band(ty, d1, ny, hy), _band(tz, d2, nz, hz)
+    start, stop = offsets[row], offsets[row + 1]
+    refs = _reserve(refs, n_refs + copies * (stop - start))
+    near = _reserve(near, stop - start)
+    # First the points near the cell in x and z, without a branch (the outcome is a coin
+    # toss for a point, and mispredictions cost more than the test); then the exact test.
+    n_near = 0
+    for i in range(start, stop):
+        near[n_near] = i
+        n_near += np.int64(abs(np.float64(points[i, 0]) - bx[0]) <= bx[1]) & np.int64(
+            abs(np.float64(points[i, 2]) - bz[0]) <= bz[1]
+        )
+    for k in range(n_near):
+        i = near[k]
+        if not (
+            _in_band(points[i, 0], bx, tx, d0, nx, hx)
+            and _in_band(points[i, 2], bz, tz, d2, nz, hz)
+        ):
+            continue
+        y = np.float64(points[i, 1])
+        if _in_band(y, by, ty, d1, ny, hy):
+            refs[n_refs] = 2 * i
+            n_refs += 1
+        if copies == 2 and _in_band(-y, by, ty, d1, ny, hy):
+            refs[n_refs] = 2 * i + 1
+            n_refs += 1
+    return refs, n_refs, near
+
+
+@numba.njit(cache=True, nogil=True)
+def _construct_whole(points, offsets, rows, orders, dims, grids, mirror, scales, own_scale, goal):
+    """``whole`` mode for every object of ``rows``: the candidates of ``orders[s]`` (``-1``
+    padded) are added whole, source first, each object's points then their mirror images."""
+    n = rows.shape[0]
+    refs = np.empty(_capacity(offsets, rows), dtype=np.int64)
+    added = np.empty(64, dtype=np.int64)
+    n_refs = n_added = 0
+    ref_offsets, added_offsets, iterations, initial, final = _per_object(n)
+    slot = np.empty(offsets.shape[0] - 1, dtype=np.int64)  # see _add_once
+    out_dims = dims.copy()
+    for s in range(n):
+        copies = 2 if mirror[s] else 1
+        nx, ny, nz = grids[s, 0], grids[s, 1], grids[s, 2]
+        counts = np.zeros(nx * ny * nz, dtype=np.int64)
+        start = n_refs
+        refs, n_refs = _add_whole(
+            points, offsets, rows[s], copies, dims[s], grids[s], counts, refs, n_refs
+        )
+        scale, fillable = _normalisers(counts, scales[s], own_scale[s])
+        threshold = _threshold(counts, scale, fillable)
+        current = initial[s] = _coverage(counts, scale, fillable, threshold)
+        rounds = 0
+        for j in range(orders.shape[1]):
+            row = orders[s, j]
+            if row < 0 or current >= goal:
+                break
+            refs, n_refs = _add_whole(
+                points, offsets, row, copies, dims[s], grids[s], counts, refs, n_refs
+            )
+            rounds += 1
+            if offsets[row + 1] > offsets[row]:
+                added, n_added = _add_once(added, n_added, added_offsets[s], row, slot)
+            current = _coverage(counts, scale, fillable, threshold)
+        for axis in range(3):
+            extent = 2.0 * _largest_magnitude(points, refs, start, n_refs, axis)
+            # np.maximum: NaN wins
+            if not out_dims[s, axis] >= extent:
+                out_dims[s, axis] = extent
+        ref_offsets[s + 1], added_offsets[s + 1] = n_refs, n_added
+        iterations[s], final[s] = rounds, current
+    out = _copy_rows(points, refs, n_refs)
+    return out, ref_offsets, out_dims, iterations, added[:n_added], added_offsets, initial, final
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_whole(points, offsets, row, copies, dims, grid, counts, refs, n_refs):
+    """Adds all points of ``row`` (then their mirror images) and counts them in ``grid`` cells
+    (clipped, as :func:`drcpo.partitions.partition_index`)."""
+    start, stop = offsets[row], offsets[row + 1]
+    refs = _reserve(refs, n_refs + copies * (stop - start))
+    for c in range(copies):
+        for i in range(start, stop):
+            x, y, z = _xyz(points, i, c)
+            refs[n_refs] = 2 * i + c
+            n_refs += 1
+            counts[_flat_cell(x, y, z, dims[0], dims[1], dims[2], grid[0], grid[1], grid[2])] += 1
+    return refs, n_refs
+
+
+@numba.njit(cache=True, nogil=True)
+def _largest_magnitude(points, refs, start, stop, axis):
+    """``max |coordinate|`` over the referenced points, 0 when none, NaN when any is NaN."""
+    largest = 0.0
+    for t in range(start, stop):
+        value = abs(np.float64(points[refs[t] >> 1, axis]))
+        if value > largest or value != value:
+            largest = value
+            if value != value:
+                break
+    return largest
+
+
+@numba.njit(cache=True, nogil=True)
+def _per_object(n):
+    return (
+        np.zeros(n + 1, dtype=np.int64),
+        np.zeros(n + 1, dtype=np.int64),
+        np.zeros(n, dtype=np.int64),
+        np.zeros(n, dtype=np.float64),
+        np.zeros(n, dtype=np.float64),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _capacity(offsets, rows):
+    total = 1024
+    for row in rows:
+        total += 4 * (offsets[row + 1] - offsets[row])
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _reserve(buffer, size):
+    """``buffer``, or a copy at least twice as long when shorter than ``size``."""
+    if size <= buffer.shape[0]:
+        return buffer
+    grown = np.empty(max(size, 2 * buffer.shape[0]), dtype=buffer.dtype)
+    grown[: buffer.shape[0]] = buffer
+    return grown
+
+
+@numba.njit(cache=True, nogil=True)
+def _copy_rows(points, refs, count):
+    """The referenced rows ``(count, C)``; mirror images (odd references) have y negated."""
+    out = np.empty((count, points.shape[1]), dtype=points.dtype)
+    for t in range(count):
+        i = refs[t] >> 1
+        for c in range(points.shape[1]):
+            out[t, c] = points[i, c]
+        if refs[t] & 1:
+            out[t, 1] = -points[i, 1]
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _xyz(points, i, copy):
+    """float64 coordinates of point ``i`` (its mirror image when ``copy`` is 1)."""
+    y = np.float64(points[i, 1])
+    return np.float64(points[i, 0]), (-y if copy else y), np.float64(points[i, 2])
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _cell(value, size, count):
+    """The cell rule of :func:`drcpo.partitions.partition_index` along one axis."""
     cell = np.int64(np.floor((value + size / 2.0) / size * count))
     if cell < 0:
         return np.int64(0)
     if cell > count - 1:
         return np.int64(count - 1)
     return cell
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _flat_cell(x, y, z, d0, d1, d2, nx, ny, nz):
+    return (_cell(x, d0, nx) * ny + _cell(y, d1, ny)) * nz + _cell(z, d2, nz)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _band(cell, size, count, half):
+    """Where along one axis a coordinate may be (outer) and surely is (inner) in ``cell`` and
+    within ``half`` of the centre, as ``(outer_mid, outer_half, inner_mid, inner_half)``.
+
+    The cut between cells is ``cell * size / count - size / 2`` up to a few float64 roundings
+    of the cell rule; a guard of 1e-9 relative dwarfs them, and values between the two
+    intervals get the exact rule (:func:`_in_band`), so that most points cost no division.
+    """
+    lo = -half if cell == 0 else cell * size / count - size / 2.0
+    hi = half if cell == count - 1 else (cell + 1) * size / count - size / 2.0
+    guard = 1e-9 * (size + half)
+    return (lo + hi) / 2.0, (hi - lo) / 2.0 + guard, (lo + hi) / 2.0, (hi - lo) / 2.0 - guard
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _in_band(value, band, cell, size, count, half):
+    """``|value| <= half and _cell(value) == cell``, exactly (NaN is never inside).
+
+    One comparison per interval (``|value - mid| <= half width``): a pair of comparisons
+    becomes two branches, the first one a coin toss, which costs more than the whole test.
+    """
+    value = np.float64(value)
+    if not abs(value - band[0]) <= band[1]:
+        return False
+    if abs(value - band[2]) <= band[3]:
+        return True
+    return abs(value) <= half and _cell(value, size, count) == cell
+
+
+@numba.njit(cache=True, nogil=True)
+def _normalisers(counts, class_scale, own):
+    """Density normaliser per partition (1 where not fillable) and which are fillable."""
+    n = counts.shape[0]
+    fillable = np.ones(n, dtype=np.bool_)
+    if own:
+        largest = 1
+        for p in range(n):
+            largest = max(largest, counts[p])
+        return np.full(n, np.float64(largest)), fillable
+    scale = np.empty(n, dtype=np.float64)
+    for p in range(n):
+        fillable[p] = class_scale[p] > 0
+        scale[p] = class_scale[p] if fillable[p] else 1.0
+    return scale, fillable
+
+
+@numba.njit(cache=True, nogil=True)
+def _threshold(counts, scale, fillable):
+    """Mean density of the occupied fillable partitions, summed as ``numpy.mean`` sums."""
+    densities = np.empty(counts.shape[0], dtype=np.float64)
+    n = 0
+    for p in range(counts.shape[0]):
+        if fillable[p] and counts[p] > 0:
+            densities[n] = counts[p] / scale[p]
+            n += 1
+    return _numpy_sum(densities, n) / n if n else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _numpy_sum(values, n):
+    """``values[:n].sum()`` in numpy's pairwise order, so that thresholds equal
+    ``numpy.mean``'s bit for bit: blocks of up to 128 values are summed by :func:`_block_sum`,
+    longer runs split in two (the first half a multiple of 8) and the halves' sums added.
+    Iterative, because numba's cache cannot load recursive functions."""
+    if n <= 128:
+        return _block_sum(values, 0, n)
+    # Post-order walk of the split tree: a task is a run (start, length) or, with length -1,
+    # "add the last two sums".
+    starts = np.empty(256, dtype=np.int64)
+    lengths = np.empty(256, dtype=np.int64)
+    sums = np.empty(128, dtype=np.float64)
+    starts[0], lengths[0] = 0, n
+    n_tasks, n_sums = 1, 0
+    while n_tasks:
+        n_tasks -= 1
+        start, length = starts[n_tasks], lengths[n_tasks]
+        if length < 0:
+            n_sums -= 1
+            sums[n_sums - 1] += sums[n_sums]
+        elif length <= 128:
+            sums[n_sums] = _block_sum(values, start, length)
+            n_sums += 1
+        else:
+            first = length // 2
+            first -= first % 8
+            starts[n_tasks], lengths[n_tasks] = 0, -1
+            starts[n_tasks + 1], lengths[n_tasks + 1] = start + first, length - first
+            starts[n_tasks + 2], lengths[n_tasks + 2] = start, first
+            n_tasks += 3
+    return sums[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_sum(values, start, n):
+    """numpy's pairwise_sum for ``n <= 128`` values: 8 running sums, then the rest in turn."""
+    if n < 8:
+        total = 0.0
+        for i in range(start, start + n):
+            total += values[i]
+        return total
+    r0, r1, r2, r3 = values[start], values[start + 1], values[start + 2], values[start + 3]
+    r4, r5, r6, r7 = values[start + 4], values[start + 5], values[start + 6], values[start + 7]
+    i = start + 8
+    stop = start + n - n % 8
+    while i < stop:
+        r0, r1, r2, r3 = r0 + values[i], r1 + values[i + 1], r2 + values[i + 2], r3 + values[i + 3]
+        r4, r5, r6, r7 = (
+            r4 + values[i + 4],
+            r5 + values[i + 5],
+            r6 + values[i + 6],
+            r7 + values[i + 7],
+        )
+        i += 8
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for j in range(i, start + n):
+        total += values[j]
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _coverage(counts, scale, fillable, threshold):
+    """Fraction of fillable partitions with density above ``threshold`` (1 when none)."""
+    above = total = 0
+    for p in range(counts.shape[0]):
+        if fillable[p]:
+            total += 1
+            if counts[p] / scale[p] > threshold:
+                above += 1
+    return above / total if total else 1.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _deficient(counts, scale, fillable, threshold):
+    """Fillable partitions not above ``threshold``, ascending."""
+    cells = np.empty(counts.shape[0], dtype=np.int64)
+    n = 0
+    for p in range(counts.shape[0]):
+        if fillable[p] and not counts[p] / scale[p] > threshold:
+            cells[n] = p
+            n += 1
+    return cells[:n]
