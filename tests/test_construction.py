@@ -430,7 +430,11 @@ def reference_case(database, config, seed, count=24):
         kind = rng.integers(0, 4)
         if kind == 1:
             scale = np.where(rng.uniform(size=len(scale)) < 0.4, 0, scale)
-        scales.append({0: scale, 1: scale, 2: np.zeros_like(scale), 3: None}[int(kind)])
+        elif kind == 2:
+            scale = np.zeros_like(scale)
+        elif kind == 3:
+            scale = None
+        scales.append(scale)
     return rows, candidates, scales
 
 
@@ -443,7 +447,9 @@ def class_max_counts_for(database, name, grid, mirrored):
     return np.max(counts, axis=0)
 
 
-@pytest.mark.parametrize("config", REFERENCE_CONFIGS, ids=repr)
+@pytest.mark.parametrize(
+    "config", REFERENCE_CONFIGS, ids=[f"{c.mode}{k}" for k, c in enumerate(REFERENCE_CONFIGS)]
+)
 def test_matches_the_reference_implementation(database, config):
     rows, candidates, scales = reference_case(database, config, REFERENCE_CONFIGS.index(config))
     expected_rng, single_rng, batch_rng = (np.random.default_rng(11) for _ in range(3))
