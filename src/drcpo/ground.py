@@ -198,26 +198,18 @@ class GroundModel:
         xy = _check_xy(xy)
         if self.heights is None:
             return xy @ self.plane[:2] + self.plane[2]
-        nx, ny = self.heights.shape
-        flat = self.heights.reshape(-1)
-        x, y = xy[:, 0], xy[:, 1]
-        # Continuous cell coordinates of the query, measured from the first cell's centre.
-        gx = (x - self.origin[0]) / self.cell_size - 0.5
-        gy = (y - self.origin[1]) / self.cell_size - 0.5
-        cx = np.clip(gx, 0.0, nx - 1)
-        cy = np.clip(gy, 0.0, ny - 1)
-        lx = np.minimum(cx.astype(np.int64), max(nx - 2, 0))
-        ly = np.minimum(cy.astype(np.int64), max(ny - 2, 0))
-        fx, fy = cx - lx, cy - ly
-        hx = np.minimum(lx + 1, nx - 1) * ny
-        hy = np.minimum(ly + 1, ny - 1)
-        lx = lx * ny
-        bottom = flat[lx + ly] * (1 - fy) + flat[lx + hy] * fy
-        top = flat[hx + ly] * (1 - fy) + flat[hx + hy] * fy
-        inside = bottom * (1 - fx) + top * fx
-        # Beyond the grid, continue from the edge along the plane's slope.
-        a, b = self.plane[0] * self.cell_size, self.plane[1] * self.cell_size
-        return inside + (gx - cx) * a + (gy - cy) * b
+        out = np.empty(len(xy))
+        _interpolate(
+            xy,
+            self.heights,
+            float(self.origin[0]),
+            float(self.origin[1]),
+            float(self.cell_size),
+            float(self.plane[0] * self.cell_size),
+            float(self.plane[1] * self.cell_size),
+            out,
+        )
+        return out
 
     def is_ground(self, points: np.ndarray, tolerance: float = 0.2) -> np.ndarray:
         """``bool (N,)``: points at most ``tolerance`` metres above the ground estimate.
@@ -228,6 +220,30 @@ class GroundModel:
         if points.ndim != 2 or points.shape[1] < 3:
             raise DataError(f"points must have shape (N, 3+), got {points.shape}")
         return points[:, 2] <= self.height_at(points[:, :2]) + tolerance
+
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate(xy, heights, x0, y0, cell_size, slope_x, slope_y, out):  # pragma: no cover
+    # Bilinear between cell centres; beyond the grid, on from the edge along the plane's
+    # slope (per cell: slope_x, slope_y).
+    nx, ny = heights.shape
+    for k in range(xy.shape[0]):
+        # Continuous cell coordinates of the query, measured from the first cell's centre.
+        gx = (xy[k, 0] - x0) / cell_size - 0.5
+        gy = (xy[k, 1] - y0) / cell_size - 0.5
+        if np.isnan(gx) or np.isnan(gy):
+            out[k] = np.nan
+            continue
+        cx = min(max(gx, 0.0), nx - 1.0)
+        cy = min(max(gy, 0.0), ny - 1.0)
+        lx = min(int(cx), max(nx - 2, 0))
+        ly = min(int(cy), max(ny - 2, 0))
+        fx, fy = cx - lx, cy - ly
+        hx, hy = min(lx + 1, nx - 1), min(ly + 1, ny - 1)
+        bottom = heights[lx, ly] * (1 - fy) + heights[lx, hy] * fy
+        top = heights[hx, ly] * (1 - fy) + heights[hx, hy] * fy
+        inside = bottom * (1 - fx) + top * fx
+        out[k] = inside + (gx - cx) * slope_x + (gy - cy) * slope_y
 
 
 def road_plane_to_lidar(plane: np.ndarray, calib) -> np.ndarray:
@@ -319,16 +335,13 @@ def _plane_hypotheses(seeds, picks, cos_tilt):  # pragma: no cover - numba
 
 @numba.njit(cache=True, nogil=True)
 def _most_inliers(distance, offsets, limit):  # pragma: no cover - numba
-    # Column with the most |distance - offset| <= limit (the first on ties).
-    best, best_count = 0, -1
-    for h in range(distance.shape[1]):
-        count = 0
-        for s in range(distance.shape[0]):
+    # Column with the most |distance - offset| <= limit (the first on ties), row by row.
+    counts = np.zeros(distance.shape[1], np.int64)
+    for s in range(distance.shape[0]):
+        for h in range(distance.shape[1]):
             if abs(distance[s, h] - offsets[h]) <= limit[h]:
-                count += 1
-        if count > best_count:
-            best, best_count = h, count
-    return best
+                counts[h] += 1
+    return np.argmax(counts)
 
 
 def _least_squares_plane(xyz: np.ndarray) -> np.ndarray:
@@ -365,20 +378,21 @@ def _bin_lowest_points(
 @numba.njit(cache=True, nogil=True)
 def _bin_lowest(points, limit, scale, cell_size):  # pragma: no cover - numba
     # Two passes: the usable points' bounds fix the grid, then each cell keeps its lowest.
-    first = True
-    x_min = x_max = y_min = y_max = points[0, 0] if points.shape[0] else limit
+    x_min = y_min = limit * 2  # beyond every usable coordinate
+    x_max = y_max = -limit * 2
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         # NaN fails every comparison, so the range test also drops non-finite x and y.
-        if abs(x) <= limit and abs(y) <= limit and np.isfinite(z):
-            if first:
-                x_min = x_max = x
-                y_min = y_max = y
-                first = False
-            else:
-                x_min, x_max = min(x_min, x), max(x_max, x)
-                y_min, y_max = min(y_min, y), max(y_max, y)
-    if first:
+        if abs(x) <= limit and abs(y) <= limit and z - z == 0:
+            if x < x_min:
+                x_min = x
+            if x > x_max:
+                x_max = x
+            if y < y_min:
+                y_min = y
+            if y > y_max:
+                y_max = y
+    if x_min > x_max:
         return None
     origin = np.empty(2)
     origin[0] = math.floor(np.float64(x_min) / cell_size) * cell_size
@@ -393,7 +407,7 @@ def _bin_lowest(points, limit, scale, cell_size):  # pragma: no cover - numba
     low_y = np.full(nx * ny, np.inf)
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        if not (abs(x) <= limit and abs(y) <= limit and np.isfinite(z)):
+        if not (abs(x) <= limit and abs(y) <= limit and z - z == 0):
             continue
         cell = np.int64(np.int32((x - offset[0]) * scale)) * ny + np.int32((y - offset[1]) * scale)
         if z <= low_z[cell]:
@@ -482,14 +496,22 @@ def _fill_heights(
     least x index.
     """
     heights = np.empty(minima.shape)
-    _borrow_heights(
-        minima, ground, plane_z, float(config.cell_size), float(config.fill_radius), heights
-    )
+    _borrow_heights(minima, ground, plane_z, _squared_reach(config), heights)
     return heights
 
 
+def _squared_reach(config: GroundConfig) -> int:
+    """Largest squared distance ``d2`` (cells, an integer) with
+    ``sqrt(d2) * cell_size <= fill_radius`` in float64, as scipy's distances compare."""
+    cs, radius = float(config.cell_size), float(config.fill_radius)
+    reach = int(min((radius / cs) ** 2, 2.0**62)) + 2
+    while reach >= 0 and not math.sqrt(float(reach)) * cs <= radius:
+        reach -= 1
+    return reach
+
+
 @numba.njit(cache=True, nogil=True)
-def _borrow_heights(minima, ground, plane_z, cell_size, fill_radius, heights):  # pragma: no cover
+def _borrow_heights(minima, ground, plane_z, reach, heights):  # pragma: no cover - numba
     nx, ny = ground.shape
     # Along x: the nearest ground cell of the same column (ties: the lower x), in two sweeps
     # over whole rows (the grid is row-major).
@@ -519,7 +541,7 @@ def _borrow_heights(minima, ground, plane_z, cell_size, fill_radius, heights):  
         for q in range(ny):
             if nearest_x[i, q] < 0:
                 continue
-            fq = (i - nearest_x[i, q]) ** 2
+            fq = (i - nearest_x[i, q]) * (i - nearest_x[i, q])
             while True:
                 if top < 0:
                     top = 0
@@ -543,8 +565,8 @@ def _borrow_heights(minima, ground, plane_z, cell_size, fill_radius, heights):  
                 continue
             q = site[k]
             r = nearest_x[i, q]
-            distance = math.sqrt(np.float64((r - i) * (r - i)) + np.float64((q - j) * (q - j)))
-            if distance * cell_size <= fill_radius:
+            # sqrt(d2) * cell_size <= fill_radius, with d2 an integer: d2 <= reach (exact).
+            if (r - i) * (r - i) + (q - j) * (q - j) <= reach:
                 heights[i, j] = minima[r, q] - plane_z[r, q] + plane_z[i, j]
             else:
                 heights[i, j] = plane_z[i, j]

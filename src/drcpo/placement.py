@@ -297,15 +297,17 @@ def _members(points, boxes, cos, sin, max_cells):  # pragma: no cover - numba
         reach[m, 1] = (boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 * (1.0 + 1e-9) + 1e-6
     x0, x1 = np.min(boxes[:, 0] - reach[:, 0]), np.max(boxes[:, 0] + reach[:, 0])
     y0, y1 = np.min(boxes[:, 1] - reach[:, 1]), np.max(boxes[:, 1] + reach[:, 1])
-    cell = max(0.5, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
-    nx, ny = int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1
+    # Cells are found by multiplying with the inverse size (monotone, like division, so a
+    # point inside a box lands in a cell its bounds cover).
+    per_metre = 1.0 / max(0.5, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
+    nx, ny = int((x1 - x0) * per_metre) + 1, int((y1 - y0) * per_metre) + 1
     spans = np.empty((count, 4), np.int64)
     start = np.zeros(nx * ny + 1, np.int64)
     for m in range(count):
-        spans[m, 0] = int((boxes[m, 0] - reach[m, 0] - x0) / cell)
-        spans[m, 1] = min(int((boxes[m, 0] + reach[m, 0] - x0) / cell), nx - 1)
-        spans[m, 2] = int((boxes[m, 1] - reach[m, 1] - y0) / cell)
-        spans[m, 3] = min(int((boxes[m, 1] + reach[m, 1] - y0) / cell), ny - 1)
+        spans[m, 0] = int((boxes[m, 0] - reach[m, 0] - x0) * per_metre)
+        spans[m, 1] = min(int((boxes[m, 0] + reach[m, 0] - x0) * per_metre), nx - 1)
+        spans[m, 2] = int((boxes[m, 1] - reach[m, 1] - y0) * per_metre)
+        spans[m, 3] = min(int((boxes[m, 1] + reach[m, 1] - y0) * per_metre), ny - 1)
         for i in range(spans[m, 0], spans[m, 1] + 1):
             for j in range(spans[m, 2], spans[m, 3] + 1):
                 start[i * ny + j + 1] += 1
@@ -325,7 +327,7 @@ def _members(points, boxes, cos, sin, max_cells):  # pragma: no cover - numba
         px, py = np.float64(points[i, 0]), np.float64(points[i, 1])
         if not (x0 <= px <= x1 and y0 <= py <= y1):  # NaN fails too
             continue
-        c = int((px - x0) / cell) * ny + int((py - y0) / cell)
+        c = int((px - x0) * per_metre) * ny + int((py - y0) * per_metre)
         if start[c] == start[c + 1]:
             continue
         pz = np.float64(points[i, 2])
@@ -380,7 +382,7 @@ def _overlap(ax, ay, al, aw, ca, sa, bx, by, bl, bw, cb, sb):  # pragma: no cove
     # Interiors intersect <=> on every edge normal of either footprint the projections overlap
     # by more than zero (convex polygons: a separating line can be taken along an edge).
     dx, dy = bx - ax, by - ay
-    reach = math.hypot(al, aw) / 2.0 + math.hypot(bl, bw) / 2.0
+    reach = math.sqrt(al * al + aw * aw) / 2.0 + math.sqrt(bl * bl + bw * bw) / 2.0
     if dx * dx + dy * dy >= reach * reach:
         return False
     if abs(dx * ca + dy * sa) >= al / 2.0 + _projected_half(ca, sa, bl, bw, cb, sb):
@@ -420,15 +422,27 @@ def _draw_positions(
     boxes: np.ndarray, rows: np.ndarray, rng: np.random.Generator, config: PlacementConfig
 ) -> None:
     """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit)."""
-    cos, sin = np.abs(np.cos(boxes[rows, 6])), np.abs(np.sin(boxes[rows, 6]))
-    dx, dy = boxes[rows, 3], boxes[rows, 4]
-    extent = np.column_stack([cos * dx + sin * dy, sin * dx + cos * dy]) / 2.0
-    low = np.array([config.x_range[0], config.y_range[0]]) + extent
-    high = np.array([config.x_range[1], config.y_range[1]]) - extent
     u = rng.uniform(0.0, 1.0, (len(rows), 2))
-    centre = low + u * (high - low)
-    centre[(low > high).any(axis=1)] = np.nan
-    boxes[rows, :2] = centre
+    heading = boxes[rows, 6]
+    (x0, x1), (y0, y1) = config.x_range, config.y_range
+    _centres(boxes, rows, np.cos(heading), np.sin(heading), u, x0, x1, y0, y1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1):  # pragma: no cover - numba
+    # Uniform over the centres whose footprint's bounds (half extents) stay in the area.
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        c, s = abs(cos[k]), abs(sin[k])
+        reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
+        reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
+        low_x, low_y = x0 + reach_x, y0 + reach_y
+        high_x, high_y = x1 - reach_x, y1 - reach_y
+        if low_x > high_x or low_y > high_y:
+            boxes[r, 0] = boxes[r, 1] = np.nan
+        else:
+            boxes[r, 0] = low_x + u[k, 0] * (high_x - low_x)
+            boxes[r, 1] = low_y + u[k, 1] * (high_y - low_y)
 
 
 def _in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:
