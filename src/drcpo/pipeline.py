@@ -979,9 +979,8 @@ class DRCPO(Transform):
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        result = placement.place_objects(
-            frame, dims, source, rng, self._placement[fov], frame_ground(frame)
-        )
+        # No ground given: place_objects estimates it (on a second core while it draws poses).
+        result = placement.place_objects(frame, dims, source, rng, self._placement[fov])
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))

@@ -21,6 +21,8 @@ Objects are tried up to ``max_tries`` times (a fresh pose each time); the paper 
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba
@@ -166,7 +168,10 @@ def place_objects(
     dims = _check_dims(dims)
     source_z = _source_heights(source_boxes, len(dims), config)
     if ground is None:
-        ground = frame_ground(frame)
+        # On a second core the ground is estimated while the first poses are drawn and
+        # checked against the frame's boxes (which needs no heights).
+        pool = _helper_pool()
+        ground = frame_ground(frame) if pool is None else pool.submit(frame_ground, frame)
     obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
     placed = np.full((len(dims), 7), np.nan)
     reasons = np.full(len(dims), "", dtype=object)
@@ -179,7 +184,7 @@ def place_objects(
             break
         attempts += len(pending)
         boxes = sample_poses(dims[pending], rng, config)
-        verdict = _judge(boxes, pending, source_z, occupied, obstacles, ground, config)
+        verdict = _judge(boxes, pending, source_z, occupied, obstacles, config)
         for reason in REASONS:
             rejected[reason] += int((verdict == reason).sum())
         reasons[pending] = verdict
@@ -203,7 +208,6 @@ def _judge(
     source_z: np.ndarray | None,
     occupied: np.ndarray,
     obstacles: _Obstacles,
-    ground: GroundModel,
     config: PlacementConfig,
 ) -> np.ndarray:
     """Set each box's height and return its verdict: ``""`` (placed) or a rejection reason."""
@@ -211,14 +215,15 @@ def _judge(
     fits = np.isfinite(boxes[:, 0])
     verdict[~fits] = "out_of_range"
     live = np.flatnonzero(fits)
+    hit = np.zeros(len(live), dtype=bool)
+    if len(occupied) and len(live):  # footprints only: no heights needed yet
+        hit = bev_collisions(boxes[live], occupied).any(axis=1)
     if config.height_mode == "ground":
-        boxes[live, 2] = ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
+        boxes[live, 2] = obstacles.ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
     else:
         boxes[live, 2] = source_z[pending[live]]
-    if len(occupied) and len(live):
-        hit = bev_collisions(boxes[live], occupied).any(axis=1)
-        verdict[live[hit]] = "collision"
-        live = live[~hit]
+    verdict[live[hit]] = "collision"
+    live = live[~hit]
     blocked = obstacles.count(boxes[live]) > config.max_nonground_points
     verdict[live[blocked]] = "obstacle"
     live = live[~blocked]
@@ -239,10 +244,17 @@ class _Obstacles:
     ground, with :meth:`GroundModel.is_ground`.
     """
 
-    def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float) -> None:
+    def __init__(self, points: np.ndarray, ground: GroundModel | Future, tolerance: float) -> None:
+        """``ground``: the model, or the future of one (being estimated on another thread)."""
         self.points = points
-        self.ground = ground
+        self._ground = ground
         self.tolerance = tolerance
+
+    @property
+    def ground(self) -> GroundModel:
+        if isinstance(self._ground, Future):
+            self._ground = self._ground.result()
+        return self._ground
 
     def count(self, boxes: np.ndarray) -> np.ndarray:
         """Non-ground frame points inside each of ``boxes`` ``(M, 7)``: ``int64 (M,)``."""
@@ -494,6 +506,27 @@ def _source_heights(
     if not np.isfinite(source_boxes[:, 2]).all():
         raise DataError("source_boxes hold a non-finite z")
     return source_boxes[:, 2]
+
+
+_POOL: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _helper_pool() -> ThreadPoolExecutor | None:
+    """A persistent one-thread pool for overlapping work (a new one after a fork), or ``None``
+    when this process may use only one CPU (a data-loader worker pinned to one core).
+
+    Starting a thread per frame would cost as much as the work it overlaps.
+    """
+    global _POOL
+    try:
+        if len(os.sched_getaffinity(0)) < 2:
+            return None
+    except AttributeError:  # not on Linux
+        if (os.cpu_count() or 1) < 2:
+            return None
+    if _POOL is None or _POOL[0] != os.getpid():
+        _POOL = (os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="drcpo-placement"))
+    return _POOL[1]
 
 
 def frame_ground(frame: Frame) -> GroundModel:
