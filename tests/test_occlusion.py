@@ -336,6 +336,31 @@ def test_self_occlusion_uses_the_box_diagonal():
         self_occlusion(points, np.zeros(7))
 
 
+@pytest.mark.parametrize("method", ["reference", "auto"])
+def test_objects_take_the_certified_hull_with_qhull_s_answer(method, monkeypatch):
+    rng = np.random.default_rng(13)
+    jobs = []
+    for _ in range(12):
+        centre = rng.uniform([3, -30, -1.5], [60, 30, -0.5])
+        box = np.array([*centre, *rng.uniform([0.5, 0.5, 1], [5, 2.5, 3]), rng.uniform(-3, 3)])
+        points = _box_surface(rng, int(rng.integers(50, 1500)), box[:3], box[3:6], box[6])
+        copies = points[rng.integers(0, len(points), 5)]  # exact duplicates
+        jobs.append((np.vstack([points, copies]).astype(np.float32), box))
+    answered = []
+    real = occlusion.hpr_hull_visible
+
+    def spy(*args, **kwargs):
+        answered.append(real(*args, **kwargs) is not None)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(occlusion, "hpr_hull_visible", spy)
+    got = [self_occlusion(points, box, method=method) for points, box in jobs]
+    assert len(answered) == len(jobs) and sum(answered) >= len(jobs) - 1
+    monkeypatch.setattr(occlusion, "hpr_hull_visible", lambda *args, **kwargs: None)
+    for (points, box), mask in zip(jobs, got, strict=True):
+        np.testing.assert_array_equal(mask, self_occlusion(points, box, method=method))
+
+
 @pytest.mark.parametrize("preset", sorted(HPR_PRESETS))
 def test_external_occlusion_uses_the_preset(preset):
     rng = np.random.default_rng(13)
