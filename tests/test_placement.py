@@ -441,7 +441,10 @@ def test_occlusion_map_matches_a_full_z_buffer(rng):
     shares = []
     for cleared in (None, boxes[::3]):
         for tolerance in (0.5, 0.0, -0.3):
-            share = OcclusionMap(points, viewpoint, tolerance, cleared=cleared).occluded(boxes)
+            z_buffer = OcclusionMap(points, viewpoint, tolerance)
+            if tolerance > 0:
+                z_buffer.prepare()  # else prepared by the query
+            share = z_buffer.occluded(boxes, cleared=cleared)
             np.testing.assert_array_equal(
                 share, numpy_occluded(points, viewpoint, boxes, cleared, tolerance)
             )

@@ -514,21 +514,25 @@ def _squared_reach(config: GroundConfig) -> int:
 def _borrow_heights(minima, ground, plane_z, reach, heights):  # pragma: no cover - numba
     nx, ny = ground.shape
     # Along x: the nearest ground cell of the same column (ties: the lower x), in two sweeps
-    # over whole rows (the grid is row-major).
+    # over whole rows (the grid is row-major). Only those within reach matter: a farther one
+    # can neither be near nor tie with a near one.
     nearest_x = np.empty((nx, ny), np.int64)
     seen = np.full(ny, -1, np.int64)
     for i in range(nx):
         for j in range(ny):
             if ground[i, j]:
                 seen[j] = i
-            nearest_x[i, j] = seen[j]
+            before = seen[j]
+            near = before >= 0 and (i - before) * (i - before) <= reach
+            nearest_x[i, j] = before if near else -1
     seen[:] = -1
     for i in range(nx - 1, -1, -1):
         for j in range(ny):
             if ground[i, j]:
                 seen[j] = i
             after, before = seen[j], nearest_x[i, j]
-            if after >= 0 and (before < 0 or after - i < i - before):
+            near = after >= 0 and (after - i) * (after - i) <= reach
+            if near and (before < 0 or after - i < i - before):
                 nearest_x[i, j] = after
     # Along y: the lower envelope of the columns' parabolas (j - q)^2 + (i - x_q)^2, with
     # exact rational breakpoints; at a breakpoint the lower column wins.
@@ -562,6 +566,9 @@ def _borrow_heights(minima, ground, plane_z, reach, heights):  # pragma: no cove
                 k += 1
             if ground[i, j]:
                 heights[i, j] = minima[i, j]
+                continue
+            if top < 0:  # no ground cell within reach of this row
+                heights[i, j] = plane_z[i, j]
                 continue
             q = site[k]
             r = nearest_x[i, q]

@@ -148,7 +148,7 @@ def place_objects(
     source_boxes: np.ndarray | None,
     rng: np.random.Generator,
     config: PlacementConfig | None = None,
-    ground: GroundModel | None = None,
+    ground: GroundModel | Future | None = None,
 ) -> PlacementResult:
     """Place objects of sizes ``dims`` ``(K, 3)`` at random, collision- and obstacle-free.
 
@@ -160,18 +160,16 @@ def place_objects(
             with ``height_mode="source"`` (may be ``None`` otherwise).
         rng: the only source of randomness.
         config: :class:`PlacementConfig` (defaults when ``None``).
-        ground: the frame's :class:`GroundModel`; estimated from the frame's points (with its
-            ``plane`` and ``calib`` metadata, when both are present) when ``None``.
+        ground: the frame's :class:`GroundModel` (or the future of one, see
+            :func:`start_frame_ground`); estimated from the frame's points (with its ``plane``
+            and ``calib`` metadata, when both are present) when ``None``.
     """
     config = config or PlacementConfig()
     frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
     dims = _check_dims(dims)
     source_z = _source_heights(source_boxes, len(dims), config)
     if ground is None:
-        # On a second core the ground is estimated while the first poses are drawn and
-        # checked against the frame's boxes (which needs no heights).
-        pool = _helper_pool()
-        ground = frame_ground(frame) if pool is None else pool.submit(frame_ground, frame)
+        ground = start_frame_ground(frame)
     obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
     placed = np.full((len(dims), 7), np.nan)
     reasons = np.full(len(dims), "", dtype=object)
@@ -529,6 +527,14 @@ def _helper_pool() -> ThreadPoolExecutor | None:
     return _POOL[1]
 
 
+def start_frame_ground(frame: Frame) -> GroundModel | Future:
+    """:func:`frame_ground` of ``frame``: on a second core, started and returned as a future
+    (the first poses are drawn and checked against the frame's boxes, which needs no heights,
+    meanwhile), else computed now."""
+    pool = _helper_pool()
+    return frame_ground(frame) if pool is None else pool.submit(frame_ground, frame)
+
+
 def frame_ground(frame: Frame) -> GroundModel:
     """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
 
@@ -551,15 +557,15 @@ class OcclusionMap:
     occlude nothing either.
 
     The buffer is filled lazily, only in the cells the queried boxes' samples fall in, and only
-    with the points nearer than those samples: one pass over the points per query, most of them
-    set aside by a cheap direction test (no trigonometry) before their cell is computed.
+    with the points that may hide a sample there: one pass over the points per query, most of
+    them set aside by their direction (a pseudo-angle bin and a slope, no trigonometry) before
+    their cell is computed. :meth:`prepare` computes those directions once (say, on a thread
+    that would otherwise wait); :meth:`occluded` does when they are missing.
 
     Args:
-        points: ``(N, 3+)`` points, metres (not copied).
+        points: ``(N, 3+)`` points, metres (not copied; do not modify them while querying).
         viewpoint: ``(3,)`` sensor position, metres.
         depth_tolerance: metres a point must lie in front of a sample to hide it.
-        cleared: ``(M, 7)`` boxes whose points are left out (the frame's points inside placed
-            boxes are removed to make room for the objects).
     """
 
     AZIMUTH_STEP = math.radians(0.2)
@@ -569,56 +575,84 @@ class OcclusionMap:
     ROWS = math.ceil(math.pi / ELEVATION_STEP) + 1
 
     def __init__(
-        self,
-        points: np.ndarray,
-        viewpoint: np.ndarray,
-        depth_tolerance: float = 0.5,
-        *,
-        cleared: np.ndarray | None = None,
+        self, points: np.ndarray, viewpoint: np.ndarray, depth_tolerance: float = 0.5
     ) -> None:
         self.points = np.asarray(points)
         if self.points.ndim != 2 or self.points.shape[1] < 3:
             raise DataError(f"points must have shape (N, 3+), got {self.points.shape}")
         self.viewpoint = np.asarray(viewpoint, dtype=np.float64).reshape(3)
         self.tolerance = depth_tolerance
-        cleared = np.zeros((0, 7)) if cleared is None else cleared
-        self.cleared = np.asarray(cleared, dtype=np.float64).reshape(-1, 7)
-
-    def occluded(self, boxes: np.ndarray) -> np.ndarray:
-        """``float64 (M,)``: share of each box's sensor-facing surface samples occluded."""
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        share = np.zeros(len(boxes))
-        if len(boxes) == 0:
-            return share
         # The cell arithmetic is float32, as the azimuth and elevation always were.
-        constants = np.array(
+        self._constants = np.array(
             [
                 math.pi,
                 math.pi / 2,
                 self.AZIMUTH_STEP,
                 self.ELEVATION_STEP,
-                self.tolerance,
+                depth_tolerance,
                 *self.viewpoint,
             ],
             dtype=np.float32,
         )
+        self._directions: tuple[np.ndarray, np.ndarray] | None = None
+
+    def prepare(self) -> OcclusionMap:
+        """Compute each point's direction bin and slope (see :meth:`occluded`); returns self."""
+        if self._directions is None:
+            bins = np.empty(len(self.points), np.int16)
+            slopes = np.empty(len(self.points), np.float32)
+            _point_directions(self.points, self._constants, bins, slopes)
+            self._directions = bins, slopes
+        return self
+
+    def occluded(self, boxes: np.ndarray, cleared: np.ndarray | None = None) -> np.ndarray:
+        """``float64 (M,)``: share of each ``(M, 7)`` box's sensor-facing surface samples
+        occluded, leaving out the points inside the ``cleared`` boxes ``(C, 7)`` (the frame's
+        points inside placed boxes are removed to make room for the objects)."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        cleared = np.asarray(np.zeros((0, 7)) if cleared is None else cleared, np.float64)
+        cleared = cleared.reshape(-1, 7)
+        share = np.zeros(len(boxes))
+        if len(boxes) == 0:
+            return share
+        bins, slopes = self.prepare()._directions
         _occluded_share(
             self.points,
-            self.cleared,
-            *_heading_terms(self.cleared),
+            bins,
+            slopes,
+            cleared,
+            *_heading_terms(cleared),
             boxes,
             *_heading_terms(boxes),
             self.viewpoint,
             _FACE_GRIDS,
             _FACES[:, 0].astype(np.int64),
             _FACES[:, 1].copy(),
-            constants,
+            self._constants,
             _DIRECTIONS,
             _AZIMUTH_FIRST,
             _AZIMUTH_SECOND,
             share,
         )
         return share
+
+
+@numba.njit(cache=True, nogil=True)
+def _point_directions(points, constants, bins, slopes):  # pragma: no cover - numba
+    # Per point: its azimuth's pseudo-angle bin (-1: not finite, occludes nothing; -2: straight
+    # above or below the viewpoint, always tested in full) and its slope z / horizontal.
+    vx, vy, vz = constants[5], constants[6], constants[7]
+    for i in range(points.shape[0]):
+        x = np.float64(np.float32(points[i, 0]) - vx)
+        y = np.float64(np.float32(points[i, 1]) - vy)
+        z = np.float64(np.float32(points[i, 2]) - vz)
+        if not np.isfinite(x + y + z):
+            bins[i] = -1
+        elif x == 0.0 and y == 0.0:
+            bins[i] = -2
+        else:
+            bins[i] = min(int(_pseudo_angle(x, y) * (_BINS / 4.0)), _BINS - 1)
+            slopes[i] = z / math.sqrt(x * x + y * y)
 
 
 def _face_templates(steps: tuple[int, int] = (12, 8)) -> tuple[np.ndarray, np.ndarray]:
@@ -772,6 +806,8 @@ def _cells(
 @numba.njit(cache=True, nogil=True)
 def _occluded_share(
     points,
+    bins,
+    slopes,
     cleared,
     cleared_cos,
     cleared_sin,
@@ -848,39 +884,50 @@ def _occluded_share(
         up = (high[c] + 1) * el_step - el_offset + _ANGLE_SLACK
         slope_low[c] = -np.inf if low[c] == 0 or down <= -math.pi / 2 else math.tan(down)
         slope_high[c] = np.inf if high[c] >= rows - 2 or up >= math.pi / 2 else math.tan(up)
-    # 3. The points that may hide a sample: in a wanted column's direction bin, near enough
-    #    and within its rows' elevations (no trigonometry: most points stop here).
+    # 3. The points that may hide a sample: in a wanted column's direction bin, within its
+    #    rows' elevations and near enough (no trigonometry: most points stop here).
     candidate = np.empty(points.shape[0], np.int64)
     near = np.empty((points.shape[0], 3), np.float32)
     found = 0
     for i in range(points.shape[0]):
-        x = np.float32(points[i, 0]) - vx
-        y = np.float32(points[i, 1]) - vy
-        fx, fy = np.float64(x), np.float64(y)
-        if fx != 0.0 or fy != 0.0:
-            b = min(int(_pseudo_angle(fx, fy) * (_BINS / 4.0)), _BINS - 1)
-            if b < 0:  # NaN
-                continue
+        b = bins[i]
+        if b == -1:
+            continue
+        x = y = z = np.float32(0.0)
+        if b >= 0:
             first, second = az_first[b], az_second[b]
             if first >= 0:  # else a seam bin: no shortcut
                 if high[first] < 0 and high[second] < 0:
                     continue
+                slope = np.float64(slopes[i])
+                if slope < min(slope_low[first], slope_low[second]):
+                    continue
+                if slope > max(slope_high[first], slope_high[second]):
+                    continue
+                x = np.float32(points[i, 0]) - vx
+                y = np.float32(points[i, 1]) - vy
                 z = np.float32(points[i, 2]) - vz
-                fz = np.float64(z)
+                fx, fy, fz = np.float64(x), np.float64(y), np.float64(z)
                 if fx * fx + fy * fy + fz * fz > max(reach[first], reach[second]):
                     continue
-                horizontal = math.sqrt(fx * fx + fy * fy)
-                if fz < horizontal * min(slope_low[first], slope_low[second]):
-                    continue
-                if fz > horizontal * max(slope_high[first], slope_high[second]):
-                    continue
-        z = np.float32(points[i, 2]) - vz
-        if not np.isfinite(fx + fy + np.float64(z)):
-            continue
+            else:
+                x = np.float32(points[i, 0]) - vx
+                y = np.float32(points[i, 1]) - vy
+                z = np.float32(points[i, 2]) - vz
+        else:
+            x = np.float32(points[i, 0]) - vx
+            y = np.float32(points[i, 1]) - vy
+            z = np.float32(points[i, 2]) - vz
         candidate[found] = i
         near[found, 0], near[found, 1], near[found, 2] = x, y, z
         found += 1
-    # 4. Their cells, and the nearest range in each wanted cell of the points not cleared.
+    # 4. Their cells, and the nearest range in each wanted cell of the points not cleared
+    #    (the cleared boxes' BEV bounds, with slack, set most of them aside cheaply).
+    bounds = np.empty((cleared.shape[0], 2))
+    for k in range(cleared.shape[0]):
+        c, s = abs(cleared_cos[k]), abs(cleared_sin[k])
+        bounds[k, 0] = (cleared[k, 3] * c + cleared[k, 4] * s) / 2.0 + 1e-6
+        bounds[k, 1] = (cleared[k, 3] * s + cleared[k, 4] * c) / 2.0 + 1e-6
     near = near[:found]
     cell = _cells(near, *tables, constants, rows)
     nearest = np.full(slots, np.inf, np.float32)
@@ -897,6 +944,8 @@ def _occluded_share(
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         gone = False
         for k in range(cleared.shape[0]):
+            if abs(px - cleared[k, 0]) > bounds[k, 0] or abs(py - cleared[k, 1]) > bounds[k, 1]:
+                continue
             if _inside(
                 px,
                 py,
