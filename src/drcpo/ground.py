@@ -338,9 +338,9 @@ def _most_inliers(distance, offsets, limit):  # pragma: no cover - numba
     # Column with the most |distance - offset| <= limit (the first on ties), row by row.
     counts = np.zeros(distance.shape[1], np.int64)
     for s in range(distance.shape[0]):
-        for h in range(distance.shape[1]):
-            if abs(distance[s, h] - offsets[h]) <= limit[h]:
-                counts[h] += 1
+        row = distance[s]
+        for h in range(distance.shape[1]):  # branch-free: vectorises
+            counts[h] += np.int64(abs(row[h] - offsets[h]) <= limit[h])
     return np.argmax(counts)
 
 
@@ -439,7 +439,9 @@ def _slope_cone(window: float, cell_size: float, slope: float) -> tuple[np.ndarr
     footprint = distance <= radius * cell_size + 1e-9
     depth = np.where(footprint, -slope * distance, 0)[footprint]
     dx, dy = np.nonzero(footprint)
-    return dx - radius, dy - radius, depth
+    # Nearest first: a cell above its neighbours' cone is then found out soonest.
+    order = np.argsort(distance[footprint], kind="stable")
+    return dx[order] - radius, dy[order] - radius, depth[order]
 
 
 def _ground_cells(minima: np.ndarray, config: GroundConfig) -> np.ndarray:
@@ -452,7 +454,7 @@ def _ground_cells(minima: np.ndarray, config: GroundConfig) -> np.ndarray:
     """
     dx, dy, depth = _slope_cone(config.window, config.cell_size, config.max_slope)
     ground = np.zeros(minima.shape, dtype=bool)
-    _cone_test(minima, dx, dy, depth, float(config.tolerance), ground)
+    _cone_test(np.ascontiguousarray(minima), dx, dy, depth, float(config.tolerance), ground)
     return ground
 
 
@@ -470,14 +472,22 @@ def _cone_test(minima, dx, dy, depth, tolerance, ground):  # pragma: no cover - 
     # minimum <= min_k(f_k - depth_k) + tolerance  <=>  minimum <= (f_k - depth_k) + tolerance
     # for every k (rounding is monotone), so the first violation decides.
     nx, ny = minima.shape
+    radius = max(np.max(np.abs(dx)), np.max(np.abs(dy)))
+    flat = minima.reshape(-1)
+    step = dx * ny + dy
     for i in range(nx):
+        inner_x = radius <= i < nx - radius
         for j in range(ny):
             low = minima[i, j]
             if not np.isfinite(low):
                 continue
             ok = True
+            inner = inner_x and radius <= j < ny - radius  # no border to reflect at
             for k in range(dx.shape[0]):
-                value = minima[_reflect(i + dx[k], nx), _reflect(j + dy[k], ny)]
+                if inner:
+                    value = flat[i * ny + j + step[k]]
+                else:
+                    value = minima[_reflect(i + dx[k], nx), _reflect(j + dy[k], ny)]
                 if not np.isfinite(value):
                     value = 1e9
                 if low > (value - depth[k]) + tolerance:

@@ -21,8 +21,6 @@ Objects are tried up to ``max_tries`` times (a fresh pose each time); the paper 
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba
@@ -148,7 +146,7 @@ def place_objects(
     source_boxes: np.ndarray | None,
     rng: np.random.Generator,
     config: PlacementConfig | None = None,
-    ground: GroundModel | Future | None = None,
+    ground: GroundModel | None = None,
 ) -> PlacementResult:
     """Place objects of sizes ``dims`` ``(K, 3)`` at random, collision- and obstacle-free.
 
@@ -160,16 +158,15 @@ def place_objects(
             with ``height_mode="source"`` (may be ``None`` otherwise).
         rng: the only source of randomness.
         config: :class:`PlacementConfig` (defaults when ``None``).
-        ground: the frame's :class:`GroundModel` (or the future of one, see
-            :func:`start_frame_ground`); estimated from the frame's points (with its ``plane``
-            and ``calib`` metadata, when both are present) when ``None``.
+        ground: the frame's :class:`GroundModel`; estimated from the frame's points (with its
+            ``plane`` and ``calib`` metadata, when both are present) when ``None``.
     """
     config = config or PlacementConfig()
     frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
     dims = _check_dims(dims)
     source_z = _source_heights(source_boxes, len(dims), config)
     if ground is None:
-        ground = start_frame_ground(frame)
+        ground = frame_ground(frame)
     obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
     placed = np.full((len(dims), 7), np.nan)
     reasons = np.full(len(dims), "", dtype=object)
@@ -214,7 +211,7 @@ def _judge(
     verdict[~fits] = "out_of_range"
     live = np.flatnonzero(fits)
     hit = np.zeros(len(live), dtype=bool)
-    if len(occupied) and len(live):  # footprints only: no heights needed yet
+    if len(occupied) and len(live):
         hit = bev_collisions(boxes[live], occupied).any(axis=1)
     if config.height_mode == "ground":
         boxes[live, 2] = obstacles.ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
@@ -242,17 +239,10 @@ class _Obstacles:
     ground, with :meth:`GroundModel.is_ground`.
     """
 
-    def __init__(self, points: np.ndarray, ground: GroundModel | Future, tolerance: float) -> None:
-        """``ground``: the model, or the future of one (being estimated on another thread)."""
+    def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float) -> None:
         self.points = points
-        self._ground = ground
+        self.ground = ground
         self.tolerance = tolerance
-
-    @property
-    def ground(self) -> GroundModel:
-        if isinstance(self._ground, Future):
-            self._ground = self._ground.result()
-        return self._ground
 
     def count(self, boxes: np.ndarray) -> np.ndarray:
         """Non-ground frame points inside each of ``boxes`` ``(M, 7)``: ``int64 (M,)``."""
@@ -506,35 +496,6 @@ def _source_heights(
     return source_boxes[:, 2]
 
 
-_POOL: tuple[int, ThreadPoolExecutor] | None = None
-
-
-def _helper_pool() -> ThreadPoolExecutor | None:
-    """A persistent one-thread pool for overlapping work (a new one after a fork), or ``None``
-    when this process may use only one CPU (a data-loader worker pinned to one core).
-
-    Starting a thread per frame would cost as much as the work it overlaps.
-    """
-    global _POOL
-    try:
-        if len(os.sched_getaffinity(0)) < 2:
-            return None
-    except AttributeError:  # not on Linux
-        if (os.cpu_count() or 1) < 2:
-            return None
-    if _POOL is None or _POOL[0] != os.getpid():
-        _POOL = (os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="drcpo-placement"))
-    return _POOL[1]
-
-
-def start_frame_ground(frame: Frame) -> GroundModel | Future:
-    """:func:`frame_ground` of ``frame``: on a second core, started and returned as a future
-    (the first poses are drawn and checked against the frame's boxes, which needs no heights,
-    meanwhile), else computed now."""
-    pool = _helper_pool()
-    return frame_ground(frame) if pool is None else pool.submit(frame_ground, frame)
-
-
 def frame_ground(frame: Frame) -> GroundModel:
     """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
 
@@ -640,7 +601,8 @@ class OcclusionMap:
 @numba.njit(cache=True, nogil=True)
 def _point_directions(points, constants, bins, slopes):  # pragma: no cover - numba
     # Per point: its azimuth's pseudo-angle bin (-1: not finite, occludes nothing; -2: straight
-    # above or below the viewpoint, always tested in full) and its slope z / horizontal.
+    # above or below the viewpoint, always tested in full) and its slope z / horizontal, as
+    # slope * |slope|.
     vx, vy, vz = constants[5], constants[6], constants[7]
     for i in range(points.shape[0]):
         x = np.float64(np.float32(points[i, 0]) - vx)
@@ -652,7 +614,7 @@ def _point_directions(points, constants, bins, slopes):  # pragma: no cover - nu
             bins[i] = -2
         else:
             bins[i] = min(int(_pseudo_angle(x, y) * (_BINS / 4.0)), _BINS - 1)
-            slopes[i] = z / math.sqrt(x * x + y * y)
+            slopes[i] = z * abs(z) / (x * x + y * y)  # slope * |slope|: monotone, no sqrt
 
 
 def _face_templates(steps: tuple[int, int] = (12, 8)) -> tuple[np.ndarray, np.ndarray]:
@@ -872,7 +834,7 @@ def _occluded_share(
         high[c] = max(high[c], r)
         reach[c] = max(reach[c], (np.float64(sample_range[t]) + depth) ** 2)
     slot = np.zeros(columns, np.int64)
-    slope_low = np.full(columns, np.inf)  # elevations of the wanted rows, as z / horizontal
+    slope_low = np.full(columns, np.inf)  # elevations of the wanted rows (see slopes)
     slope_high = np.full(columns, -np.inf)
     slots = 0
     for c in range(columns):
@@ -884,6 +846,9 @@ def _occluded_share(
         up = (high[c] + 1) * el_step - el_offset + _ANGLE_SLACK
         slope_low[c] = -np.inf if low[c] == 0 or down <= -math.pi / 2 else math.tan(down)
         slope_high[c] = np.inf if high[c] >= rows - 2 or up >= math.pi / 2 else math.tan(up)
+        # as the points' slopes are stored: slope * |slope|
+        slope_low[c] *= abs(slope_low[c])
+        slope_high[c] *= abs(slope_high[c])
     # 3. The points that may hide a sample: in a wanted column's direction bin, within its
     #    rows' elevations and near enough (no trigonometry: most points stop here).
     candidate = np.empty(points.shape[0], np.int64)
