@@ -127,16 +127,17 @@ def sample_poses(
     heading = rng.uniform(-np.pi, np.pi, len(dims))
     boxes = np.column_stack([np.zeros((len(dims), 3)), dims, heading])
     boxes[:, 2] = dims[:, 2] / 2.0
-    _draw_positions(boxes, np.arange(len(dims)), rng, config)
-    if config.fov_only:
-        todo = np.flatnonzero(~_in_fov(boxes, config.fov_half_angle))
-        for _ in range(_FOV_ROUNDS):
-            todo = todo[np.isfinite(boxes[todo, 0])]
-            if len(todo) == 0:
-                break
-            _draw_positions(boxes, todo, rng, config)
-            todo = todo[~_in_fov(boxes[todo], config.fov_half_angle)]
-        boxes[todo, :2] = np.nan
+    # numpy's cos and sin, as geometry.bev_corners uses them
+    cos, sin = np.cos(heading), np.sin(heading)
+    half_angle = float(config.fov_half_angle) if config.fov_only else -1.0
+    # Each round draws the rows given and returns those whose footprint fits the area but
+    # leaves the field of view (none without fov_only); they are drawn again.
+    todo = _draw_round(boxes, np.arange(len(dims)), cos, sin, rng, config, half_angle)
+    for _ in range(_FOV_ROUNDS):
+        if len(todo) == 0:
+            break
+        todo = _draw_round(boxes, todo, cos, sin, rng, config, half_angle)
+    boxes[todo, :2] = np.nan
     return boxes
 
 
@@ -169,8 +170,8 @@ def place_objects(
         ground = frame_ground(frame)
     obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
     placed = np.full((len(dims), 7), np.nan)
-    reasons = np.full(len(dims), "", dtype=object)
-    rejected = dict.fromkeys(REASONS, 0)
+    verdicts = np.zeros(len(dims), dtype=np.int64)  # 0: placed, else 1 + index in REASONS
+    counts = np.zeros(len(REASONS) + 1, dtype=np.int64)
     occupied = frame.boxes
     pending = np.arange(len(dims))
     attempts = 0
@@ -180,21 +181,24 @@ def place_objects(
         attempts += len(pending)
         boxes = sample_poses(dims[pending], rng, config)
         verdict = _judge(boxes, pending, source_z, occupied, obstacles, config)
-        for reason in REASONS:
-            rejected[reason] += int((verdict == reason).sum())
-        reasons[pending] = verdict
-        ok = verdict == ""
+        counts += np.bincount(verdict, minlength=len(counts))
+        verdicts[pending] = verdict
+        ok = verdict == 0
         placed[pending[ok]] = boxes[ok]
         occupied = np.concatenate([occupied, boxes[ok]])
         pending = pending[~ok]
-    accepted = np.flatnonzero(reasons == "")
+    accepted = np.flatnonzero(verdicts == 0)
     return PlacementResult(
         boxes=placed[accepted],
         accepted=accepted.astype(np.int64),
-        rejected=rejected,
-        reasons=reasons.astype(str),
+        rejected={reason: int(n) for reason, n in zip(REASONS, counts[1:], strict=True)},
+        reasons=_REASON_NAMES[verdicts].astype(str),
         attempts=attempts,
     )
+
+
+_OUT_OF_RANGE, _COLLISION, _OBSTACLE = 1, 2, 3  # verdicts: 1 + the index in REASONS
+_REASON_NAMES = np.array(["", *REASONS], dtype=object)  # by verdict
 
 
 def _judge(
@@ -205,10 +209,11 @@ def _judge(
     obstacles: _Obstacles,
     config: PlacementConfig,
 ) -> np.ndarray:
-    """Set each box's height and return its verdict: ``""`` (placed) or a rejection reason."""
-    verdict = np.full(len(boxes), "", dtype=object)
+    """Set each box's height and return its verdict ``int64 (K,)``: 0 (placed) or 1 + the
+    index of its rejection reason in :data:`REASONS`."""
+    verdict = np.zeros(len(boxes), dtype=np.int64)
     fits = np.isfinite(boxes[:, 0])
-    verdict[~fits] = "out_of_range"
+    verdict[~fits] = _OUT_OF_RANGE
     live = np.flatnonzero(fits)
     hit = np.zeros(len(live), dtype=bool)
     if len(occupied) and len(live):
@@ -217,17 +222,17 @@ def _judge(
         boxes[live, 2] = obstacles.ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
     else:
         boxes[live, 2] = source_z[pending[live]]
-    verdict[live[hit]] = "collision"
+    verdict[live[hit]] = _COLLISION
     live = live[~hit]
     blocked = obstacles.count(boxes[live]) > config.max_nonground_points
-    verdict[live[blocked]] = "obstacle"
+    verdict[live[blocked]] = _OBSTACLE
     live = live[~blocked]
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
     kept = np.zeros(len(live), dtype=bool)
     if len(live):
         candidates = boxes[live]
         _first_come(candidates, *_heading_terms(candidates), kept)
-    verdict[live[~kept]] = "collision"
+    verdict[live[~kept]] = _COLLISION
     return verdict
 
 
@@ -418,31 +423,43 @@ def _first_come(boxes, cos, sin, kept):  # pragma: no cover - numba
                 break
 
 
-def _draw_positions(
-    boxes: np.ndarray, rows: np.ndarray, rng: np.random.Generator, config: PlacementConfig
-) -> None:
-    """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit)."""
+def _draw_round(
+    boxes: np.ndarray,
+    rows: np.ndarray,
+    cos: np.ndarray,
+    sin: np.ndarray,
+    rng: np.random.Generator,
+    config: PlacementConfig,
+    half_angle: float,
+) -> np.ndarray:
+    """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit);
+    the rows drawn that fit but leave the field of view (``half_angle`` < 0: none)."""
     u = rng.uniform(0.0, 1.0, (len(rows), 2))
-    heading = boxes[rows, 6]
     (x0, x1), (y0, y1) = config.x_range, config.y_range
-    _centres(boxes, rows, np.cos(heading), np.sin(heading), u, x0, x1, y0, y1)
+    return _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle)
 
 
 @numba.njit(cache=True, nogil=True)
-def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1):  # pragma: no cover - numba
+def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle):  # pragma: no cover - numba
     # Uniform over the centres whose footprint's bounds (half extents) stay in the area.
+    outside = np.empty(rows.shape[0], np.int64)
+    count = 0
     for k in range(rows.shape[0]):
         r = rows[k]
-        c, s = abs(cos[k]), abs(sin[k])
+        c, s = abs(cos[r]), abs(sin[r])
         reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
         reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
         low_x, low_y = x0 + reach_x, y0 + reach_y
         high_x, high_y = x1 - reach_x, y1 - reach_y
         if low_x > high_x or low_y > high_y:
             boxes[r, 0] = boxes[r, 1] = np.nan
-        else:
-            boxes[r, 0] = low_x + u[k, 0] * (high_x - low_x)
-            boxes[r, 1] = low_y + u[k, 1] * (high_y - low_y)
+            continue
+        boxes[r, 0] = low_x + u[k, 0] * (high_x - low_x)
+        boxes[r, 1] = low_y + u[k, 1] * (high_y - low_y)
+        if half_angle >= 0 and not _corners_in_fov(boxes[r], cos[r], sin[r], half_angle):
+            outside[count] = r
+            count += 1
+    return outside[:count].copy()
 
 
 def _in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:
@@ -455,18 +472,22 @@ def _in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _fov_test(boxes, cos, sin, half_angle, inside):  # pragma: no cover - numba
-    # The corners as geometry.bev_corners computes them (counter-clockwise from front-left).
     for m in range(boxes.shape[0]):
-        if not np.isfinite(boxes[m, 0]):
-            continue
-        inside[m] = True
-        for corner_x, corner_y in ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5)):
-            local_x, local_y = corner_x * boxes[m, 3], corner_y * boxes[m, 4]
-            x = (cos[m] * local_x - sin[m] * local_y) + boxes[m, 0]
-            y = (sin[m] * local_x + cos[m] * local_y) + boxes[m, 1]
-            if not abs(math.atan2(y, x)) <= half_angle:
-                inside[m] = False
-                break
+        inside[m] = np.isfinite(boxes[m, 0]) and _corners_in_fov(
+            boxes[m], cos[m], sin[m], half_angle
+        )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _corners_in_fov(box, cos, sin, half_angle):  # pragma: no cover - numba
+    # The corners as geometry.bev_corners computes them (counter-clockwise from front-left).
+    for corner_x, corner_y in ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5)):
+        local_x, local_y = corner_x * box[3], corner_y * box[4]
+        x = (cos * local_x - sin * local_y) + box[0]
+        y = (sin * local_x + cos * local_y) + box[1]
+        if not abs(math.atan2(y, x)) <= half_angle:
+            return False
+    return True
 
 
 def _check_dims(dims: np.ndarray) -> np.ndarray:
