@@ -16,6 +16,15 @@ A placement is rejected, for one reason counted per attempt, when
   than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects).
 
 Objects are tried up to ``max_tries`` times (a fresh pose each time); the paper tries once.
+
+:class:`OcclusionMap` is the z-buffer with which DR.CPO also rejects placed boxes hidden behind
+the frame's points (reason ``"occluded"``, see :class:`drcpo.pipeline.DRCPO`).
+
+The hot loops are numba kernels that reproduce the reference numpy arithmetic operation for
+operation (same boxes, same verdicts, bit for bit): collisions are a separating-axis test
+(:func:`bev_collisions`, interiors intersect exactly when the overlap area is positive), the
+points in each box come from one pass with a coarse cell index (:func:`box_members`), and the
+z-buffer is filled only in the cells the boxes' samples fall in.
 """
 
 from __future__ import annotations
