@@ -54,6 +54,31 @@ _POINTS_PER_CELL = 6.0  # angular grid of the insertion order
 CERTIFIED, UNSURE, _FULL = 0, 1, 2
 
 
+def _hilbert_rank(side: int) -> np.ndarray:
+    """``(side * side,)`` position on the Hilbert curve of cell ``row * side + col`` (``side`` a
+    power of two): consecutive cells are neighbours, so walks from one point to the next are
+    short."""
+    rank = np.empty(side * side, dtype=np.int64)
+    for row in range(side):
+        for col in range(side):
+            x, y, d, s = row, col, 0, side // 2
+            while s > 0:
+                rx = 1 if x & s else 0
+                ry = 1 if y & s else 0
+                d += s * s * ((3 * rx) ^ ry)
+                if ry == 0:
+                    if rx == 1:
+                        x, y = s - 1 - x, s - 1 - y
+                    x, y = y, x
+                s //= 2
+            rank[row * side + col] = d
+    return rank
+
+
+_HILBERT_SIDE = 32
+_HILBERT_RANK = _hilbert_rank(_HILBERT_SIDE)
+
+
 def hpr_hull_visible(
     xyz: np.ndarray,
     center: np.ndarray,
@@ -96,39 +121,35 @@ def flip_hull_visible(xyz, center, radius, max_ratio, at_viewpoint, visible):  #
     cloud = np.empty((n + 1, 3), dtype=np.float64)
     ranges = np.empty(n, dtype=np.float64)
     largest = 0.0
-    axis = np.zeros(3, dtype=np.float64)  # the mean direction, scaled
+    axis = np.zeros(3, dtype=np.float64)  # the mean direction of the flipped points, scaled
     for i in range(n):
         x = xyz[i, 0] - center[0]
         y = xyz[i, 1] - center[1]
         z = xyz[i, 2] - center[2]
-        cloud[i, 0] = x
-        cloud[i, 1] = y
-        cloud[i, 2] = z
         r = np.sqrt(x * x + y * y + z * z)
         if not r < np.inf:  # NaN or inf: the caller's validation reports it
             return False
         ranges[i] = r
         largest = max(largest, r)
-        if r > 0.0:
-            inverse = 1.0 / r
-            axis[0] += x * inverse
-            axis[1] += y * inverse
-            axis[2] += z * inverse
+        if not r > 0.0:  # at the viewpoint: turned away below
+            return False
+        scale = 2.0 * (radius - r) / r
+        cloud[i, 0] = x + x * scale
+        cloud[i, 1] = y + y * scale
+        cloud[i, 2] = z + z * scale
+        axis[0] += cloud[i, 0]
+        axis[1] += cloud[i, 1]
+        axis[2] += cloud[i, 2]
+    cloud[n, :] = 0.0
     if not (2.0 * radius > largest * (1.0 + 1e-12) and radius <= max_ratio * largest):
         return False
     near = at_viewpoint * (1.0 + largest)
     for i in range(n):
         if not ranges[i] > near:
             return False
-    order = _insertion_order(cloud, ranges, axis)
+    order = _insertion_order(cloud, ranges, radius, axis)
     if len(order) == 0:
         return False
-    for i in range(n):
-        r = ranges[i]
-        scale = 2.0 * (radius - r) / r
-        for k in range(3):
-            cloud[i, k] = cloud[i, k] + cloud[i, k] * scale
-    cloud[n, :] = 0.0
     vertex = np.zeros(n + 1, dtype=np.bool_)
     copies = np.full(n + 1, -1, dtype=np.int64)
     cap = min(_FIRST_CAPACITY, 3 * n + 16)
@@ -150,12 +171,13 @@ def flip_hull_visible(xyz, center, radius, max_ratio, at_viewpoint, visible):  #
 
 
 @nb.njit(cache=True, nogil=True)
-def _insertion_order(rel, ranges, axis):  # pragma: no cover - numba
-    """``(N,)`` the points in insertion order (the first three span the first tetrahedron), or
-    an empty array when they do not all lie within 84 degrees of ``axis`` (``(3,)``, any length).
+def _insertion_order(flipped, ranges, radius, axis):  # pragma: no cover - numba
+    """``(N,)`` the flipped points in insertion order (the first three span the first
+    tetrahedron), or an empty array when they do not all lie within 84 degrees of ``axis``
+    (``(3,)``, any length). ``ranges``: the points' ranges before the flip.
 
-    Cells of a square grid over the gnomonic projection along ``axis``, taken row by row in
-    alternating directions: first each cell's nearest point, then the others, nearest first.
+    Cells of a square grid over the points' projection on the plane normal to ``axis``, taken
+    row by row in alternating directions: first each cell's nearest point, then the others.
     """
     n = len(ranges)
     norm = np.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
@@ -183,12 +205,11 @@ def _insertion_order(rel, ranges, axis):  # pragma: no cover - numba
     a = 0
     b = 0
     for i in range(n):
-        depth = rel[i, 0] * ax + rel[i, 1] * ay + rel[i, 2] * az
-        if not depth > _MIN_COSINE * ranges[i]:
+        depth = flipped[i, 0] * ax + flipped[i, 1] * ay + flipped[i, 2] * az
+        if not depth > _MIN_COSINE * (2.0 * radius - ranges[i]):  # its flipped range
             return np.empty(0, dtype=np.int64)
-        inverse = 1.0 / depth
-        u[i] = (rel[i, 0] * e1x + rel[i, 1] * e1y + rel[i, 2] * e1z) * inverse
-        v[i] = (rel[i, 0] * e2x + rel[i, 1] * e2y + rel[i, 2] * e2z) * inverse
+        u[i] = flipped[i, 0] * e1x + flipped[i, 1] * e1y + flipped[i, 2] * e1z
+        v[i] = flipped[i, 0] * e2x + flipped[i, 1] * e2y + flipped[i, 2] * e2z
         if u[i] < u[a]:
             a = i
         if u[i] > u[b]:
@@ -209,44 +230,48 @@ def _insertion_order(rel, ranges, axis):  # pragma: no cover - numba
         v_hi = max(v_hi, v[i])
     if a == b or c == a or c == b:
         return np.empty(0, dtype=np.int64)
+    # Coarse cells pick the first points; the others follow the fine cells' Hilbert curve.
     side = max(1, int(np.sqrt(n / _POINTS_PER_CELL)))
-    su = side / max(du, 1e-300) * (1.0 - 1e-9)
-    sv = side / max(v_hi - v_lo, 1e-300) * (1.0 - 1e-9)
-    cells = side * side
-    cell = np.empty(n, dtype=np.int64)
-    start = np.zeros(cells + 2, dtype=np.int64)  # first slot of each cell, shifted by one
-    nearest = np.full(cells, -1, dtype=np.int64)
+    fine = _HILBERT_SIDE
+    su = 1.0 / max(du, 1e-300) * (1.0 - 1e-9)
+    sv = 1.0 / max(v_hi - v_lo, 1e-300) * (1.0 - 1e-9)
+    cell = np.empty(n, dtype=np.int64)  # rank of the fine cell on the curve
+    coarse = np.empty(n, dtype=np.int64)
+    start = np.zeros(fine * fine + 2, dtype=np.int64)  # first slot of each fine cell, shifted
+    nearest = np.full(side * side, -1, dtype=np.int64)
     for i in range(n):
-        row = min(side - 1, int((u[i] - u[a]) * su))
-        col = min(side - 1, int((v[i] - v_lo) * sv))
+        x = (u[i] - u[a]) * su
+        y = (v[i] - v_lo) * sv
+        row = min(side - 1, int(x * side))
+        col = min(side - 1, int(y * side))
         if row & 1:
             col = side - 1 - col
         k = row * side + col
-        cell[i] = k
-        start[k + 2] += 1
+        coarse[i] = k
         if nearest[k] < 0 or ranges[i] < ranges[nearest[k]]:
             nearest[k] = i
+        k = _HILBERT_RANK[min(fine - 1, int(x * fine)) * fine + min(fine - 1, int(y * fine))]
+        cell[i] = k
+        start[k + 2] += 1
     order = np.empty(n, dtype=np.int64)
     order[0] = a
     order[1] = b
     order[2] = c
     head = 3
-    for k in range(cells):  # first each cell's nearest point...
+    for k in range(side * side):  # first each coarse cell's nearest point...
         i = nearest[k]
-        if i >= 0:
-            if i != a and i != b and i != c:
-                order[head] = i
-                head += 1
-            start[k + 2] -= 1
-    for i in (a, b, c):
-        if nearest[cell[i]] != i:
+        if i >= 0 and i != a and i != b and i != c:
+            order[head] = i
+            head += 1
+    for i in range(n):
+        if nearest[coarse[i]] == i or i == a or i == b or i == c:
             start[cell[i] + 2] -= 1
     start[1] = head
-    for k in range(cells):  # ... then the others, cell by cell
+    for k in range(fine * fine):  # ... then the others along the curve
         start[k + 2] += start[k + 1]
     for i in range(n):
-        k = cell[i]
-        if i != nearest[k] and i != a and i != b and i != c:
+        if nearest[coarse[i]] != i and i != a and i != b and i != c:
+            k = cell[i]
             order[start[k + 1]] = i
             start[k + 1] += 1
     return order
@@ -359,20 +384,15 @@ def _norm_cross(x0, x1, x2, y0, y1, y2):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _set_edges(points, f, verts, norms, edges, etaus, rho, diam):  # pragma: no cover - numba
+def _set_edges(points, f, verts, edges):  # pragma: no cover - numba
     """The planes through the apex and each edge of far facet ``f``: ``edges[f, i]`` is
-    ``v_i x v_(i+1)``, positive on the facet's side, with its quick margin ``etaus[f, i]``."""
+    ``v_i x v_(i+1)``, positive on the facet's side."""
     for i in range(3):
         a = verts[f, i]
         b = verts[f, (i + 1) % 3]
         edges[f, i, 0] = points[a, 1] * points[b, 2] - points[a, 2] * points[b, 1]
         edges[f, i, 1] = points[a, 2] * points[b, 0] - points[a, 0] * points[b, 2]
         edges[f, i, 2] = points[a, 0] * points[b, 1] - points[a, 1] * points[b, 0]
-        la = norms[a]
-        lb = norms[b]
-        etaus[f, i] = (
-            4.0 * rho * (la * lb + diam * (la + lb) + 2.0 * rho * (la + lb + diam) + 4.0 * rho**2)
-        )
 
 
 @nb.njit(cache=True, nogil=True)
@@ -385,15 +405,20 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
     m = points.shape[0]
     apex = m - 1
     maxabs = 0.0
-    norms = np.empty(m, dtype=np.float64)
+    reach = 0.0  # the largest squared distance from the apex
     for i in range(m):
-        norms[i] = np.sqrt(points[i, 0] ** 2 + points[i, 1] ** 2 + points[i, 2] ** 2)
+        reach = max(reach, points[i, 0] ** 2 + points[i, 1] ** 2 + points[i, 2] ** 2)
         for k in range(3):
             maxabs = max(maxabs, abs(points[i, k]))
     if not maxabs > 0.0:
         return UNSURE
     rho = rel_tol * maxabs
     diam = 2.0 * np.sqrt(3.0) * maxabs  # bounds |q - a| for any two points
+    # One quick margin for all the walk's tests det(u, v, q) (apex, u, v and q): twice the
+    # areas of their faces add up to at most 7 reach (every point within sqrt(reach) of the
+    # apex); twice that, plus the higher orders.
+    reach = np.sqrt(reach)
+    etau = 2.0 * rho * (14.0 * reach * reach + 16.0 * rho * reach + 16.0 * rho**2)
 
     verts = np.empty((cap, 3), dtype=np.int32)
     nbrs = np.empty((cap, 3), dtype=np.int32)  # nbrs[f, i]: across edge (verts[f, i], next)
@@ -401,10 +426,8 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
     offsets = np.empty(cap, dtype=np.float64)
     taus = np.empty(cap, dtype=np.float64)
     edges = np.empty((cap, 3, 3), dtype=np.float64)
-    etaus = np.empty((cap, 3), dtype=np.float64)
     alive = np.zeros(cap, dtype=np.bool_)
     is_far = np.zeros(cap, dtype=np.bool_)
-    has_edges = np.zeros(cap, dtype=np.bool_)
     vis_mark = np.zeros(cap, dtype=np.int32)
     nov_mark = np.zeros(cap, dtype=np.int32)
     free = np.empty(cap, dtype=np.int32)
@@ -450,6 +473,7 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
             return UNSURE
         alive[f] = True
     is_far[0] = True
+    _set_edges(points, 0, verts, edges)
     for f in range(4):
         for i in range(3):
             u = verts[f, i]
@@ -480,20 +504,26 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
                 ):
                     eye = f
                 break
-            if not has_edges[f]:  # computed on the first visit: many facets never get one
-                _set_edges(points, f, verts, norms, edges, etaus, rho, diam)
-                has_edges[f] = True
-            moved = False
+            e0 = edges[f, 0, 0] * q0 + edges[f, 0, 1] * q1 + edges[f, 0, 2] * q2
+            e1 = edges[f, 1, 0] * q0 + edges[f, 1, 1] * q1 + edges[f, 1, 2] * q2
+            e2 = edges[f, 2, 0] * q0 + edges[f, 2, 1] * q1 + edges[f, 2, 2] * q2
             close = False
-            for i in range(3):
-                e = edges[f, i, 0] * q0 + edges[f, i, 1] * q1 + edges[f, i, 2] * q2
-                if e > etaus[f, i]:
+            if not (e0 > etau and e1 > etau and e2 > etau):
+                # Across the edge q is farthest beyond (any edge it is beyond would do), or
+                # a close call settled with the tight bound.
+                i = 0 if e0 <= e1 and e0 <= e2 else (1 if e1 <= e2 else 2)
+                e = min(e0, e1, e2)
+                if e < -etau:
+                    f = nbrs[f, i]
+                    steps += 1
                     continue
-                if e < -etaus[f, i]:
-                    sign = -1
-                else:
+                moved = False
+                for i in range(3):
+                    e = e0 if i == 0 else (e1 if i == 1 else e2)
+                    if e > etau:
+                        continue
                     u = verts[f, i]
-                    v = verts[f, (i + 1) % 3]
+                    v = verts[f, i + 1 if i < 2 else 0]
                     sign = _tight_sign(
                         0.0,
                         0.0,
@@ -511,15 +541,15 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
                         rho,
                         maxabs,
                     )
-                if sign == -1:
-                    f = nbrs[f, i]
-                    moved = True
-                    break
-                if sign == 0:
-                    close = True
-            if moved:
-                steps += 1
-                continue
+                    if sign == -1:
+                        f = nbrs[f, i]
+                        moved = True
+                        break
+                    if sign == 0:
+                        close = True
+                if moved:
+                    steps += 1
+                    continue
             if not close:
                 last = f
                 h = _height(points, f, q, normals, offsets)
@@ -597,7 +627,7 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
             vf = hor_f[e]
             i = hor_i[e]
             hor_u[e] = verts[vf, i]
-            hor_v[e] = verts[vf, (i + 1) % 3]
+            hor_v[e] = verts[vf, i + 1 if i < 2 else 0]
             hor_g[e] = nbrs[vf, i]
         for k in range(n_vis):
             alive[visible[k]] = False
@@ -622,12 +652,11 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
                 h = -offsets[nf]  # the apex's height: it must lie clearly below
                 if not h < -taus[nf] and _close_call(points, nf, apex, h, verts, rho, maxabs) != -1:
                     return UNSURE
-                has_edges[nf] = False
+                _set_edges(points, nf, verts, edges)
                 last = nf
             nbrs[nf, 0] = g
-            for j in range(3):
-                if verts[g, j] == v and verts[g, (j + 1) % 3] == u:
-                    nbrs[g, j] = nf
+            # g holds the edge as (v, u); matched by vertices, as slots are being reused
+            nbrs[g, 0 if verts[g, 1] == u else (1 if verts[g, 2] == u else 2)] = nf
             start_of[u] = nf
             end_of[v] = nf
             new[e] = nf
@@ -645,7 +674,7 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
         for i in range(3):
             g = nbrs[f, i]
             u = verts[f, i]
-            v = verts[f, (i + 1) % 3]
+            v = verts[f, i + 1 if i < 2 else 0]
             w = verts[g, 0]
             if w == u or w == v:
                 w = verts[g, 1]

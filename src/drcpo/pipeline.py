@@ -1062,8 +1062,8 @@ class DRCPO(Transform):
         for k in left:
             placed_objects[k] = self._placed_points(objects[k], boxes[k], dim)
         if settings.enabled:
-            # One Qhull hull per object (faster than the per-point method for objects), two
-            # objects at a time.
+            # One hull per object ("reference": drcpo.hull's certified hull, Qhull where it
+            # gives up; much faster than the per-point method for objects), two at a time.
             jobs = [(placed_objects[k], boxes[k]) for k in left if len(placed_objects[k])]
             masks = iter(
                 occlusion.self_occlusion_many(jobs, settings.radius_factor, method="reference")
