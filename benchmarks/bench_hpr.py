@@ -12,6 +12,11 @@ and, for the record, each of our methods on its own (``reference`` = one Qhull h
 ``local``; one and two threads). Every result is checked against the fixture's visible set
 (Jaccard index). Without the fixtures it runs on a sweep of drcpo's synthetic LiDAR world.
 
+Objects (s-HPR): on the object fixtures (``object*.npz``, else synthetic box-shaped objects) it
+times ``method="reference"`` as s-HPR runs it (:mod:`drcpo.hull`'s certified hull) against the
+plain Qhull hull, interleaved, in CPU milliseconds per object, and checks that both give the
+same points (and the fixture's).
+
 Usage::
 
     python benchmarks/bench_hpr.py [--quick] [--repeats N] [--fixtures DIR]
@@ -19,7 +24,8 @@ Usage::
 The last line of stdout is one JSON object::
 
     {"frames": [{"name": ..., "points": n, "ours_ms": x, "open3d_ms": y, "speedup": y / x,
-                 "jaccard": j, "methods_ms": {...}}, ...]}
+                 "jaccard": j, "methods_ms": {...}}, ...],
+     "objects": {"objects": n, "certified_ms": a, "qhull_ms": b, "speedup": b / a, ...}}
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drcpo import occlusion
 from drcpo.occlusion import hidden_point_removal
 
 DEFAULT_FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "hpr"
@@ -157,6 +164,83 @@ def bench_frame(frame: dict, repeats: int, variant_repeats: int) -> dict:
     }
 
 
+def load_objects(directory: Path, quick: bool) -> list[dict]:
+    """Object fixtures (points, viewpoint, radius, Open3D's answer), or synthetic objects."""
+    paths = sorted(directory.glob("object*.npz")) if directory.is_dir() else []
+    objects = []
+    for path in paths[:3] if quick else paths:
+        with np.load(path, allow_pickle=False) as data:
+            visible = np.zeros(len(data["points"]), dtype=bool)
+            visible[data["visible"]] = True
+            objects.append(
+                {
+                    "points": np.ascontiguousarray(data["points"], dtype=np.float64),
+                    "viewpoint": np.asarray(data["viewpoint"], dtype=np.float64),
+                    "radius": float(data["radius"]),
+                    "expected": visible,
+                }
+            )
+    if not objects:
+        rng = np.random.default_rng(0)
+        for _ in range(3 if quick else 20):
+            count = int(rng.integers(100, 1500))
+            dims = rng.uniform([0.5, 0.5, 1.0], [5.0, 2.5, 3.0])
+            local = rng.uniform(-0.5, 0.5, (count, 3)) * dims
+            face = rng.integers(0, 3, count)
+            local[np.arange(count), face] = rng.choice([-0.5, 0.5], count) * dims[face]
+            centre = [rng.uniform(5.0, 50.0), rng.uniform(-20.0, 20.0), -1.0]
+            objects.append(
+                {
+                    "points": local + centre,
+                    "viewpoint": np.zeros(3),
+                    "radius": 200.0 * float(np.linalg.norm(dims)),
+                    "expected": None,
+                }
+            )
+    return objects
+
+
+def bench_objects(objects: list[dict], repeats: int) -> dict:
+    """CPU ms per object: s-HPR's ``"reference"`` (certified hull) against Qhull alone."""
+
+    def run_all() -> list[np.ndarray]:
+        return [
+            hidden_point_removal(o["points"], o["viewpoint"], o["radius"], method="reference")
+            for o in objects
+        ]
+
+    kernel_max = occlusion.HULL_KERNEL_MAX
+    samples: dict[str, list[float]] = {"certified": [], "qhull": []}
+    answers = {}
+    try:
+        for _ in range(repeats):  # interleaved, so both see the same machine load
+            for label, limit in (("certified", kernel_max), ("qhull", 0)):
+                occlusion.HULL_KERNEL_MAX = limit
+                start = time.process_time()
+                answers[label] = run_all()
+                samples[label].append((time.process_time() - start) * 1e3 / len(objects))
+    finally:
+        occlusion.HULL_KERNEL_MAX = kernel_max
+    certified, qhull = (statistics.median(samples[k]) for k in ("certified", "qhull"))
+    return {
+        "objects": len(objects),
+        "mean_points": round(float(np.mean([len(o["points"]) for o in objects])), 1),
+        "certified_ms": round(certified, 3),
+        "qhull_ms": round(qhull, 3),
+        "speedup": round(qhull / certified, 2),
+        "same_as_qhull": all(
+            np.array_equal(a, b)
+            for a, b in zip(answers["certified"], answers["qhull"], strict=True)
+        ),
+        "same_as_fixture": None
+        if objects[0]["expected"] is None
+        else all(
+            np.array_equal(a, o["expected"])
+            for a, o in zip(answers["certified"], objects, strict=True)
+        ),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="one frame, few repeats (smoke test)")
@@ -180,7 +264,14 @@ def main() -> None:
         )
         for label, ms in row["methods_ms"].items():
             print(f"    {label:>18}: {ms:8.1f} ms  Jaccard {row['methods_jaccard'][label]}")
-    print(json.dumps({"frames": results}))
+    objects = bench_objects(load_objects(args.fixtures, args.quick), 3 if args.quick else 15)
+    print(
+        f"objects (s-HPR): {objects['objects']} of {objects['mean_points']} points on average, "
+        f"certified hull {objects['certified_ms']:.3f} ms, Qhull {objects['qhull_ms']:.3f} ms "
+        f"CPU per object, speed-up {objects['speedup']:.1f}x; same as Qhull: "
+        f"{objects['same_as_qhull']}, as the fixtures: {objects['same_as_fixture']}"
+    )
+    print(json.dumps({"frames": results, "objects": objects}))
 
 
 if __name__ == "__main__":
