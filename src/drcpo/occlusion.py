@@ -814,6 +814,48 @@ def _counting_sort(cell, starts):  # pragma: no cover - numba
     return order
 
 
+@nb.njit(cache=True, nogil=True)
+def _counting_sort_into(cell, starts, offset):  # pragma: no cover - numba
+    # _counting_sort that also counts the cells, writing their first sorted positions plus
+    # ``offset`` into ``starts`` (in place: no scratch array as large as the grid).
+    cells = starts.shape[0] - 1
+    starts[:] = 0
+    for c in cell:
+        starts[c + 1] += 1
+    starts[0] = offset
+    for c in range(cells):
+        starts[c + 1] += starts[c]
+    order = np.empty(len(cell), dtype=np.int64)
+    for i in range(len(cell) - 1, -1, -1):  # backwards from each cell's end: stable
+        c = cell[i]
+        starts[c + 1] -= 1
+        order[starts[c + 1] - offset] = i
+    for c in range(cells):  # starts[c + 1] now holds cell c's first position
+        starts[c] = starts[c + 1]
+    starts[cells] = offset + len(cell)
+    return order
+
+
+@nb.njit(cache=True, nogil=True)
+def _sort_cells(order, keys, starts, offset):  # pragma: no cover - numba
+    # Each cell's run of ``order`` (positions ``starts`` minus ``offset``) sorted by ``keys``;
+    # cells are small, so an insertion sort, except for the odd crowded one.
+    for c in range(starts.shape[0] - 1):
+        lo, hi = starts[c] - offset, starts[c + 1] - offset
+        if hi - lo > 64:
+            run = order[lo:hi].copy()
+            order[lo:hi] = run[np.argsort(keys[run], kind="mergesort")]
+            continue
+        for a in range(lo + 1, hi):
+            item = order[a]
+            key = keys[item]
+            b = a - 1
+            while b >= lo and keys[order[b]] > key:
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = item
+
+
 def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
     """Visible flags ``(M,)`` (``False`` where not wanted) by the per-point plane test."""
     return _LocalState.build(setup).visible(wanted, workers)
@@ -839,6 +881,9 @@ def _first_cones(ranges: np.ndarray, r_min: float, rho_max: float) -> np.ndarray
 # grid geometry (origin, row height, rows, columns).
 _NONE_ABSENT = np.zeros(0, dtype=bool)
 _ORIGINALS, _INSERTED, _BOTH = 1, 2, 3  # member sets a gather looks at (bit per starts row)
+# With this bit, a gather stops as soon as its points show that no plane fits (returns _NO_PLANE).
+_CERTIFY = 4
+_NO_PLANE = -2
 
 
 class _LocalState:
@@ -973,12 +1018,13 @@ def _resolve_unresolved(unresolved: np.ndarray, state: _LocalState) -> np.ndarra
     return verdicts
 
 
-# Grid cells of a FrameGrid, relative to the typical first neighbourhood: finer than the
-# generic grid's, since its scans read whole row runs of cells (measured on KITTI frames).
-_FRAME_ROW_HEIGHT = 0.5
-_FRAME_COLUMN_WIDTH = 0.25
-_PROBE_TARGET = 10.0  # neighbours expected in the small first probe of e-HPR's inserted scope
-_FRAME_CHUNKS = 6  # work items per call (claimed by the threads as they go)
+# Grid cells of a FrameGrid, relative to the typical first neighbourhood (half as wide as the
+# generic grid's: its scans read whole runs of cells; finer ones gain nothing on KITTI frames).
+_FRAME_ROW_HEIGHT = 1.0
+_FRAME_COLUMN_WIDTH = 0.5
+# Work items per call, claimed by the threads as they go: small enough that a thread the
+# system stalls for a while holds up little work.
+_FRAME_CHUNKS = 12
 
 
 class FrameGrid:
@@ -990,13 +1036,13 @@ class FrameGrid:
     points to its cells (no re-sorting of the frame) and skips the frame points they displace;
     :meth:`in_windows` selects points by direction cell by cell.
 
+    Directions are ``arctan2(y, x)`` (azimuth) and ``arctan2(z, hypot(x, y))`` (elevation)
+    of a point relative to the viewpoint, as :func:`drcpo.pipeline.view_windows` computes them.
+
     Attributes:
         center: ``(3,)`` the viewpoint, metres.
         radius: ``R``, metres.
         size: number of frame points.
-        azimuth, elevation, distance: ``(N,)`` per frame point (in the caller's order):
-            ``arctan2(y, x)``, ``arctan2(z, hypot(x, y))`` (radians) and ``hypot(hypot(x, y),
-            z)`` (metres) of the point relative to the viewpoint.
     """
 
     def __init__(self, xyz: np.ndarray, center: np.ndarray, radius: float, spare: int) -> None:
@@ -1010,32 +1056,37 @@ class FrameGrid:
             row = int(np.flatnonzero(~np.isfinite(ranges))[0])
             raise DataError(f"points: row {row} is too far from the viewpoint for float64")
         horizontal = np.hypot(rel[:, 0], rel[:, 1])
-        self.azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        self.elevation = np.arctan2(rel[:, 2], horizontal)
-        self.distance = np.hypot(horizontal, rel[:, 2])
+        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+        elevation = np.arctan2(rel[:, 2], horizontal)
         self._r_min = float(ranges.min(initial=np.inf))
         self._r_max = float(ranges.max(initial=0.0))
-        self._geometry = self._cells_geometry(ranges)
+        self._geometry = self._cells_geometry(ranges, elevation)
         _, _, rows, columns = self._geometry
-        self._order, starts = self._sort(self.elevation, self.azimuth)
         self._starts = np.empty((2, rows * columns + 1), dtype=np.int64)
-        self._starts[0] = starts
-        # Sorted copies with room for the inserted points after the frame's.
-        order, total = self._order, n + spare
+        self._order = order = self._sort(elevation, azimuth, ranges, 0, 0)
+        # Sorted copies, with room for the inserted points after the frame's; all of it is
+        # written now, so that adding the inserted points faults in no memory.
+        total = n + spare
         self._rays = np.empty((total, 3))
         self._rel = np.empty((total, 3))
         self._ranges = np.empty(total)
         self._rho = np.empty(total)
         self._elevation = np.empty(total)
         self._azimuth = np.empty(total)
+        self._starts[1] = 0
+        for name in ("_rays", "_rel", "_ranges", "_rho", "_elevation", "_azimuth"):
+            getattr(self, name)[n:] = 0.0
         np.take(rel, order, axis=0, out=self._rel[:n])
         np.take(ranges, order, out=self._ranges[:n])
         np.subtract(2.0 * radius, self._ranges[:n], out=self._rho[:n])
         with np.errstate(invalid="ignore", divide="ignore"):  # points at the viewpoint
             np.divide(self._rel[:n], self._ranges[:n, None], out=self._rays[:n])
-        np.take(self.elevation, order, out=self._elevation[:n])
-        np.take(self.azimuth, order, out=self._azimuth[:n])
-        self._sorted_distance = self.distance[order]
+        np.take(elevation, order, out=self._elevation[:n])
+        np.take(azimuth, order, out=self._azimuth[:n])
+        self._distance = np.hypot(horizontal[order], self._rel[:n, 2])
+        self._prepared: tuple[np.ndarray, np.ndarray] | None = None
+        self._position = np.empty(n, dtype=np.int64)
+        self._position[order] = np.arange(n)
 
     @classmethod
     def build(
@@ -1054,11 +1105,13 @@ class FrameGrid:
     def size(self) -> int:
         return len(self._xyz)
 
-    def _cells_geometry(self, ranges: np.ndarray) -> tuple[float, float, int, int]:
+    def _cells_geometry(
+        self, ranges: np.ndarray, elevation: np.ndarray
+    ) -> tuple[float, float, int, int]:
         n = len(ranges)
         if n == 0:
             return 0.0, 1.0, 1, 1
-        low, high = float(self.elevation.min()), float(self.elevation.max())
+        low, high = float(elevation.min()), float(elevation.max())
         area = max(high - low, 1e-3) * 2 * math.pi
         size = math.sqrt(area / n)
         if 2.0 * self.radius > self._r_max * (1.0 + 1e-12):
@@ -1080,12 +1133,26 @@ class FrameGrid:
         column = ((azimuth + np.pi) * (columns / (2 * math.pi))).astype(np.int64) % columns
         return row * columns + column
 
-    def _sort(self, elevation: np.ndarray, azimuth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        _, _, rows, columns = self._geometry
-        cell = self._cells(elevation, azimuth)
-        starts = np.zeros(rows * columns + 1, dtype=np.int64)
-        np.cumsum(np.bincount(cell, minlength=rows * columns), out=starts[1:])
-        return _counting_sort(cell, starts), starts
+    def _sort(
+        self,
+        elevation: np.ndarray,
+        azimuth: np.ndarray,
+        ranges: np.ndarray,
+        member: int,
+        offset: int,
+    ) -> np.ndarray:
+        """Points in cell order, by range within a cell; row ``member`` of the cell starts
+        receives their sorted positions, plus ``offset``."""
+        starts = self._starts[member]
+        order = _counting_sort_into(self._cells(elevation, azimuth), starts, offset)
+        _sort_cells(order, ranges, starts, offset)
+        return order
+
+    def directions(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Azimuth, elevation (radians) and ``hypot(hypot(x, y), z)`` (metres) of the frame
+        points ``rows`` (indices) relative to the viewpoint, as :meth:`in_windows` uses them."""
+        positions = self._position[rows]
+        return self._azimuth[positions], self._elevation[positions], self._distance[positions]
 
     def in_windows(self, windows: np.ndarray) -> np.ndarray:
         """``bool (N,)``: points with ``az0 <= azimuth <= az1``, ``el0 <= elevation <= el1`` and
@@ -1099,7 +1166,7 @@ class FrameGrid:
                 windows,
                 self._azimuth,
                 self._elevation,
-                self._sorted_distance,
+                self._distance,
                 self._starts,
                 *self._geometry,
                 found,
@@ -1156,20 +1223,12 @@ class FrameGrid:
         rho_max = 2.0 * self.radius - r_min
         absent = np.zeros(n + k, dtype=bool)
         absent[:n] = cleared[self._order]
-        used = slice(0, n + k)
-        scene = (
-            self._rays[used],
-            self._rel[used],
-            self._ranges[used],
-            self._rho[used],
-            self._elevation[used],
-            self._azimuth[used],
-            self._starts,
-            absent,
-            *self._geometry,
-        )
-        queries = np.concatenate([np.flatnonzero(behind[self._order]), n + np.arange(k)])
+        scene = self._scene(n + k, absent)
+        frame_queries = np.flatnonzero(behind[self._order])
+        queries = np.concatenate([frame_queries, n + np.arange(k)])
         cones = _first_cones(self._ranges[queries], r_min, rho_max)
+        known = np.zeros(len(queries), dtype=np.int8)
+        known[: len(frame_queries)] = self._prepared_states(cleared, frame_queries)
         parallel = workers > 1 and len(queries) >= _PARALLEL_MIN
         helper = (pool or ThreadPoolExecutor(max_workers=1)) if parallel else None
         chunks = _FRAME_CHUNKS if parallel else 1
@@ -1177,7 +1236,15 @@ class FrameGrid:
 
         def kernel(part: np.ndarray) -> np.ndarray:
             return _insertion_verdicts(
-                queries[part], cones[part], n, *scene, r_min, rho_max, _BRUTE_BUDGET, _PROBE_TARGET
+                queries[part],
+                cones[part],
+                known[part],
+                n,
+                self.radius,
+                *scene,
+                r_min,
+                rho_max,
+                _BRUTE_BUDGET,
             )
 
         try:
@@ -1193,6 +1260,64 @@ class FrameGrid:
                 verdicts, frame_rows, positions, cleared, xyz, removed, removed_inserted
             )
         return removed, removed_inserted
+
+    def prepare(self, cleared: np.ndarray, behind: np.ndarray) -> None:
+        """Decide now the points of ``behind`` (``bool (N,)``) among the frame's points without
+        its ``cleared`` ones (``bool (N,)``), before any inserted point is known (the DR.CPO
+        pipeline does it on a second thread while the objects are built). A later
+        :meth:`hidden_by_insertion` with the same ``cleared`` then only adds the inserted
+        points' part; with fewer cleared points, it reuses the points found hidden."""
+        n = self.size
+        cleared = _check_query(cleared, n).copy()
+        behind = _check_query(behind, n) & ~cleared
+        self._prepared = None
+        if not behind.any() or not self._local_applies(n, self._r_min, self._r_max, "local"):
+            return
+        absent = cleared[self._order]
+        queries = np.flatnonzero(behind[self._order])
+        rho_max = 2.0 * self.radius - self._r_min
+        cones = _first_cones(self._ranges[queries], self._r_min, rho_max)
+        states = _without_states(
+            queries,
+            cones,
+            self.radius,
+            *self._scene(n, absent),
+            self._r_min,
+            rho_max,
+            _BRUTE_BUDGET,
+        )
+        known = np.zeros(n, dtype=np.int8)
+        known[queries] = states
+        self._prepared = (cleared, known)
+
+    def _prepared_states(self, cleared: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """States :meth:`prepare` found for the sorted frame ``positions`` that still hold with
+        ``cleared`` points taken out (0: to decide)."""
+        if self._prepared is None:
+            return np.zeros(len(positions), dtype=np.int8)
+        prepared_cleared, known = self._prepared
+        states = known[positions]
+        if not np.array_equal(prepared_cleared, cleared):
+            if (cleared & ~prepared_cleared).any():
+                return np.zeros(len(positions), dtype=np.int8)
+            # more points now: a point hidden among fewer is hidden among them too
+            states[states != _WITHOUT_HIDDEN] = _WITHOUT_UNKNOWN
+        return states
+
+    def _scene(self, count: int, absent: np.ndarray) -> tuple:
+        """The kernels' view of the first ``count`` sorted points, ``absent`` ones skipped."""
+        used = slice(0, count)
+        return (
+            self._rays[used],
+            self._rel[used],
+            self._ranges[used],
+            self._rho[used],
+            self._elevation[used],
+            self._azimuth[used],
+            self._starts,
+            absent,
+            *self._geometry,
+        )
 
     def _local_applies(self, count: int, r_min: float, r_max: float, method: str) -> bool:
         """Whether :func:`hidden_point_removal` would take the per-point test for the frame
@@ -1221,8 +1346,7 @@ class FrameGrid:
         horizontal = np.hypot(rel[:, 0], rel[:, 1])
         azimuth = np.arctan2(rel[:, 1], rel[:, 0])
         elevation = np.arctan2(rel[:, 2], horizontal)
-        order, starts = self._sort(elevation, azimuth)
-        np.add(starts, n, out=self._starts[1])
+        order = self._sort(elevation, azimuth, ranges, 1, n)
         np.take(rel, order, axis=0, out=self._rel[n : n + k])
         np.take(ranges, order, out=self._ranges[n : n + k])
         np.subtract(2.0 * self.radius, self._ranges[n : n + k], out=self._rho[n : n + k])
@@ -1276,6 +1400,8 @@ class FrameGrid:
 
 
 _VERDICT_KEEP, _VERDICT_REMOVE, _VERDICT_UNDECIDED_WITHOUT, _VERDICT_UNDECIDED_WITH = 0, 1, 2, 3
+# A frame point among the frame's points alone (see _without_state); 0: not decided yet.
+_WITHOUT_UNKNOWN, _WITHOUT_CLEAR, _WITHOUT_HIDDEN, _WITHOUT_VISIBLE, _WITHOUT_UNRESOLVED = range(5)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1403,7 +1529,11 @@ def _gather(
     (which may exceed the buffers: the caller grows them and asks again), or ``-1`` when
     ``radial_only`` and some point blocks the plane normal to the ray (``t_j`` not positive).
     Only the member sets in the bits of ``members`` (rows of ``starts``) take part; exact
-    duplicates of point ``i`` and ``absent`` points are skipped.
+    duplicates of point ``i`` and ``absent`` points are skipped. With the :data:`_CERTIFY`
+    bit, it returns ``_NO_PLANE`` as soon as points with ``t_j`` below the slack lie in all
+    four quadrants around ``(0, 0)`` (``(s1_j, s2_j)`` clear of the axes): three of them then
+    sum to zero with positive weights while their ``t_j - slack`` do not, so no ``(a, b)``
+    meets all constraints (Farkas) and the point is hidden.
     """
     ux, uy, uz = rays[i, 0], rays[i, 1], rays[i, 2]
     e1x, e1y, e1z, e2x, e2y, e2z = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -1416,6 +1546,8 @@ def _gather(
     if reach >= math.pi:
         chord2 = 5.0
     masked = absent.shape[0] > 0
+    certify = members & _CERTIFY != 0
+    quadrants = 0
     capacity = out_t.shape[0]
     count = 0
     row_lo, row_hi, col_lo, col_n = _cell_range(
@@ -1449,12 +1581,30 @@ def _gather(
                         if t <= _SLACK:
                             return -1
                         continue
+                    s1 = dx * e1x + dy * e1y + dz * e1z
+                    s2 = dx * e2x + dy * e2y + dz * e2z
+                    if certify and t < _SLACK:
+                        quadrants |= _quadrant(s1, s2)
+                        if quadrants == 15:
+                            return _NO_PLANE
                     if count < capacity:
-                        out_s1[count] = dx * e1x + dy * e1y + dz * e1z
-                        out_s2[count] = dx * e2x + dy * e2y + dz * e2z
+                        out_s1[count] = s1
+                        out_s2[count] = s2
                         out_t[count] = t
                     count += 1
     return count
+
+
+@nb.njit(cache=True, nogil=True)
+def _quadrant(s1, s2):
+    """Bit of the open quadrant holding ``(s1, s2)`` with a margin of 1e-9 of its size (far
+    above rounding), 0 when near an axis."""
+    margin = 1e-9 * (abs(s1) + abs(s2))
+    if s1 > margin:
+        return 1 if s2 > margin else (8 if s2 < -margin else 0)
+    if s1 < -margin:
+        return 2 if s2 > margin else (4 if s2 < -margin else 0)
+    return 0
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1507,28 +1657,6 @@ def _gather_grown(
         s1 = np.empty(2 * count)
         s2 = np.empty(2 * count)
         t = np.empty(2 * count)
-
-
-@nb.njit(cache=True, nogil=True)
-def _probe_radius(
-    i, probe, target, members, elevation, azimuth, starts, origin, size, rows, columns
-):
-    """Radius (radians) around point ``i`` expected to hold about ``target`` points, from the
-    points of the cells around it within ``probe`` radians."""
-    row_lo, row_hi, col_lo, col_n = _cell_range(
-        elevation[i], azimuth[i], probe, origin, size, rows, columns
-    )
-    count = 0
-    for member in range(starts.shape[0]):
-        if members & (1 << member):
-            for row in range(row_lo, row_hi + 1):
-                lo0, hi0, lo1, hi1 = _row_runs(starts, member, row, col_lo, col_n, columns)
-                count += hi0 - lo0 + hi1 - lo1
-    if count == 0:
-        return probe
-    area = (row_hi - row_lo + 1) * size * col_n * (2.0 * math.pi / columns)
-    area *= max(math.cos(elevation[i]), 1e-3)
-    return math.sqrt(target * area / (math.pi * count))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -1612,7 +1740,6 @@ def _decide(
     i,
     first_cone,
     members,
-    probe_target,
     rays,
     rel,
     ranges,
@@ -1638,8 +1765,8 @@ def _decide(
     Returns it with the full scans made so far and the (possibly grown) buffers.
 
     Hidden is proven by a neighbourhood where no plane fits (hidden in a subset implies
-    hidden); visible by the least tilted plane whose danger cone the neighbourhood covers. With
-    ``probe_target``, a narrow probe holding about that many points is tried first.
+    hidden); visible by the least tilted plane whose danger cone the neighbourhood covers.
+    ``members`` may hold the :data:`_CERTIFY` bit (see :func:`_gather`).
     """
     ri = ranges[i]
     cone = max(_FIRST_WIDENING * first_cone, 1e-6)
@@ -1647,43 +1774,6 @@ def _decide(
     # nearest, and the full one can hold many times more.
     probe = _PROBE_NARROWING * first_cone
     if probe > 1e-6:
-        if probe_target > 0:
-            small = _probe_radius(
-                i,
-                probe,
-                probe_target,
-                members,
-                elevation,
-                azimuth,
-                starts,
-                origin,
-                size,
-                rows,
-                columns,
-            )
-            if 1e-6 < small < probe:
-                count, s1, s2, t = _gather_grown(
-                    i,
-                    small,
-                    members,
-                    rays,
-                    rel,
-                    ranges,
-                    rho,
-                    elevation,
-                    azimuth,
-                    starts,
-                    absent,
-                    origin,
-                    size,
-                    rows,
-                    columns,
-                    s1,
-                    s2,
-                    t,
-                )
-                if _min_tilt(s1, s2, t, count)[0] == 0:
-                    return _STATE_HIDDEN, brutes, s1, s2, t
         count, s1, s2, t = _gather_grown(
             i,
             probe,
@@ -1704,7 +1794,7 @@ def _decide(
             s2,
             t,
         )
-        if _min_tilt(s1, s2, t, count)[0] == 0:
+        if count == _NO_PLANE or _min_tilt(s1, s2, t, count)[0] == 0:
             return _STATE_HIDDEN, brutes, s1, s2, t
     while True:
         everything = cone >= _BRUTE_ANGLE
@@ -1733,6 +1823,8 @@ def _decide(
             s2,
             t,
         )
+        if count == _NO_PLANE:
+            return _STATE_HIDDEN, brutes, s1, s2, t
         status, a, b = _min_tilt(s1, s2, t, count)
         if status == 0:
             return _STATE_HIDDEN, brutes, s1, s2, t
@@ -1778,7 +1870,6 @@ def _classify(
             i,
             first_cone[i],
             _ORIGINALS,
-            0.0,
             rays,
             rel,
             ranges,
@@ -1803,10 +1894,160 @@ def _classify(
 
 
 @nb.njit(cache=True, nogil=True)
-def _insertion_verdicts(
+def _radial_clear(
+    i,
+    cone,
+    members,
+    radius,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    absent,
+    origin,
+    size,
+    rows,
+    columns,
+):
+    """Whether no point of the member sets blocks the plane through sorted point ``i`` normal
+    to its ray, within its first cone ``cone`` (:func:`_gather`'s radial test; ``radius``:
+    ``R``), on cells sorted by range.
+
+    A point ``j`` blocks it when ``2 sin^2(theta / 2) <= (r_i - r_j) / (2R - r_j) + slack``
+    (``theta``: the angle between the rays), so none farther than ``r_i + 4 slack R`` does:
+    each cell is read only up to the first such point.
+    """
+    ux, uy, uz = rays[i, 0], rays[i, 1], rays[i, 2]
+    ri = ranges[i]
+    limit = ri + 4.0 * _SLACK * radius
+    reach = min(cone * (1.0 + 1e-9) + 1e-12, math.pi)
+    half = math.sin(reach / 2.0)
+    chord2 = 4.0 * half * half * (1.0 + 1e-12) + 1e-300
+    if reach >= math.pi:
+        chord2 = 5.0
+    row_lo, row_hi, col_lo, col_n = _cell_range(
+        elevation[i], azimuth[i], reach, origin, size, rows, columns
+    )
+    first = (col_lo % columns + columns) % columns
+    masked = absent.shape[0] > 0
+    for member in range(starts.shape[0]):
+        if not members & (1 << member):
+            continue
+        for row in range(row_lo, row_hi + 1):
+            for k in range(col_n):
+                column = first + k
+                if column >= columns:
+                    column -= columns
+                cell = row * columns + column
+                for j in range(starts[member, cell], starts[member, cell + 1]):
+                    if ranges[j] > limit:
+                        break
+                    if j == i:
+                        continue
+                    dx = rays[j, 0] - ux
+                    dy = rays[j, 1] - uy
+                    dz = rays[j, 2] - uz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 > chord2 or (masked and absent[j]):
+                        continue
+                    if (
+                        d2 == 0.0
+                        and rel[j, 0] == rel[i, 0]
+                        and rel[j, 1] == rel[i, 1]
+                        and rel[j, 2] == rel[i, 2]
+                    ):
+                        continue  # an exact duplicate
+                    if 0.5 * d2 - (ri - ranges[j]) / rho[j] <= _SLACK:
+                        return False
+    return True
+
+
+@nb.njit(cache=True, nogil=True)
+def _without_state(
+    i,
+    cone,
+    radius,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    absent,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+    s1,
+    s2,
+    t,
+    brutes,
+    brute_budget,
+):
+    """State of sorted frame point ``i`` among the frame's points (first cone ``cone``):
+    clear (the plane normal to its ray), hidden, visible (a tilted plane) or unresolved; with
+    the full scans made so far and the buffers, as :func:`_decide`."""
+    if _radial_clear(
+        i,
+        cone,
+        _ORIGINALS,
+        radius,
+        rays,
+        rel,
+        ranges,
+        rho,
+        elevation,
+        azimuth,
+        starts,
+        absent,
+        origin,
+        size,
+        rows,
+        columns,
+    ):
+        return _WITHOUT_CLEAR, brutes, s1, s2, t
+    state, brutes, s1, s2, t = _decide(
+        i,
+        cone,
+        _ORIGINALS | _CERTIFY,
+        rays,
+        rel,
+        ranges,
+        rho,
+        elevation,
+        azimuth,
+        starts,
+        absent,
+        origin,
+        size,
+        rows,
+        columns,
+        r_min,
+        rho_max,
+        s1,
+        s2,
+        t,
+        brutes,
+        brute_budget,
+    )
+    if state == _STATE_HIDDEN:
+        return _WITHOUT_HIDDEN, brutes, s1, s2, t
+    if state == _STATE_VISIBLE:
+        return _WITHOUT_VISIBLE, brutes, s1, s2, t
+    return _WITHOUT_UNRESOLVED, brutes, s1, s2, t
+
+
+@nb.njit(cache=True, nogil=True)
+def _without_states(
     queries,
     cones,
-    n_original,
+    radius,
     rays,
     rel,
     ranges,
@@ -1822,57 +2063,91 @@ def _insertion_verdicts(
     r_min,
     rho_max,
     brute_budget,
-    probe_target,
 ):
-    """e-HPR's inserted scope for the sorted points ``queries`` (first cones ``cones``): the
-    frame's points (positions below ``n_original``) go when visible without the inserted ones
-    and hidden with them, inserted points when hidden. Per query: keep 0, remove 1, or which
+    """:func:`_without_state` of the sorted frame points ``queries`` (first cones ``cones``)."""
+    states = np.empty(queries.shape[0], dtype=np.int8)
+    s1 = np.empty(256)
+    s2 = np.empty(256)
+    t = np.empty(256)
+    brutes = 0
+    for slot in range(queries.shape[0]):
+        states[slot], brutes, s1, s2, t = _without_state(
+            queries[slot],
+            cones[slot],
+            radius,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            absent,
+            origin,
+            size,
+            rows,
+            columns,
+            r_min,
+            rho_max,
+            s1,
+            s2,
+            t,
+            brutes,
+            brute_budget,
+        )
+    return states
+
+
+@nb.njit(cache=True, nogil=True)
+def _insertion_verdicts(
+    queries,
+    cones,
+    known,
+    n_original,
+    radius,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    absent,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+    brute_budget,
+):
+    """e-HPR's inserted scope for the sorted points ``queries`` (first cones ``cones``) on a
+    grid whose cells are sorted by range (``radius``: ``R``): the frame's
+    points (positions below ``n_original``) go when visible without the inserted ones and
+    hidden with them, inserted points when hidden. ``known``: per query, the frame point's
+    :func:`_without_state` if already decided, else 0. Per query: keep 0, remove 1, or which
     verdict it could not settle within ``brute_budget`` full scans: without the inserted
     points 2, with them 3.
 
     A frame point's plane normal to its ray is checked against the frame's points and the
-    inserted ones separately, so one scan decides both sets when it fits; otherwise each set
-    is decided as :func:`_classify` does.
+    inserted ones separately, so that one scan of each decides both sets when it fits;
+    otherwise each set is decided as :func:`_classify` does.
     """
     verdicts = np.empty(queries.shape[0], dtype=np.int8)
     s1 = np.empty(256)
     s2 = np.empty(256)
     t = np.empty(256)
-    empty = np.empty(0)
     brutes = 0
     for slot in range(queries.shape[0]):
         i = queries[slot]
         cone = cones[slot]
         if i < n_original:
-            if (
-                _gather(
+            state = known[slot]
+            if state == _WITHOUT_UNKNOWN:
+                state, brutes, s1, s2, t = _without_state(
                     i,
                     cone,
-                    True,
-                    _ORIGINALS,
-                    rays,
-                    rel,
-                    ranges,
-                    rho,
-                    elevation,
-                    azimuth,
-                    starts,
-                    absent,
-                    origin,
-                    size,
-                    rows,
-                    columns,
-                    empty,
-                    empty,
-                    empty,
-                )
-                < 0
-            ):
-                state, brutes, s1, s2, t = _decide(
-                    i,
-                    cone,
-                    _ORIGINALS,
-                    probe_target,
+                    radius,
                     rays,
                     rel,
                     ranges,
@@ -1893,45 +2168,18 @@ def _insertion_verdicts(
                     brutes,
                     brute_budget,
                 )
-                if state == _STATE_HIDDEN:
-                    verdicts[slot] = _VERDICT_KEEP
-                    continue
-                if state == _STATE_UNRESOLVED:
-                    verdicts[slot] = _VERDICT_UNDECIDED_WITHOUT
-                    continue
-                # visible without the inserted points; the radial plane fails with them too
-            elif (
-                _gather(
-                    i,
-                    cone,
-                    True,
-                    _INSERTED,
-                    rays,
-                    rel,
-                    ranges,
-                    rho,
-                    elevation,
-                    azimuth,
-                    starts,
-                    absent,
-                    origin,
-                    size,
-                    rows,
-                    columns,
-                    empty,
-                    empty,
-                    empty,
-                )
-                >= 0
-            ):
+            if state == _WITHOUT_HIDDEN:
                 verdicts[slot] = _VERDICT_KEEP
                 continue
-        elif (
-            _gather(
+            if state == _WITHOUT_UNRESOLVED:
+                verdicts[slot] = _VERDICT_UNDECIDED_WITHOUT
+                continue
+            # visible without the inserted points: by the radial plane unless they block it
+            if state == _WITHOUT_CLEAR and _radial_clear(
                 i,
                 cone,
-                True,
-                _BOTH,
+                _INSERTED,
+                radius,
                 rays,
                 rel,
                 ranges,
@@ -1944,19 +2192,33 @@ def _insertion_verdicts(
                 size,
                 rows,
                 columns,
-                empty,
-                empty,
-                empty,
-            )
-            >= 0
+            ):
+                verdicts[slot] = _VERDICT_KEEP
+                continue
+        elif _radial_clear(
+            i,
+            cone,
+            _BOTH,
+            radius,
+            rays,
+            rel,
+            ranges,
+            rho,
+            elevation,
+            azimuth,
+            starts,
+            absent,
+            origin,
+            size,
+            rows,
+            columns,
         ):
             verdicts[slot] = _VERDICT_KEEP
             continue
         state, brutes, s1, s2, t = _decide(
             i,
             cone,
-            _BOTH,
-            probe_target,
+            _BOTH | _CERTIFY,
             rays,
             rel,
             ranges,

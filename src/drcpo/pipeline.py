@@ -25,7 +25,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
@@ -474,6 +474,17 @@ class BoxQuery:
             _box_scan(self.points, boxes, *self._terms(boxes, margin), unused, counts)
         return counts
 
+    def own_counts(
+        self, owner: np.ndarray, boxes: np.ndarray | Sequence[np.ndarray], where: np.ndarray
+    ) -> np.ndarray:
+        """``int64 (M,)``: per box ``m``, the points with ``owner == m`` (``int (N,)``) and
+        ``where`` (``bool (N,)``) that lie in it, in one pass."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        counts = np.zeros(len(boxes), dtype=np.int64)
+        if len(boxes) and len(self.points):
+            _own_box_scan(self.points, owner, where, boxes, *self._terms(boxes, 0.0), counts)
+        return counts
+
     def _terms(self, boxes: np.ndarray, margin: float) -> tuple[np.ndarray, ...]:
         """Per box: cos, sin of the heading (numpy's, as :meth:`inside`), the BEV reach of the
         rotated box ``(M, 2)`` (a conservative pre-filter) and the half sizes ``(M, 3)``."""
@@ -491,30 +502,61 @@ class BoxQuery:
 
 @nb.njit(cache=True, nogil=True)
 def _box_scan(points, boxes, cos, sin, reach, half, owner, counts):  # pragma: no cover - numba
-    # Per point, the boxes in order; the float64 arithmetic of BoxQuery.inside, operation for
-    # operation, so a point on a face gets the same verdict. Fills ``owner`` (the last box
-    # holding each point) and/or ``counts`` (points per box), whichever is not empty.
+    # Per point, the boxes in order. Fills ``owner`` (the last box holding each point) and/or
+    # ``counts`` (points per box), whichever is not empty.
     with_owner, with_counts = owner.shape[0] > 0, counts.shape[0] > 0
     for i in range(points.shape[0]):
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
         for m in range(boxes.shape[0]):
-            dx = px - boxes[m, 0]
-            if abs(dx) > reach[m, 0]:
-                continue
-            dy = py - boxes[m, 1]
-            if abs(dy) > reach[m, 1]:
-                continue
-            local_x = dx * cos[m] + dy * sin[m]
-            local_y = -dx * sin[m] + dy * cos[m]
-            if (
-                abs(local_x) <= half[m, 0]
-                and abs(local_y) <= half[m, 1]
-                and abs(pz - boxes[m, 2]) <= half[m, 2]
+            if _in_box(
+                px - boxes[m, 0],
+                py - boxes[m, 1],
+                pz - boxes[m, 2],
+                cos[m],
+                sin[m],
+                reach[m, 0],
+                reach[m, 1],
+                half[m, 0],
+                half[m, 1],
+                half[m, 2],
             ):
                 if with_owner:
                     owner[i] = m
                 if with_counts:
                     counts[m] += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _own_box_scan(points, owner, where, boxes, cos, sin, reach, half, counts):  # pragma: no cover
+    # BoxQuery.own_counts: each point tested against its own box only.
+    for i in range(points.shape[0]):
+        m = owner[i]
+        if m >= 0 and where[i]:
+            if _in_box(
+                np.float64(points[i, 0]) - boxes[m, 0],
+                np.float64(points[i, 1]) - boxes[m, 1],
+                np.float64(points[i, 2]) - boxes[m, 2],
+                cos[m],
+                sin[m],
+                reach[m, 0],
+                reach[m, 1],
+                half[m, 0],
+                half[m, 1],
+                half[m, 2],
+            ):
+                counts[m] += 1
+
+
+@nb.njit(cache=True, nogil=True)
+def _in_box(dx, dy, dz, cos, sin, reach_x, reach_y, half_x, half_y, half_z):  # pragma: no cover
+    # Whether the offset (dx, dy, dz) from a box centre lies in the box: the float64
+    # arithmetic of BoxQuery.inside, operation for operation, so that a point on a face gets
+    # the same verdict. (Scalars only: a call with arrays costs more than the test.)
+    if abs(dx) > reach_x or abs(dy) > reach_y:
+        return False
+    local_x = dx * cos + dy * sin
+    local_y = -dx * sin + dy * cos
+    return abs(local_x) <= half_x and abs(local_y) <= half_y and abs(dz) <= half_z
 
 
 #: Metadata arrays holding one row per box, kept in step when boxes are added or removed, with
@@ -900,12 +942,14 @@ class DRCPO(Transform):
         # it is built, while the next one is constructed (the answers do not depend on it);
         # the construction stage's time then includes that overlapped s-HPR work.
         overlap = self.config.self_occlusion.enabled and _spare_core()
+        prepared: Future | None = None
         with ThreadPoolExecutor(max_workers=1) as pool:
             frame_grid = self._frame_grid(frame, rows, pool)
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
                     boxes, accepted = self._place(frame, rows, None, rng, stats)
                     rows = rows[accepted]
+                    prepared = self._prepare_e_hpr(frame, boxes, frame_grid, pool)
                 with stats.stage("drcpo.construction", 0) as record:
                     if overlap:
                         early = []
@@ -919,12 +963,13 @@ class DRCPO(Transform):
                     dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
                     boxes, accepted = self._place(frame, rows, dims, rng, stats)
                     rows, objects = rows[accepted], [objects[i] for i in accepted]
+                    prepared = self._prepare_e_hpr(frame, boxes, frame_grid, pool)
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 insertions = self._self_occlusion(frame, rows, boxes, objects, stats, early)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
-                points, owner, cleared_by = self._insert(frame, insertions)
+                points, owner, cleared_by = self._insert(frame, insertions, prepared)
                 record["points_out"] = len(points)
             with stats.stage("drcpo.external_occlusion", len(points)) as record:
                 grid = frame_grid() if frame_grid is not None and insertions else None
@@ -932,7 +977,10 @@ class DRCPO(Transform):
                 keep = self._external_occlusion(points, owner, insertions, grid, cleared_by, helper)
                 record["points_out"] = int(keep.sum())
             with stats.stage("drcpo.labels", int(keep.sum())) as record:
-                out = self._settle(frame, points, owner, keep, cleared_by, insertions, stats, grid)
+                box_counts = prepared.result()[2] if prepared is not None else None
+                out = self._settle(
+                    frame, points, owner, keep, cleared_by, insertions, stats, grid, box_counts
+                )
                 record["points_out"] = len(out)
         return out
 
@@ -949,6 +997,34 @@ class DRCPO(Transform):
         radius, viewpoint = self.e_hpr_setting()
         build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius)
         return pool.submit(build).result if _spare_core() else build
+
+    def _prepare_e_hpr(
+        self,
+        frame: Frame,
+        boxes: np.ndarray,
+        frame_grid: Callable[[], occlusion.FrameGrid] | None,
+        pool: ThreadPoolExecutor,
+    ) -> Future | None:
+        """On two cores, start on ``pool`` what e-HPR needs of the placed ``boxes`` alone: the
+        box owning each frame point (see :meth:`BoxQuery.owners`) and, in the frame's grid,
+        the verdicts of the frame points behind the boxes without the objects (see
+        :meth:`~drcpo.occlusion.FrameGrid.prepare`), while the objects are built. The future's
+        result: ``(boxes, owners, box counts)``, the last the frame's points in each of its
+        own boxes (for the labels). ``None`` when there is nothing to start."""
+        if frame_grid is None or len(boxes) == 0 or not _spare_core():
+            return None
+        _, viewpoint = self.e_hpr_setting()
+
+        def work() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            query = BoxQuery(frame.points)
+            owners = query.owners(boxes)
+            windows = _window_spans(_grown(boxes), viewpoint, behind=True)
+            if windows is not None:
+                grid, cleared = frame_grid(), owners >= 0
+                grid.prepare(cleared, ~cleared & grid.in_windows(windows))
+            return boxes, owners, query.counts(frame.boxes)
+
+        return pool.submit(work)
 
     def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
         """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
@@ -1085,15 +1161,20 @@ class DRCPO(Transform):
         return insertions
 
     def _insert(
-        self, frame: Frame, insertions: Sequence[_Insertion]
+        self, frame: Frame, insertions: Sequence[_Insertion], prepared: Future | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points after insertion (the frame's points outside the boxes, then the objects'),
         each point's owner (-1: an original point, else the insertion's number) and, per frame
-        point, the insertion whose box it had to make room for (-1: none)."""
+        point, the insertion whose box it had to make room for (-1: none). ``prepared``: see
+        :meth:`_prepare_e_hpr`; its owners are reused when every placed object is inserted."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
-        cleared_by = BoxQuery(frame.points).owners(np.array([i.box for i in insertions]))
+        placed, owners, _ = prepared.result() if prepared is not None else ((), None, None)
+        if len(placed) == len(insertions):  # the same boxes, in the same order
+            cleared_by = owners
+        else:
+            cleared_by = BoxQuery(frame.points).owners(np.array([i.box for i in insertions]))
         original = cleared_by < 0
         points = np.concatenate([_rows(frame.points, original), *(i.points for i in insertions)])
         owner = np.concatenate(
@@ -1196,6 +1277,7 @@ class DRCPO(Transform):
         insertions: Sequence[_Insertion],
         stats: Stats,
         grid: occlusion.FrameGrid | None = None,
+        box_counts: np.ndarray | None = None,
     ) -> Frame:
         """The output frame: drop inserted objects and original boxes left with too few points.
 
@@ -1203,34 +1285,28 @@ class DRCPO(Transform):
         with all its points, and the frame points it displaced or (scope ``inserted``) hid
         come back, so it leaves no trace. An original box is dropped when it lost points and
         is left with fewer than ``min_points_after``, unless it had fewer already. ``grid``:
-        the frame's e-HPR grid, if built (its directions of the frame's points are reused).
+        the frame's e-HPR grid, if built (its directions of the frame's points are reused);
+        ``box_counts``: the frame's points in each of its boxes, if counted already.
         """
         minimum = self.config.min_points_after
         # Points in the box itself count (construction may leave some a few cm outside).
-        # Owners are sorted (original points first, then each insertion's block).
-        bounds = np.searchsorted(owner, np.arange(len(insertions) + 1))
-        survivors = np.array(
-            [
-                BoxQuery(points[a:b][keep[a:b]]).counts(insertion.box)[0]
-                for a, b, insertion in zip(bounds[:-1], bounds[1:], insertions, strict=True)
-            ],
-            dtype=np.int64,
-        )
+        survivors = BoxQuery(points).own_counts(owner, [i.box for i in insertions], keep)
         dropped = survivors < minimum
         original_rows = np.flatnonzero(cleared_by < 0)  # frame row of each original point
         removed = cleared_by >= 0
         removed[original_rows[~keep[: len(original_rows)]]] = True
         kept = [i for i, gone in zip(insertions, dropped, strict=True) if not gone]
         if dropped.any():
-            removed &= ~np.isin(cleared_by, np.flatnonzero(dropped))
+            removed &= ~np.append(dropped, False)[cleared_by]  # (index -1: the frame's own)
             if self.config.external_occlusion.scope == "inserted":
                 # Original points hidden only inside the view windows of dropped objects
                 # come back.
                 hidden = np.flatnonzero(removed & (cleared_by < 0))
                 _, viewpoint = self.e_hpr_setting()
                 windows = _window_spans(_grown([i.box for i in kept]), viewpoint)
-                if grid is not None:
-                    core = grid.in_windows(windows)[hidden] if windows is not None else True
+                if windows is not None and grid is not None:
+                    core = np.zeros(len(hidden), dtype=bool)
+                    _window_scan(*grid.directions(hidden), windows, core)
                 else:
                     core = _in_windows(frame.points[hidden], windows, viewpoint)
                 removed[hidden[~core]] = False
@@ -1239,10 +1315,10 @@ class DRCPO(Transform):
                 stats.rejected(self.name, insertion.name, "external_occlusion")
             else:
                 stats.added(self.name, insertion.name)
-        drop_original = self._sparse_originals(frame, removed)
+        drop_original = self._sparse_originals(frame, removed, box_counts)
         for name in frame.names[drop_original]:
             stats.label_dropped(str(name))
-        inserted_keep = keep & (owner >= 0) & ~np.isin(owner, np.flatnonzero(dropped))
+        inserted_keep = keep & ~np.append(dropped, True)[owner]  # (index -1: not inserted)
         kept_boxes = np.flatnonzero(~drop_original)
         return frame.replace(
             points=np.concatenate([_rows(frame.points, ~removed), _rows(points, inserted_keep)]),
@@ -1256,10 +1332,13 @@ class DRCPO(Transform):
             ),
         )
 
-    def _sparse_originals(self, frame: Frame, removed: np.ndarray) -> np.ndarray:
+    def _sparse_originals(
+        self, frame: Frame, removed: np.ndarray, box_counts: np.ndarray | None = None
+    ) -> np.ndarray:
         """``bool (M,)``: frame boxes that lost points and now hold fewer than the minimum,
         having held at least the minimum before. Only boxes holding removed points can have
-        lost any, so only those are counted."""
+        lost any, so only those are counted (``box_counts``: the frame's points in each box,
+        if known)."""
         minimum = self.config.min_points_after
         drop = np.zeros(len(frame.boxes), dtype=bool)
         if not removed.any() or len(frame.boxes) == 0:
@@ -1267,7 +1346,10 @@ class DRCPO(Transform):
         lost = BoxQuery(_rows(frame.points, removed)).counts(frame.boxes)
         touched = np.flatnonzero(lost)
         if len(touched):
-            had = BoxQuery(frame.points).counts(frame.boxes[touched])
+            if box_counts is not None:
+                had = box_counts[touched]
+            else:
+                had = BoxQuery(frame.points).counts(frame.boxes[touched])
             drop[touched] = (had >= minimum) & (had - lost[touched] < minimum)
         return drop
 
