@@ -617,8 +617,8 @@ class OcclusionMap:
             *_heading_terms(boxes),
             self.viewpoint,
             _FACE_GRIDS,
-            _FACES[:, 0].astype(np.int64),
-            _FACES[:, 1].copy(),
+            _FACE_AXES,
+            _FACE_SIGNS,
             self._constants,
             _DIRECTIONS,
             _AZIMUTH_FIRST,
@@ -664,6 +664,7 @@ def _face_templates(steps: tuple[int, int] = (12, 8)) -> tuple[np.ndarray, np.nd
 
 
 _FACE_GRIDS, _FACES = _face_templates()
+_FACE_AXES, _FACE_SIGNS = _FACES[:, 0].astype(np.int64), _FACES[:, 1].copy()
 
 
 def _facing_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -888,31 +889,24 @@ def _occluded_share(
         b = bins[i]
         if b == -1:
             continue
-        x = y = z = np.float32(0.0)
-        if b >= 0:
-            first, second = az_first[b], az_second[b]
-            if first >= 0:  # else a seam bin: no shortcut
-                if high[first] < 0 and high[second] < 0:
-                    continue
-                slope = np.float64(slopes[i])
-                if slope < min(slope_low[first], slope_low[second]):
-                    continue
-                if slope > max(slope_high[first], slope_high[second]):
-                    continue
-                x = np.float32(points[i, 0]) - vx
-                y = np.float32(points[i, 1]) - vy
-                z = np.float32(points[i, 2]) - vz
-                fx, fy, fz = np.float64(x), np.float64(y), np.float64(z)
-                if fx * fx + fy * fy + fz * fz > max(reach[first], reach[second]):
-                    continue
-            else:
-                x = np.float32(points[i, 0]) - vx
-                y = np.float32(points[i, 1]) - vy
-                z = np.float32(points[i, 2]) - vz
-        else:
-            x = np.float32(points[i, 0]) - vx
-            y = np.float32(points[i, 1]) - vy
-            z = np.float32(points[i, 2]) - vz
+        # Seam bins (first < 0) and points straight above or below (b = -2): no shortcut.
+        first = az_first[b] if b >= 0 else -1
+        second = az_second[b] if b >= 0 else -1
+        if first >= 0:
+            if high[first] < 0 and high[second] < 0:
+                continue
+            slope = np.float64(slopes[i])
+            if slope < min(slope_low[first], slope_low[second]):
+                continue
+            if slope > max(slope_high[first], slope_high[second]):
+                continue
+        x = np.float32(points[i, 0]) - vx
+        y = np.float32(points[i, 1]) - vy
+        z = np.float32(points[i, 2]) - vz
+        if first >= 0:
+            fx, fy, fz = np.float64(x), np.float64(y), np.float64(z)
+            if fx * fx + fy * fy + fz * fz > max(reach[first], reach[second]):
+                continue
         candidate[found] = i
         near[found, 0], near[found, 1], near[found, 2] = x, y, z
         found += 1
