@@ -7,11 +7,14 @@ fall back on Qhull otherwise; whenever it answers, Qhull (hence Open3D) gives th
 
 The hull. With the viewpoint ``O`` as origin and every point within 84 degrees of one axis, ``O``
 is a vertex and every other facet ("far" facets) is met by the rays from ``O`` through the
-points behind it. The points are inserted one at a time, nearest first in each cell of an
-angular grid and cell by cell, so the visible surface is built early and most later points
-fall inside: a walk across far facets finds the facet that a point's ray crosses (edge by edge,
-from the last facet found), and a point below it is dropped; a point above it is a new vertex:
-the facets it sees are replaced by a cone from it over their horizon.
+points behind it. The points are inserted one at a time: first the nearest point of each cell
+of a coarse grid across the mean direction, then the others along a Hilbert curve over a fine
+grid, so that the visible surface is built early, most later points fall inside and each point
+is found near the last one. A walk across far facets finds the facet that a point's ray crosses
+(edge by edge, from the last facet found); a point below it is dropped, a point above it is a
+new vertex: the facets it sees are replaced by a cone from it over their horizon. An exact copy
+of a vertex is left out and takes the vertex's verdict (Open3D keeps one copy; drcpo gives all
+copies its verdict).
 
 Certainty is defined against a perturbation: every point may move by up to ``rho = rel_tol x
 (largest |coordinate|)``. Every orientation test (is point ``q`` above the plane of ``(a, b,
@@ -29,8 +32,10 @@ returns the same, hence the exact, vertex set for every input in that ball:
   the polytope and all its corners are vertices, with a margin.
 
 Qhull's roundoff and merge thresholds (a few ``1e-15`` of the coordinates, times small factors)
-lie far inside that ball. Exact duplicates, coplanar quadruples on the hull, flat sets, points
-around the viewpoint and other awkward inputs make it give up instead.
+lie far inside that ball. Coplanar quadruples on the hull, near-copies, flat sets, points around
+or at the viewpoint and other awkward inputs make it give up instead (about one real s-HPR
+object in a thousand; checked against Qhull on real, synthetic, mirrored and lattice clouds in
+``tests/test_hull.py``).
 """
 
 from __future__ import annotations
@@ -50,7 +55,7 @@ _FIRST_CAPACITY = 512
 # Every point must be within this cosine of the mean direction (84 degrees), so that the
 # viewpoint is a vertex seen clearly from every far facet.
 _MIN_COSINE = 0.1
-_POINTS_PER_CELL = 6.0  # angular grid of the insertion order
+_POINTS_PER_CELL = 16.0  # coarse grid of the first points (each cell's nearest), measured best
 CERTIFIED, UNSURE, _FULL = 0, 1, 2
 
 
@@ -160,7 +165,7 @@ def flip_hull_visible(xyz, center, radius, max_ratio, at_viewpoint, visible):  #
         status = _apex_hull(cloud, order, REL_TOL, vertex, copies, 3 * n + 16)  # live <= 2n
     if status != CERTIFIED:
         return False
-    for i in range(n):  # equal flips must come from equal points (Open3D's duplicates)
+    for i in range(n):  # copies must be copies of the input too, as the general path sees them
         j = copies[i]
         if j >= 0 and not (
             xyz[i, 0] == xyz[j, 0] and xyz[i, 1] == xyz[j, 1] and xyz[i, 2] == xyz[j, 2]
@@ -176,8 +181,9 @@ def _insertion_order(flipped, ranges, radius, axis):  # pragma: no cover - numba
     tetrahedron), or an empty array when they do not all lie within 84 degrees of ``axis``
     (``(3,)``, any length). ``ranges``: the points' ranges before the flip.
 
-    Cells of a square grid over the points' projection on the plane normal to ``axis``, taken
-    row by row in alternating directions: first each cell's nearest point, then the others.
+    On the points' projection across ``axis``: first the nearest point of each cell of a
+    coarse grid (rows in alternating directions), then the others along the Hilbert curve of a
+    fine grid (:data:`_HILBERT_SIDE` cells a side).
     """
     n = len(ranges)
     norm = np.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
