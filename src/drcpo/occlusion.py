@@ -13,11 +13,13 @@ Methods (``method=``):
 
 * ``"reference"``: the plain algorithm, one Qhull hull (``scipy.spatial.ConvexHull``) of the
   whole flipped set. Open3D's answer, point for point, on inputs in general position. Clouds
-  of at most :data:`HULL_KERNEL_MAX` points within 84 degrees of their mean direction (one
-  object, for s-HPR) first try :mod:`drcpo.hull`'s certified hull, several times cheaper: it
-  answers only when every test it takes holds with a margin a thousand times Qhull's roundoff,
-  and then its vertex set is Qhull's; on a close call (duplicates, coplanar points on the hull,
-  flat or huge-``R`` inputs) Qhull decides, as before.
+  of at most :data:`HULL_KERNEL_MAX` points (``"auto"``: :data:`AUTO_REFERENCE_MAX`) within
+  84 degrees of their mean direction, asked about every point (one object, for s-HPR), first
+  try :mod:`drcpo.hull`'s certified hull, 6-7 times cheaper: it answers only when every test it
+  takes holds with a margin a thousand times Qhull's roundoff, and then its vertex set is
+  Qhull's (exact copies share a verdict, as here); on a close call (coplanar points on the
+  hull, near-copies, flat inputs, points at the viewpoint, ``R`` below half a range) Qhull
+  decides, as before.
 * ``"local"``: exact and fast. A flipped point is a hull vertex iff some plane through it has
   every other flipped point and ``C`` on one side. A plane tilted by ``alpha`` from the ray of
   ``p`` can only be crossed by points within a known angle of its normal (all flipped points
