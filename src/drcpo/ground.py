@@ -28,6 +28,7 @@ Without any usable point (empty frame) the model is the given road plane, or fla
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -302,12 +303,26 @@ def _ransac_plane(
     normals, offsets, length = _plane_hypotheses(seeds, picks, cos_tilt)
     if len(normals) == 0:
         return _least_squares_plane(seeds)
-    # The distances go through the same BLAS product as always (its rounding decides ties).
+    # The distances go through the same BLAS product as always (its rounding decides ties),
+    # into a reused buffer: a fresh one of this size costs more in page faults than the product.
     limit = config.ransac_threshold * length
-    best = _most_inliers(scored @ normals.T, offsets, limit)
+    distance = _scratch("ransac", len(scored) * len(normals)).reshape(len(scored), len(normals))
+    best = _most_inliers(np.matmul(scored, normals.T, out=distance), offsets, limit)
     inliers = np.abs(seeds @ normals[best] - offsets[best]) <= limit[best]
     chosen = seeds[inliers]
     return _least_squares_plane(chosen) if len(chosen) >= 3 else _least_squares_plane(seeds)
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, size: int) -> np.ndarray:
+    """A ``float64 (size,)`` buffer reused by this thread across calls (contents undefined)."""
+    buffer = getattr(_SCRATCH, name, None)
+    if buffer is None or len(buffer) < size:
+        buffer = np.empty(max(size, 1 << 16))
+        setattr(_SCRATCH, name, buffer)
+    return buffer[:size]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -402,28 +417,26 @@ def _bin_lowest(points, limit, scale, cell_size):  # pragma: no cover - numba
     # Cells grow with x and y (rounding is monotone), so the extreme points give the shape.
     nx = int((x_max - offset[0]) * scale) + 1
     ny = int((y_max - offset[1]) * scale) + 1
+    # Per cell the lowest z and the point holding it (small arrays: fresh pages cost).
     low_z = np.full(nx * ny, np.inf, dtype=points.dtype)
-    low_x = np.full(nx * ny, np.inf)
-    low_y = np.full(nx * ny, np.inf)
+    low_point = np.empty(nx * ny, np.int32)
+    count = 0
     for i in range(points.shape[0]):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         if not (abs(x) <= limit and abs(y) <= limit and z - z == 0):
             continue
         cell = np.int64(np.int32((x - offset[0]) * scale)) * ny + np.int32((y - offset[1]) * scale)
         if z <= low_z[cell]:
+            count += low_z[cell] == np.inf
             low_z[cell] = z
-            low_x[cell] = x
-            low_y[cell] = y
-    count = 0
-    for c in range(nx * ny):
-        if np.isfinite(low_z[c]):
-            count += 1
+            low_point[cell] = i
     lowest = np.empty((count, 3))
     occupied = np.empty(count, np.int64)
     k = 0
     for c in range(nx * ny):
-        if np.isfinite(low_z[c]):
-            lowest[k, 0], lowest[k, 1], lowest[k, 2] = low_x[c], low_y[c], low_z[c]
+        if low_z[c] != np.inf:
+            i = low_point[c]
+            lowest[k, 0], lowest[k, 1], lowest[k, 2] = points[i, 0], points[i, 1], low_z[c]
             occupied[k] = c
             k += 1
     return origin, nx, ny, lowest, occupied
@@ -526,8 +539,8 @@ def _borrow_heights(minima, ground, plane_z, reach, heights):  # pragma: no cove
     # Along x: the nearest ground cell of the same column (ties: the lower x), in two sweeps
     # over whole rows (the grid is row-major). Only those within reach matter: a farther one
     # can neither be near nor tie with a near one.
-    nearest_x = np.empty((nx, ny), np.int64)
-    seen = np.full(ny, -1, np.int64)
+    nearest_x = np.empty((nx, ny), np.int32)
+    seen = np.full(ny, -1, np.int32)
     for i in range(nx):
         for j in range(ny):
             if ground[i, j]:
