@@ -541,3 +541,150 @@ def test_hidden_by_insertion_removes_what_the_objects_hide_and_only_that(rng):
     assert not hidden_by_insertion(
         points, np.zeros(len(points), bool), np.zeros(len(points), bool)
     ).any()
+
+
+# ----------------------------------------------------------------------------------------------
+# FrameGrid: e-HPR's inserted scope on a frame sorted once
+# ----------------------------------------------------------------------------------------------
+def _two_passes(points, inserted, behind, viewpoint, radius):
+    """hidden_by_insertion spelled out with hidden_point_removal (the definition)."""
+    visible = hidden_point_removal(points, viewpoint, radius, query=inserted | behind)
+    suspects = behind & ~visible
+    rows = np.flatnonzero(~inserted)
+    before = hidden_point_removal(points[rows], viewpoint, radius, query=suspects[rows])
+    expected = inserted & ~visible
+    expected[rows[suspects[rows] & before]] = True
+    return expected
+
+
+def _insertion_scene(seed: int):
+    """A street frame, some of its points cleared, objects inserted (one of them above every
+    frame point and one with copies of frame points), and the frame points behind them."""
+    rng = np.random.default_rng(seed)
+    frame = street_scene(rng, 3000, fov=1.2).astype(np.float32)
+    boxes = [([12.0, 2.0, -1.0], [4.0, 1.8, 1.5]), ([20.0, -4.0, -0.8], [1.0, 1.0, 1.8])]
+    objects = [_box_surface(rng, 300, c, d, rng.uniform(-3, 3)) for c, d in boxes]
+    objects.append(rng.normal([8.0, 1.0, 3.5], 0.3, (40, 3)))  # above the frame's elevations
+    objects.append(frame[rng.choice(len(frame), 20)] * 1.0)  # exact copies of frame points
+    inserted = np.concatenate(objects).astype(np.float32)
+    cleared = np.zeros(len(frame), dtype=bool)
+    for centre, dims in boxes:
+        cleared |= np.all(np.abs(frame - np.asarray(centre)) <= np.asarray(dims) / 2, axis=1)
+    azimuth = np.arctan2(frame[:, 1], frame[:, 0])
+    behind = ~cleared & (np.hypot(frame[:, 0], frame[:, 1]) > 7.0) & (np.abs(azimuth) < 0.8)
+    return frame, cleared, inserted, behind
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_frame_grid_equals_the_two_passes(seed):
+    from drcpo.occlusion import FrameGrid
+
+    frame, cleared, inserted, behind = _insertion_scene(seed)
+    viewpoint, radius = np.array([0.0, 0.0, [0.0, 0.5, 1.0][seed]]), [1e4, 1e5, 3e5][seed]
+    points = np.concatenate([frame[~cleared], inserted])
+    is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
+    expected = _two_passes(
+        points,
+        is_inserted,
+        np.concatenate([behind[~cleared], np.zeros(len(inserted), bool)]),
+        viewpoint,
+        radius,
+    )
+    assert expected[is_inserted].any() and expected[~is_inserted].any()
+    for workers in (1, 2):
+        grid = FrameGrid.build(frame, viewpoint, radius, spare=10)  # grows for the objects
+        found = grid.hidden_by_insertion(cleared, inserted, behind, method="local", workers=workers)
+        assert found is not None
+        np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
+        assert not found[0][cleared].any()
+
+
+def test_frame_grid_prepared_verdicts_are_reused_or_dropped(seed=1):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from drcpo.occlusion import FrameGrid
+
+    frame, cleared, inserted, behind = _insertion_scene(seed)
+    plain = FrameGrid.build(frame).hidden_by_insertion(cleared, inserted, behind, method="local")
+    # Prepared with the same cleared points, on another thread still running.
+    grid = FrameGrid.build(frame)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        future = pool.submit(grid.prepare, cleared, behind)
+        found = grid.hidden_by_insertion(cleared, inserted, behind, method="local", after=future)
+    for got, want in zip(found, plain, strict=True):
+        np.testing.assert_array_equal(got, want)
+    # Prepared with more cleared points (an object dropped later): only "hidden" is kept.
+    more = cleared | (np.arange(len(frame)) % 7 == 0)
+    grid = FrameGrid.build(frame)
+    grid.prepare(more, behind & ~more)
+    found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
+    for got, want in zip(found, plain, strict=True):
+        np.testing.assert_array_equal(got, want)
+    # Prepared with fewer cleared points than used: nothing is reused.
+    grid = FrameGrid.build(frame)
+    grid.prepare(np.zeros(len(frame), bool), behind)
+    found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
+    for got, want in zip(found, plain, strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
+    from drcpo.occlusion import FrameGrid
+
+    frame, cleared, inserted, behind = _insertion_scene(2)
+    radius = 100.0  # R near the ranges: wide neighbourhoods, full scans
+    points = np.concatenate([frame[~cleared], inserted])
+    is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
+    behind_points = np.concatenate([behind[~cleared], np.zeros(len(inserted), bool)])
+    expected = _two_passes(points, is_inserted, behind_points, np.zeros(3), radius)
+    monkeypatch.setattr(occlusion, "_BRUTE_BUDGET", 0)  # every full scan is refused
+    settled = []
+    undecided = FrameGrid._undecided
+    monkeypatch.setattr(FrameGrid, "_undecided", lambda *a: settled.append(1) or undecided(*a))
+    grid = FrameGrid.build(frame, radius=radius)
+    grid.prepare(cleared, behind)
+    found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
+    assert settled  # the plain passes took over
+    np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
+
+
+def test_frame_grid_declines_where_auto_takes_one_hull():
+    from drcpo.occlusion import FrameGrid
+
+    frame, cleared, inserted, behind = _insertion_scene(0)
+    grid = FrameGrid.build(frame[:500], radius=1e5)
+    # "auto" runs one hull on a few hundred points: the grid leaves it to the caller
+    assert grid.hidden_by_insertion(cleared[:500], inserted[:100], behind[:500]) is None
+    assert grid.hidden_by_insertion(cleared[:500], inserted[:100], behind[:500], method="local")
+    at_origin = np.vstack([frame, np.zeros((1, 3), np.float32)])
+    grid = FrameGrid.build(at_origin)
+    assert grid.hidden_by_insertion(np.zeros(len(at_origin), bool), inserted, None) is None
+    with pytest.raises(DataError, match="NaN"):
+        FrameGrid.build(np.vstack([frame, [[np.nan, 0, 0]]]))
+
+
+def test_frame_grid_windows_select_by_direction(rng):
+    from drcpo.occlusion import FrameGrid
+
+    points = rng.normal(0, 20, (4000, 3))
+    grid = FrameGrid.build(points, (0.0, 0.0, 0.5))
+    rel = points - [0.0, 0.0, 0.5]
+    horizontal = np.hypot(rel[:, 0], rel[:, 1])
+    azimuth, elevation = np.arctan2(rel[:, 1], rel[:, 0]), np.arctan2(rel[:, 2], horizontal)
+    distance = np.hypot(horizontal, rel[:, 2])
+    windows = np.array([[-0.3, 0.2, -0.1, 0.3, 10.0], [2.9, np.pi, -1.0, 1.0, -np.inf]])
+    expected = np.zeros(len(points), dtype=bool)
+    for az0, az1, el0, el1, near in windows:
+        expected |= (
+            (azimuth >= az0)
+            & (azimuth <= az1)
+            & (elevation >= el0)
+            & (elevation <= el1)
+            & (distance >= near)
+        )
+    assert expected.sum() > 50
+    np.testing.assert_array_equal(grid.in_windows(windows), expected)
+    rows = np.flatnonzero(expected)[:40]
+    got = grid.directions(rows)
+    for values, want in zip(got, (azimuth, elevation, distance), strict=True):
+        np.testing.assert_array_equal(values, want[rows])

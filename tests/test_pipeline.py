@@ -433,6 +433,12 @@ def test_box_query_equals_points_in_boxes(rng):
         np.testing.assert_array_equal(query.owners(boxes, margin), last)
     assert query.inside_any(np.zeros((0, 7))).sum() == 0
     assert (query.owners(np.zeros((0, 7))) == -1).all()
+    # own_counts: each point counted in its own box only, where asked
+    owner = rng.integers(-1, len(boxes), len(points))
+    where = rng.random(len(points)) < 0.7
+    reference = points_in_boxes(points, boxes)
+    expected = [int((reference[:, m] & (owner == m) & where).sum()) for m in range(len(boxes))]
+    np.testing.assert_array_equal(query.own_counts(owner, boxes, where), expected)
 
 
 # --------------------------------------------------------------------------------------------
@@ -941,3 +947,19 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
     assert not keep[: len(wall)][shadow].any()  # the wall behind the box is hidden now
     assert keep[: len(wall)][(np.abs(wall[:, 1]) > 1.5)].all()
     assert keep[len(wall) : len(wall) + len(layer)].all()  # hidden before: HPR's call, kept
+
+
+@pytest.mark.parametrize("config", [{}, {"self_occlusion": {"min_points": 40}}])
+def test_drcpo_frame_grid_paths_give_the_plain_answer(kitti_world, config, monkeypatch):
+    # The frame's grid, prepared on a second thread while objects are built (with s-HPR
+    # dropping some placed objects in the second case: fewer points cleared than prepared
+    # for), must give the plain e-HPR passes' frame, point for point.
+    db, index, frames = kitti_world
+    transform = DRCPO(db, index, config)
+    grid_path = [transform(frame, np.random.default_rng(7 + i)) for i, frame in enumerate(frames)]
+    monkeypatch.setattr(DRCPO, "_frame_grid", lambda *args: None)
+    for i, (frame, out) in enumerate(zip(frames, grid_path, strict=True)):
+        plain = transform(frame, np.random.default_rng(7 + i))
+        np.testing.assert_array_equal(out.points, plain.points)
+        np.testing.assert_array_equal(out.boxes, plain.boxes)
+        np.testing.assert_array_equal(out.names, plain.names)

@@ -75,7 +75,7 @@ import math
 import os
 import warnings
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numba as nb
@@ -839,6 +839,63 @@ def _counting_sort_into(cell, starts, offset):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True)
+def _directions(points, center):  # pragma: no cover - numba
+    # Per point (x, y, z in float64) relative to ``center``: its offset, ``arctan2(y, x)`` and
+    # ``arctan2(z, hypot(x, y))``, in one pass (libm's functions, which numpy's arctan2 and
+    # hypot call), and the first row holding a NaN or infinite coordinate (-1: none).
+    n = points.shape[0]
+    rel = np.empty((n, 3))
+    azimuth, elevation = np.empty(n), np.empty(n)
+    bad = -1
+    for i in range(n):
+        x = np.float64(points[i, 0]) - center[0]
+        y = np.float64(points[i, 1]) - center[1]
+        z = np.float64(points[i, 2]) - center[2]
+        if bad < 0 and not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            bad = i
+        rel[i, 0], rel[i, 1], rel[i, 2] = x, y, z
+        azimuth[i] = math.atan2(y, x)
+        elevation[i] = math.atan2(z, math.hypot(x, y))
+    return rel, azimuth, elevation, bad
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _scatter_sorted(
+    order,
+    rel,
+    ranges,
+    elevation,
+    azimuth,
+    diameter,
+    out_rel,
+    out_ranges,
+    out_rho,
+    out_rays,
+    out_elevation,
+    out_azimuth,
+    position,
+):  # pragma: no cover - numba
+    # FrameGrid's sorted copies in one pass (rays rel / range: NaN at the viewpoint, as numpy
+    # would give), and each point's sorted position; the rows after the frame's are zeroed.
+    for k in range(order.shape[0]):
+        i = order[k]
+        r = ranges[i]
+        for c in range(3):
+            out_rel[k, c] = rel[i, c]
+            out_rays[k, c] = rel[i, c] / r
+        out_ranges[k] = r
+        out_rho[k] = diameter - r
+        out_elevation[k] = elevation[i]
+        out_azimuth[k] = azimuth[i]
+        position[i] = k
+    for k in range(order.shape[0], out_ranges.shape[0]):
+        for c in range(3):
+            out_rel[k, c] = 0.0
+            out_rays[k, c] = 0.0
+        out_ranges[k] = out_rho[k] = out_elevation[k] = out_azimuth[k] = 0.0
+
+
+@nb.njit(cache=True, nogil=True)
 def _sort_cells(order, keys, starts, offset):  # pragma: no cover - numba
     # Each cell's run of ``order`` (positions ``starts`` minus ``offset``) sorted by ``keys``;
     # cells are small, so an insertion sort, except for the odd crowded one.
@@ -1047,24 +1104,23 @@ class FrameGrid:
         size: number of frame points.
     """
 
-    def __init__(self, xyz: np.ndarray, center: np.ndarray, radius: float, spare: int) -> None:
-        self._xyz = xyz
+    def __init__(self, points: np.ndarray, center: np.ndarray, radius: float, spare: int) -> None:
+        self._points = points
         self.center = center
         self.radius = radius
-        n = len(xyz)
-        rel = xyz - center
-        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        n = len(points)
+        rel, azimuth, elevation, bad = _directions(points, center)
+        if bad >= 0:
+            _check_points(points)  # raises, naming the rows
+        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))  # the ranges _Setup.build takes
         if not np.isfinite(ranges).all():
             row = int(np.flatnonzero(~np.isfinite(ranges))[0])
             raise DataError(f"points: row {row} is too far from the viewpoint for float64")
-        horizontal = np.hypot(rel[:, 0], rel[:, 1])
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        elevation = np.arctan2(rel[:, 2], horizontal)
         self._r_min = float(ranges.min(initial=np.inf))
         self._r_max = float(ranges.max(initial=0.0))
         self._geometry = self._cells_geometry(ranges, elevation)
         _, _, rows, columns = self._geometry
-        self._starts = np.empty((2, rows * columns + 1), dtype=np.int64)
+        self._starts = np.zeros((2, rows * columns + 1), dtype=np.int64)
         self._order = order = self._sort(elevation, azimuth, ranges, 0, 0)
         # Sorted copies, with room for the inserted points after the frame's; all of it is
         # written now, so that adding the inserted points faults in no memory.
@@ -1075,20 +1131,23 @@ class FrameGrid:
         self._rho = np.empty(total)
         self._elevation = np.empty(total)
         self._azimuth = np.empty(total)
-        self._starts[1] = 0
-        for name in ("_rays", "_rel", "_ranges", "_rho", "_elevation", "_azimuth"):
-            getattr(self, name)[n:] = 0.0
-        np.take(rel, order, axis=0, out=self._rel[:n])
-        np.take(ranges, order, out=self._ranges[:n])
-        np.subtract(2.0 * radius, self._ranges[:n], out=self._rho[:n])
-        with np.errstate(invalid="ignore", divide="ignore"):  # points at the viewpoint
-            np.divide(self._rel[:n], self._ranges[:n, None], out=self._rays[:n])
-        np.take(elevation, order, out=self._elevation[:n])
-        np.take(azimuth, order, out=self._azimuth[:n])
-        self._distance = np.hypot(horizontal[order], self._rel[:n, 2])
-        self._prepared: tuple[np.ndarray, np.ndarray] | None = None
         self._position = np.empty(n, dtype=np.int64)
-        self._position[order] = np.arange(n)
+        _scatter_sorted(
+            order,
+            rel,
+            ranges,
+            elevation,
+            azimuth,
+            2.0 * radius,
+            self._rel,
+            self._ranges,
+            self._rho,
+            self._rays,
+            self._elevation,
+            self._azimuth,
+            self._position,
+        )
+        self._prepared: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def build(
@@ -1099,13 +1158,17 @@ class FrameGrid:
         *,
         spare: int = 4096,
     ) -> FrameGrid:
-        """The grid of ``points`` ``(N, 3 + C)`` (metres) seen from ``viewpoint`` ``(3,)`` with
-        e-HPR radius ``radius``; ``spare``: inserted points it takes without reallocating."""
-        return cls(_check_points(points), _check_viewpoint(viewpoint), _check_radius(radius), spare)
+        """The grid of ``points`` ``(N, 3 + C)`` (metres; not copied: leave them unchanged)
+        seen from ``viewpoint`` ``(3,)`` with e-HPR radius ``radius``; ``spare``: inserted
+        points it takes without reallocating."""
+        array = np.asarray(points)
+        if array.dtype not in (np.float32, np.float64) or array.ndim != 2 or array.shape[1] < 3:
+            array = _check_points(points)  # validated (or refused) and converted
+        return cls(array, _check_viewpoint(viewpoint), _check_radius(radius), spare)
 
     @property
     def size(self) -> int:
-        return len(self._xyz)
+        return len(self._points)
 
     def _cells_geometry(
         self, ranges: np.ndarray, elevation: np.ndarray
@@ -1119,7 +1182,8 @@ class FrameGrid:
         if 2.0 * self.radius > self._r_max * (1.0 + 1e-12):
             # about a typical first neighbourhood, as the generic grid
             rho_max = 2.0 * self.radius - self._r_min
-            median = _first_cones(np.array([np.median(ranges)]), self._r_min, rho_max)[0]
+            typical = np.median(ranges[:: max(1, n // 4096)])  # a sample is enough here
+            median = _first_cones(np.array([typical]), self._r_min, rho_max)[0]
             size = max(size, float(median))
         size = min(size, 0.25)
         height = size * _FRAME_ROW_HEIGHT
@@ -1154,7 +1218,9 @@ class FrameGrid:
         """Azimuth, elevation (radians) and ``hypot(hypot(x, y), z)`` (metres) of the frame
         points ``rows`` (indices) relative to the viewpoint, as :meth:`in_windows` uses them."""
         positions = self._position[rows]
-        return self._azimuth[positions], self._elevation[positions], self._distance[positions]
+        rel = self._rel[positions]
+        distance = np.hypot(np.hypot(rel[:, 0], rel[:, 1]), rel[:, 2])
+        return self._azimuth[positions], self._elevation[positions], distance
 
     def in_windows(self, windows: np.ndarray) -> np.ndarray:
         """``bool (N,)``: points with ``az0 <= azimuth <= az1``, ``el0 <= elevation <= el1`` and
@@ -1168,7 +1234,7 @@ class FrameGrid:
                 windows,
                 self._azimuth,
                 self._elevation,
-                self._distance,
+                self._rel,
                 self._starts,
                 *self._geometry,
                 found,
@@ -1185,11 +1251,14 @@ class FrameGrid:
         method: str = "auto",
         workers: int | None = None,
         pool: ThreadPoolExecutor | None = None,
+        after: Future | None = None,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """:func:`hidden_by_insertion` of the frame without its ``cleared`` points plus the
         ``inserted`` ones, with the per-point test; ``None`` when ``method`` would not use it
         on that set (too few points, ``R`` not far above the ranges, points at the viewpoint):
-        the caller then asks :func:`hidden_by_insertion`.
+        the caller then asks :func:`hidden_by_insertion`. The inserted points are decided
+        first, so a :meth:`prepare` still running elsewhere (``after``, its future) has time
+        to finish before the frame's points need it.
 
         Args:
             cleared: ``bool (N,)`` frame points taken out (room made for the objects).
@@ -1199,6 +1268,7 @@ class FrameGrid:
             workers: threads (``None``: up to two of the CPUs this process may use).
             pool: a running pool whose thread may take part (else one is started for the call
                 when ``workers > 1``).
+            after: see above.
 
         Returns:
             ``bool (N,)`` frame points and ``bool (K,)`` inserted points to remove.
@@ -1226,21 +1296,24 @@ class FrameGrid:
         absent = np.zeros(n + k, dtype=bool)
         absent[:n] = cleared[self._order]
         scene = self._scene(n + k, absent)
-        frame_queries = np.flatnonzero(behind[self._order])
-        queries = np.concatenate([frame_queries, n + np.arange(k)])
+        queries = np.concatenate([n + np.arange(k), np.flatnonzero(behind[self._order])])
         cones = _first_cones(self._ranges[queries], r_min, rho_max)
-        known = np.zeros(len(queries), dtype=np.int8)
-        known[: len(frame_queries)] = self._prepared_states(cleared, frame_queries)
         parallel = workers > 1 and len(queries) >= _PARALLEL_MIN
         helper = (pool or ThreadPoolExecutor(max_workers=1)) if parallel else None
         chunks = _FRAME_CHUNKS if parallel else 1
         slots = np.arange(len(queries))
 
         def kernel(part: np.ndarray) -> np.ndarray:
+            known = np.zeros(len(part), dtype=np.int8)
+            frame = part[part >= k]
+            if len(frame):
+                if after is not None:
+                    after.result()
+                known[len(part) - len(frame) :] = self._prepared_states(cleared, queries[frame])
             return _insertion_verdicts(
                 queries[part],
                 cones[part],
-                known[part],
+                known,
                 n,
                 self.radius,
                 *scene,
@@ -1254,12 +1327,19 @@ class FrameGrid:
         finally:
             if helper is not None and helper is not pool:
                 helper.shutdown()
-        frame_rows = self._order[queries[queries < n]]
-        removed[frame_rows] = verdicts[: len(frame_rows)] == _VERDICT_REMOVE
-        removed_inserted[positions] = verdicts[len(frame_rows) :] == _VERDICT_REMOVE
+        frame_rows = self._order[queries[k:]]
+        removed[frame_rows] = verdicts[k:] == _VERDICT_REMOVE
+        removed_inserted[positions] = verdicts[:k] == _VERDICT_REMOVE
         if (verdicts >= _VERDICT_UNDECIDED_WITHOUT).any():
             self._undecided(
-                verdicts, frame_rows, positions, cleared, xyz, removed, removed_inserted
+                verdicts[k:],
+                verdicts[:k],
+                frame_rows,
+                positions,
+                cleared,
+                xyz,
+                removed,
+                removed_inserted,
             )
         return removed, removed_inserted
 
@@ -1359,7 +1439,8 @@ class FrameGrid:
 
     def _undecided(
         self,
-        verdicts: np.ndarray,
+        frame_verdicts: np.ndarray,
+        inserted_verdicts: np.ndarray,
         frame_rows: np.ndarray,
         positions: np.ndarray,
         cleared: np.ndarray,
@@ -1370,11 +1451,9 @@ class FrameGrid:
         """Settle the points the kernel gave up on (its budget of full scans spent) with the
         plain passes of :func:`hidden_point_removal`, in place."""
         originals = np.flatnonzero(~cleared)
-        points = np.concatenate([self._xyz[originals], inserted])
+        points = np.concatenate([_check_points(self._points)[originals], inserted])
         row_of = np.full(self.size, -1, dtype=np.int64)
         row_of[originals] = np.arange(len(originals))
-        frame_verdicts = verdicts[: len(frame_rows)]
-        inserted_verdicts = verdicts[len(frame_rows) :]
         # Frame points undecided without the objects: visible without them?
         without = frame_rows[frame_verdicts == _VERDICT_UNDECIDED_WITHOUT]
         visible_before = np.zeros(0, dtype=bool)
@@ -2251,12 +2330,11 @@ def _insertion_verdicts(
 
 
 @nb.njit(cache=True, nogil=True)
-def _window_members(
-    windows, azimuth, elevation, distance, starts, origin, height, rows, columns, out
-):
+def _window_members(windows, azimuth, elevation, rel, starts, origin, height, rows, columns, out):
     """Mark in ``out`` the sorted points of member set 0 inside any of ``windows`` (see
-    :meth:`FrameGrid.in_windows`), visiting only the cells each window overlaps, and one more
-    on every side so that rounding in the cell numbers cannot miss a point."""
+    :meth:`FrameGrid.in_windows`; distance ``hypot(hypot(x, y), z)`` of ``rel``, as numpy's
+    hypot), visiting only the cells each window overlaps, and one more on every side so that
+    rounding in the cell numbers cannot miss a point."""
     step = 2.0 * math.pi / columns
     for w in range(windows.shape[0]):
         az0, az1, el0, el1, near = windows[w]
@@ -2276,7 +2354,7 @@ def _window_members(
                         and azimuth[j] <= az1
                         and elevation[j] >= el0
                         and elevation[j] <= el1
-                        and distance[j] >= near
+                        and math.hypot(math.hypot(rel[j, 0], rel[j, 1]), rel[j, 2]) >= near
                     ):
                         out[j] = True
 

@@ -336,6 +336,11 @@ class GlobalScaling(Transform):
 # --------------------------------------------------------------------------------------------
 # Shared helpers for inserting objects
 # --------------------------------------------------------------------------------------------
+def _done(future: Future | None) -> Any:
+    """A future's result if it has one already, else ``None``."""
+    return future.result() if future is not None and future.done() else None
+
+
 def _spare_core() -> bool:
     """Whether this process may use a second CPU (a forked data-loader worker pinned to one
     core may not)."""
@@ -781,6 +786,19 @@ class GroundTruthSampling(Transform):
 # DR.CPO
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
+class _Placed:
+    """What e-HPR and the labels need of the placed boxes alone (worked out while the objects
+    are built): the boxes ``(A, 7)``; per frame point, the last box holding it (``int64
+    (N,)``, -1: none) and whether it lies behind a box in its view window (``bool (N,)``;
+    ``None``: every direction is some box's); the frame's points in each of its own boxes."""
+
+    boxes: np.ndarray
+    owners: np.ndarray
+    behind: np.ndarray | None
+    box_counts: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class _Insertion:
     """One object on its way into the frame: source row, class, placed box, placed points."""
 
@@ -969,15 +987,18 @@ class DRCPO(Transform):
                 insertions = self._self_occlusion(frame, rows, boxes, objects, stats, early)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
-                points, owner, cleared_by = self._insert(frame, insertions, prepared)
+                points, owner, cleared_by = self._insert(frame, insertions, _done(prepared))
                 record["points_out"] = len(points)
             with stats.stage("drcpo.external_occlusion", len(points)) as record:
                 grid = frame_grid() if frame_grid is not None and insertions else None
                 helper = pool if _spare_core() else None
-                keep = self._external_occlusion(points, owner, insertions, grid, cleared_by, helper)
+                keep = self._external_occlusion(
+                    points, owner, insertions, grid, cleared_by, helper, prepared
+                )
                 record["points_out"] = int(keep.sum())
             with stats.stage("drcpo.labels", int(keep.sum())) as record:
-                box_counts = prepared.result()[2] if prepared is not None else None
+                placed = _done(prepared)
+                box_counts = placed.box_counts if placed is not None else None
                 out = self._settle(
                     frame, points, owner, keep, cleared_by, insertions, stats, grid, box_counts
                 )
@@ -1005,24 +1026,27 @@ class DRCPO(Transform):
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         pool: ThreadPoolExecutor,
     ) -> Future | None:
-        """On two cores, start on ``pool`` what e-HPR needs of the placed ``boxes`` alone: the
-        box owning each frame point (see :meth:`BoxQuery.owners`) and, in the frame's grid,
-        the verdicts of the frame points behind the boxes without the objects (see
-        :meth:`~drcpo.occlusion.FrameGrid.prepare`), while the objects are built. The future's
-        result: ``(boxes, owners, box counts)``, the last the frame's points in each of its
-        own boxes (for the labels). ``None`` when there is nothing to start."""
+        """On two cores, start on ``pool`` what e-HPR needs of the placed ``boxes`` alone,
+        worked out while the objects are built: the box owning each frame point (see
+        :meth:`BoxQuery.owners`), the frame's points in each of its own boxes and, in the
+        frame's grid, the verdicts of the frame points behind the boxes without the objects
+        (see :meth:`~drcpo.occlusion.FrameGrid.prepare`). The future's result: a
+        :class:`_Placed`. ``None`` when there is nothing to start."""
         if frame_grid is None or len(boxes) == 0 or not _spare_core():
             return None
         _, viewpoint = self.e_hpr_setting()
 
-        def work() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def work() -> _Placed:
+            # (All on the pool: measured faster overall than owners and windows done here.)
             query = BoxQuery(frame.points)
             owners = query.owners(boxes)
             windows = _window_spans(_grown(boxes), viewpoint, behind=True)
+            behind = None
             if windows is not None:
                 grid, cleared = frame_grid(), owners >= 0
-                grid.prepare(cleared, ~cleared & grid.in_windows(windows))
-            return boxes, owners, query.counts(frame.boxes)
+                behind = ~cleared & grid.in_windows(windows)
+                grid.prepare(cleared, behind)
+            return _Placed(boxes, owners, behind, query.counts(frame.boxes))
 
         return pool.submit(work)
 
@@ -1161,18 +1185,17 @@ class DRCPO(Transform):
         return insertions
 
     def _insert(
-        self, frame: Frame, insertions: Sequence[_Insertion], prepared: Future | None = None
+        self, frame: Frame, insertions: Sequence[_Insertion], placed: _Placed | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points after insertion (the frame's points outside the boxes, then the objects'),
         each point's owner (-1: an original point, else the insertion's number) and, per frame
-        point, the insertion whose box it had to make room for (-1: none). ``prepared``: see
+        point, the insertion whose box it had to make room for (-1: none). ``placed``: see
         :meth:`_prepare_e_hpr`; its owners are reused when every placed object is inserted."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
-        placed, owners, _ = prepared.result() if prepared is not None else ((), None, None)
-        if len(placed) == len(insertions):  # the same boxes, in the same order
-            cleared_by = owners
+        if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
+            cleared_by = placed.owners
         else:
             cleared_by = BoxQuery(frame.points).owners(np.array([i.box for i in insertions]))
         original = cleared_by < 0
@@ -1191,6 +1214,7 @@ class DRCPO(Transform):
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
         pool: ThreadPoolExecutor | None = None,
+        prepared: Future | None = None,
     ) -> np.ndarray:
         """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule.
 
@@ -1199,7 +1223,9 @@ class DRCPO(Transform):
         boxes (the directions they cover), each exactly against the whole frame; inserted
         points hidden go, and original points hidden with the objects but visible without them.
         With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see
-        :meth:`_insert`), the frame's points are not sorted again; ``pool`` may lend a thread.
+        :meth:`_insert`), the frame's points are not sorted again; ``pool`` may lend a thread;
+        ``prepared``: see :meth:`_prepare_e_hpr` (still running: the frame's points wait for
+        it, and the inserted ones are decided meanwhile; not started: it is cancelled).
         """
         settings = self.config.external_occlusion
         keep = np.ones(len(points), dtype=bool)
@@ -1211,11 +1237,24 @@ class DRCPO(Transform):
             return keep
         radius, viewpoint = self.e_hpr_setting()
         inserted = owner >= 0
-        windows = _window_spans(_grown([i.box for i in insertions]), viewpoint, behind=True)
         if settings.mode == "hpr" and grid is not None and cleared_by is not None:
-            found = self._hidden_in_grid(grid, windows, cleared_by, points[inserted], pool)
+            cleared = cleared_by >= 0
+            if prepared is not None and prepared.cancel():
+                prepared = None  # not started: its work is done here
+            placed = _done(prepared)
+            if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
+                behind_frame = placed.behind if placed.behind is not None else ~cleared
+            else:
+                windows = _window_spans(_grown([i.box for i in insertions]), viewpoint, True)
+                behind_frame = ~cleared & (
+                    grid.in_windows(windows) if windows is not None else True
+                )
+            found = grid.hidden_by_insertion(
+                cleared, points[inserted], behind_frame, pool=pool, after=prepared
+            )
             if found is not None:
-                return ~found
+                return ~np.concatenate([found[0][~cleared], found[1]])
+        windows = _window_spans(_grown([i.box for i in insertions]), viewpoint, behind=True)
         behind = ~inserted & _in_windows(points, windows, viewpoint)
         if settings.mode == "hpr":
             return ~occlusion.hidden_by_insertion(points, inserted, behind, viewpoint, radius)
@@ -1231,25 +1270,6 @@ class DRCPO(Transform):
             before = self._visible(points[original], query=wanted)
             keep[original[wanted & before]] = False
         return keep
-
-    def _hidden_in_grid(
-        self,
-        grid: occlusion.FrameGrid,
-        windows: np.ndarray | None,
-        cleared_by: np.ndarray,
-        inserted: np.ndarray,
-        pool: ThreadPoolExecutor | None,
-    ) -> np.ndarray | None:
-        """:func:`~drcpo.occlusion.hidden_by_insertion` of the points after insertion (the
-        frame's points not cleared, then the ``inserted`` ones) on the frame's grid; ``None``
-        when the grid's method does not apply."""
-        cleared = cleared_by >= 0
-        behind = ~cleared & (grid.in_windows(windows) if windows is not None else True)
-        found = grid.hidden_by_insertion(cleared, inserted, behind, pool=pool)
-        if found is None:
-            return None
-        removed_frame, removed_inserted = found
-        return np.concatenate([removed_frame[~cleared], removed_inserted])
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
