@@ -796,6 +796,15 @@ class _Placed:
     owners: np.ndarray
     behind: np.ndarray | None
     box_counts: np.ndarray
+    rows: np.ndarray  # each box's source row (objects are sampled without replacement)
+    windows: tuple[np.ndarray, ...]  # _box_windows of the boxes grown by _WINDOW_SLACK
+
+    def windows_of(self, insertions: Sequence[_Insertion]) -> tuple[np.ndarray, ...]:
+        """The view windows of some of the boxes (a box's window does not depend on the
+        others)."""
+        where = {int(row): k for k, row in enumerate(self.rows)}
+        index = np.array([where[i.row] for i in insertions], dtype=np.int64)
+        return tuple(values[index] for values in self.windows)
 
 
 @dataclass(frozen=True, eq=False)
@@ -960,14 +969,15 @@ class DRCPO(Transform):
         # it is built, while the next one is constructed (the answers do not depend on it);
         # the construction stage's time then includes that overlapped s-HPR work.
         overlap = self.config.self_occlusion.enabled and _spare_core()
-        prepared: Future | None = None
+        placed: Future | None = None  # of a _Placed
+        verdicts: Future | None = None  # of FrameGrid.prepare
         with ThreadPoolExecutor(max_workers=1) as pool:
             frame_grid = self._frame_grid(frame, rows, pool)
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
                     boxes, accepted = self._place(frame, rows, None, rng, stats)
                     rows = rows[accepted]
-                    prepared = self._prepare_e_hpr(frame, boxes, frame_grid, pool)
+                    placed, verdicts = self._prepare_e_hpr(frame, boxes, rows, frame_grid, pool)
                 with stats.stage("drcpo.construction", 0) as record:
                     if overlap:
                         early = []
@@ -981,26 +991,24 @@ class DRCPO(Transform):
                     dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
                     boxes, accepted = self._place(frame, rows, dims, rng, stats)
                     rows, objects = rows[accepted], [objects[i] for i in accepted]
-                    prepared = self._prepare_e_hpr(frame, boxes, frame_grid, pool)
+                    placed, verdicts = self._prepare_e_hpr(frame, boxes, rows, frame_grid, pool)
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 insertions = self._self_occlusion(frame, rows, boxes, objects, stats, early)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
-                points, owner, cleared_by = self._insert(frame, insertions, _done(prepared))
+                points, owner, cleared_by = self._insert(frame, insertions, _done(placed))
                 record["points_out"] = len(points)
             with stats.stage("drcpo.external_occlusion", len(points)) as record:
                 grid = frame_grid() if frame_grid is not None and insertions else None
                 helper = pool if _spare_core() else None
                 keep = self._external_occlusion(
-                    points, owner, insertions, grid, cleared_by, helper, prepared
+                    points, owner, insertions, grid, cleared_by, helper, placed, verdicts
                 )
                 record["points_out"] = int(keep.sum())
             with stats.stage("drcpo.labels", int(keep.sum())) as record:
-                placed = _done(prepared)
-                box_counts = placed.box_counts if placed is not None else None
                 out = self._settle(
-                    frame, points, owner, keep, cleared_by, insertions, stats, grid, box_counts
+                    frame, points, owner, keep, cleared_by, insertions, stats, grid, _done(placed)
                 )
                 record["points_out"] = len(out)
         return out
@@ -1023,32 +1031,42 @@ class DRCPO(Transform):
         self,
         frame: Frame,
         boxes: np.ndarray,
+        rows: np.ndarray,
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         pool: ThreadPoolExecutor,
-    ) -> Future | None:
-        """On two cores, start on ``pool`` what e-HPR needs of the placed ``boxes`` alone,
-        worked out while the objects are built: the box owning each frame point (see
-        :meth:`BoxQuery.owners`), the frame's points in each of its own boxes and, in the
-        frame's grid, the verdicts of the frame points behind the boxes without the objects
-        (see :meth:`~drcpo.occlusion.FrameGrid.prepare`). The future's result: a
-        :class:`_Placed`. ``None`` when there is nothing to start."""
+    ) -> tuple[Future | None, Future | None]:
+        """On two cores, start on ``pool`` what e-HPR needs of the placed ``boxes`` (of source
+        ``rows``) alone, worked out while the objects are built: first (a :class:`_Placed`) the
+        box owning each frame point (see :meth:`BoxQuery.owners`), the boxes' view windows and
+        the frame's points in each of its own boxes; then, in the frame's grid, the verdicts of
+        the frame points behind the boxes without the objects (see
+        :meth:`~drcpo.occlusion.FrameGrid.prepare`). Their futures, ``None`` where nothing is
+        started."""
         if frame_grid is None or len(boxes) == 0 or not _spare_core():
-            return None
+            return None, None
         _, viewpoint = self.e_hpr_setting()
 
-        def work() -> _Placed:
+        def place() -> _Placed:
             # (All on the pool: measured faster overall than owners and windows done here.)
             query = BoxQuery(frame.points)
             owners = query.owners(boxes)
-            windows = _window_spans(_grown(boxes), viewpoint, behind=True)
+            grown = _grown(boxes)
+            box_windows = _box_windows(grown, viewpoint)
+            spans = _window_spans(grown, viewpoint, True, box_windows)
             behind = None
-            if windows is not None:
-                grid, cleared = frame_grid(), owners >= 0
-                behind = ~cleared & grid.in_windows(windows)
-                grid.prepare(cleared, behind)
-            return _Placed(boxes, owners, behind, query.counts(frame.boxes))
+            if spans is not None:
+                behind = (owners < 0) & frame_grid().in_windows(spans)
+            counts = query.counts(frame.boxes)
+            return _Placed(boxes, owners, behind, counts, rows, box_windows)
 
-        return pool.submit(work)
+        placed = pool.submit(place)
+
+        def decide() -> None:
+            done = placed.result()  # the task before this one
+            if done.behind is not None:
+                frame_grid().prepare(done.owners >= 0, done.behind)
+
+        return placed, pool.submit(decide)
 
     def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
         """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
@@ -1214,7 +1232,8 @@ class DRCPO(Transform):
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
         pool: ThreadPoolExecutor | None = None,
-        prepared: Future | None = None,
+        placed: Future | None = None,
+        verdicts: Future | None = None,
     ) -> np.ndarray:
         """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule.
 
@@ -1224,8 +1243,9 @@ class DRCPO(Transform):
         points hidden go, and original points hidden with the objects but visible without them.
         With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see
         :meth:`_insert`), the frame's points are not sorted again; ``pool`` may lend a thread;
-        ``prepared``: see :meth:`_prepare_e_hpr` (still running: the frame's points wait for
-        it, and the inserted ones are decided meanwhile; not started: it is cancelled).
+        ``placed``, ``verdicts``: see :meth:`_prepare_e_hpr` (still running: the frame's points
+        wait for them, and the inserted ones are decided meanwhile; not started: cancelled, and
+        their work done here).
         """
         settings = self.config.external_occlusion
         keep = np.ones(len(points), dtype=bool)
@@ -1239,18 +1259,22 @@ class DRCPO(Transform):
         inserted = owner >= 0
         if settings.mode == "hpr" and grid is not None and cleared_by is not None:
             cleared = cleared_by >= 0
-            if prepared is not None and prepared.cancel():
-                prepared = None  # not started: its work is done here
-            placed = _done(prepared)
+            if verdicts is not None and verdicts.cancel():
+                verdicts = None  # not started: its work is done here
+            if placed is not None and placed.cancel():
+                placed = None
+            placed = placed.result() if placed is not None else None
             if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
                 behind_frame = placed.behind if placed.behind is not None else ~cleared
             else:
-                windows = _window_spans(_grown([i.box for i in insertions]), viewpoint, True)
+                known = placed.windows_of(insertions) if placed is not None else None
+                grown = _grown([i.box for i in insertions])
+                windows = _window_spans(grown, viewpoint, True, known)
                 behind_frame = ~cleared & (
                     grid.in_windows(windows) if windows is not None else True
                 )
             found = grid.hidden_by_insertion(
-                cleared, points[inserted], behind_frame, pool=pool, after=prepared
+                cleared, points[inserted], behind_frame, pool=pool, after=verdicts
             )
             if found is not None:
                 return ~np.concatenate([found[0][~cleared], found[1]])
@@ -1297,7 +1321,7 @@ class DRCPO(Transform):
         insertions: Sequence[_Insertion],
         stats: Stats,
         grid: occlusion.FrameGrid | None = None,
-        box_counts: np.ndarray | None = None,
+        placed: _Placed | None = None,
     ) -> Frame:
         """The output frame: drop inserted objects and original boxes left with too few points.
 
@@ -1306,7 +1330,7 @@ class DRCPO(Transform):
         come back, so it leaves no trace. An original box is dropped when it lost points and
         is left with fewer than ``min_points_after``, unless it had fewer already. ``grid``:
         the frame's e-HPR grid, if built (its directions of the frame's points are reused);
-        ``box_counts``: the frame's points in each of its boxes, if counted already.
+        ``placed``: see :meth:`_prepare_e_hpr` (its box counts and windows are reused).
         """
         minimum = self.config.min_points_after
         # Points in the box itself count (construction may leave some a few cm outside).
@@ -1323,7 +1347,8 @@ class DRCPO(Transform):
                 # come back.
                 hidden = np.flatnonzero(removed & (cleared_by < 0))
                 _, viewpoint = self.e_hpr_setting()
-                windows = _window_spans(_grown([i.box for i in kept]), viewpoint)
+                known = placed.windows_of(kept) if placed is not None else None
+                windows = _window_spans(_grown([i.box for i in kept]), viewpoint, False, known)
                 if windows is not None and grid is not None:
                     core = np.zeros(len(hidden), dtype=bool)
                     _window_scan(*grid.directions(hidden), windows, core)
@@ -1335,6 +1360,7 @@ class DRCPO(Transform):
                 stats.rejected(self.name, insertion.name, "external_occlusion")
             else:
                 stats.added(self.name, insertion.name)
+        box_counts = placed.box_counts if placed is not None else None
         drop_original = self._sparse_originals(frame, removed, box_counts)
         for name in frame.names[drop_original]:
             stats.label_dropped(str(name))
@@ -1398,17 +1424,22 @@ def view_windows(
 
 
 def _window_spans(
-    boxes: np.ndarray | Sequence[np.ndarray], viewpoint: np.ndarray, behind: bool = False
+    boxes: np.ndarray | Sequence[np.ndarray],
+    viewpoint: np.ndarray,
+    behind: bool = False,
+    known: tuple[np.ndarray, ...] | None = None,
 ) -> np.ndarray | None:
-    """The view windows of ``(M, 7)`` boxes (see :func:`view_windows`) as ``(K, 5)`` rows
-    (azimuth from, azimuth to, elevation from, elevation to, nearest distance), radians and
-    metres: a window across the azimuth seam at +-pi is split in two, and the nearest distance
-    is ``-inf`` unless ``behind``. ``None`` when the viewpoint lies inside a footprint (every
-    direction)."""
+    """The view windows of ``(M, 7)`` boxes (see :func:`view_windows`; ``known``: their
+    :func:`_box_windows`, if computed already) as ``(K, 5)`` rows (azimuth from, azimuth to,
+    elevation from, elevation to, nearest distance), radians and metres: a window across the
+    azimuth seam at +-pi is split in two, and the nearest distance is ``-inf`` unless
+    ``behind``. ``None`` when the viewpoint lies inside a footprint (every direction)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     if len(boxes) == 0:
         return np.zeros((0, 5))
-    centre, az_low, az_high, el_low, el_high, nearest = _box_windows(boxes, viewpoint)
+    if known is None:
+        known = _box_windows(boxes, viewpoint)
+    centre, az_low, az_high, el_low, el_high, nearest = known
     if not np.isfinite(nearest).all():
         return None
     low, high = centre + az_low, centre + az_high
