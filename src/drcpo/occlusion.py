@@ -1035,12 +1035,11 @@ def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
 
 
 def _shared_chunks(
-    kernel, items: np.ndarray, chunks: int, helper: ThreadPoolExecutor | None
+    kernel, parts: Sequence[np.ndarray], helper: ThreadPoolExecutor | None
 ) -> list[np.ndarray]:
-    """``kernel`` over ``chunks`` contiguous chunks of ``items``, in order; with ``helper`` (a
-    running pool) one of its threads and the calling thread claim chunks until none is left, so
-    the work splits evenly whatever each chunk costs and however busy the other core is."""
-    parts = np.array_split(items, max(1, chunks))
+    """``kernel`` over each of ``parts``, results in order; with ``helper`` (a running pool)
+    one of its threads and the calling thread claim parts until none is left, so the work
+    splits evenly whatever each part costs and however busy the other core is."""
     results: list[np.ndarray | None] = [None] * len(parts)
     claim = iter(range(len(parts)))  # next() on a range iterator is atomic under the GIL
 
@@ -1084,6 +1083,7 @@ _FRAME_COLUMN_WIDTH = 0.5
 # Work items per call, claimed by the threads as they go: small enough that a thread the
 # system stalls for a while holds up little work.
 _FRAME_CHUNKS = 12
+_FRAME_PARALLEL_MIN = 256  # queries worth a second thread (one already running: cheap)
 
 
 class FrameGrid:
@@ -1298,10 +1298,16 @@ class FrameGrid:
         scene = self._scene(n + k, absent)
         queries = np.concatenate([n + np.arange(k), np.flatnonzero(behind[self._order])])
         cones = _first_cones(self._ranges[queries], r_min, rho_max)
-        parallel = workers > 1 and len(queries) >= _PARALLEL_MIN
+        parallel = workers > 1 and len(queries) >= (
+            _FRAME_PARALLEL_MIN if pool is not None else _PARALLEL_MIN
+        )
         helper = (pool or ThreadPoolExecutor(max_workers=1)) if parallel else None
-        chunks = _FRAME_CHUNKS if parallel else 1
+        # The inserted points' parts first, apart from the frame points' (which may wait).
+        chunks = _FRAME_CHUNKS if parallel else 2
+        first = max(1, round(chunks * k / len(queries)))
         slots = np.arange(len(queries))
+        parts = [p for p in np.array_split(slots[:k], first) if len(p)]
+        parts += [p for p in np.array_split(slots[k:], max(1, chunks - first)) if len(p)]
 
         def kernel(part: np.ndarray) -> np.ndarray:
             known = np.zeros(len(part), dtype=np.int8)
@@ -1323,7 +1329,7 @@ class FrameGrid:
             )
 
         try:
-            verdicts = np.concatenate(_shared_chunks(kernel, slots, chunks, helper))
+            verdicts = np.concatenate(_shared_chunks(kernel, parts, helper))
         finally:
             if helper is not None and helper is not pool:
                 helper.shutdown()

@@ -1243,9 +1243,9 @@ class DRCPO(Transform):
         points hidden go, and original points hidden with the objects but visible without them.
         With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see
         :meth:`_insert`), the frame's points are not sorted again; ``pool`` may lend a thread;
-        ``placed``, ``verdicts``: see :meth:`_prepare_e_hpr` (still running: the frame's points
-        wait for them, and the inserted ones are decided meanwhile; not started: cancelled, and
-        their work done here).
+        ``placed``, ``verdicts``: see :meth:`_prepare_e_hpr` (the verdicts still running: the
+        frame's points wait for them, and the inserted ones are decided meanwhile; not started:
+        cancelled, and their work done here).
         """
         settings = self.config.external_occlusion
         keep = np.ones(len(points), dtype=bool)
@@ -1261,9 +1261,7 @@ class DRCPO(Transform):
             cleared = cleared_by >= 0
             if verdicts is not None and verdicts.cancel():
                 verdicts = None  # not started: its work is done here
-            if placed is not None and placed.cancel():
-                placed = None
-            placed = placed.result() if placed is not None else None
+            placed = _done(placed)  # (still running: its windows are redone here meanwhile)
             if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
                 behind_frame = placed.behind if placed.behind is not None else ~cleared
             else:
