@@ -796,15 +796,19 @@ class _Placed:
     owners: np.ndarray
     behind: np.ndarray | None
     box_counts: np.ndarray
-    rows: np.ndarray  # each box's source row (objects are sampled without replacement)
+    rows: np.ndarray  # each box's source row
     windows: tuple[np.ndarray, ...]  # _box_windows of the boxes grown by _WINDOW_SLACK
 
     def windows_of(self, insertions: Sequence[_Insertion]) -> tuple[np.ndarray, ...]:
-        """The view windows of some of the boxes (a box's window does not depend on the
-        others)."""
-        where = {int(row): k for k, row in enumerate(self.rows)}
-        index = np.array([where[i.row] for i in insertions], dtype=np.int64)
-        return tuple(values[index] for values in self.windows)
+        """The view windows of the boxes of ``insertions``, some of the placed objects in their
+        order (a box's window does not depend on the others)."""
+        index, k = [], 0
+        for insertion in insertions:
+            while int(self.rows[k]) != insertion.row:
+                k += 1
+            index.append(k)
+            k += 1
+        return tuple(values[np.array(index, dtype=np.int64)] for values in self.windows)
 
 
 @dataclass(frozen=True, eq=False)
