@@ -4,7 +4,9 @@ one, awkward inputs, forked workers, s-HPR / e-HPR presets and the range-image m
 from __future__ import annotations
 
 import multiprocessing
+import threading
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -497,6 +499,15 @@ def test_self_occlusion_many_equals_one_by_one(rng):
         for a, b in zip(alone, together, strict=True):
             np.testing.assert_array_equal(a, b)
     assert self_occlusion_many([], workers=2) == []
+    # A pool whose thread is busy elsewhere is not waited for: the caller does all the work.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        gate = threading.Event()
+        busy = pool.submit(gate.wait)
+        together = self_occlusion_many(objects, 200.0, method="reference", pool=pool)
+        assert not busy.done()
+        gate.set()
+    for a, b in zip(alone, together, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def wall_and_cube(rng):

@@ -77,6 +77,7 @@ import warnings
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -327,42 +328,39 @@ def self_occlusion_many(
     viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
     method: str = "auto",
     workers: int | None = None,
+    pool: ThreadPoolExecutor | None = None,
 ) -> list[np.ndarray]:
     """:func:`self_occlusion` of several objects, spread over ``workers`` threads.
 
     The hulls (:mod:`drcpo.hull`'s numba kernel, or Qhull) release the GIL while they are
     built, so two objects' hulls can run at once. Each object's answer is exactly
     :func:`self_occlusion`'s, whichever thread computes it; the calling thread does part of the
-    work, and the pool lives only for this call.
+    work.
 
     Args:
         objects: ``(points (N_i, 3 + C), box (7,))`` pairs, as :func:`self_occlusion` takes.
         radius_factor, viewpoint, method: as in :func:`self_occlusion`.
         workers: threads (``None``: up to two of the CPUs this process may use).
+        pool: a running pool whose thread takes part when it is free (else, with
+            ``workers > 1``, one is started for the call and shut down after it).
 
     Returns:
         ``bool (N_i,)`` visible masks, in the order of ``objects``.
     """
     workers = _check_workers(workers)
-    results: list[np.ndarray | None] = [None] * len(objects)
     # Largest first, so that the threads finish together; the order does not change answers.
     order = sorted(range(len(objects)), key=lambda k: -len(objects[k][0]))
-    claim = iter(order)  # next() on a list iterator is atomic under the GIL
-
-    def drain() -> None:
-        for k in claim:
-            points, box = objects[k]
-            results[k] = self_occlusion(
-                points, box, radius_factor, viewpoint=viewpoint, method=method, workers=1
-            )
-
-    if workers > 1 and len(objects) > 1:
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            helper = pool.submit(drain)
-            drain()
-            helper.result()
-    else:
-        drain()
+    masks = _shared_chunks(
+        lambda k: self_occlusion(
+            *objects[k], radius_factor, viewpoint=viewpoint, method=method, workers=1
+        ),
+        order,
+        pool if workers > 1 else None,
+        start=workers > 1,
+    )
+    results: list[np.ndarray | None] = [None] * len(objects)
+    for k, mask in zip(order, masks, strict=True):
+        results[k] = mask
     return results  # type: ignore[return-value]
 
 
@@ -1035,25 +1033,34 @@ def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
 
 
 def _shared_chunks(
-    kernel, parts: Sequence[np.ndarray], helper: ThreadPoolExecutor | None
-) -> list[np.ndarray]:
+    kernel, parts: Sequence[Any], helper: ThreadPoolExecutor | None, *, start: bool = False
+) -> list[Any]:
     """``kernel`` over each of ``parts``, results in order; with ``helper`` (a running pool)
     one of its threads and the calling thread claim parts until none is left, so the work
-    splits evenly whatever each part costs and however busy the other core is."""
-    results: list[np.ndarray | None] = [None] * len(parts)
+    splits evenly whatever each part costs and however busy the other core is. A helper still
+    busy with earlier work when the calling thread runs out is not waited for. ``start``:
+    without ``helper``, start a one-thread pool for the call."""
+    results: list[Any] = [None] * len(parts)
     claim = iter(range(len(parts)))  # next() on a range iterator is atomic under the GIL
 
     def drain() -> None:
         for k in claim:
             results[k] = kernel(parts[k])
 
-    if helper is None or len(parts) == 1:
+    if len(parts) < 2 or (helper is None and not start):
         drain()
-    else:
-        other = helper.submit(drain)
+        return results
+    own = helper is None
+    pool = ThreadPoolExecutor(max_workers=1) if own else helper
+    try:
+        other = pool.submit(drain)
         drain()
-        other.result()
-    return results  # type: ignore[return-value]
+        if not other.cancel():  # started: it holds at most the parts it claimed
+            other.result()
+    finally:
+        if own:
+            pool.shutdown()
+    return results
 
 
 def _resolve_unresolved(unresolved: np.ndarray, state: _LocalState) -> np.ndarray:

@@ -53,6 +53,7 @@ from drcpo.geometry import (
     bev_corners,
     bev_overlap_area,
     from_canonical,
+    from_canonical_many,
     rotate_points_z,
     wrap_angle,
 )
@@ -968,11 +969,6 @@ class DRCPO(Transform):
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
         objects: list[Any] = []
-        early: list[Any] | None = None
-        # With placement first, each object's s-HPR can start on a second thread as soon as
-        # it is built, while the next one is constructed (the answers do not depend on it);
-        # the construction stage's time then includes that overlapped s-HPR work.
-        overlap = self.config.self_occlusion.enabled and _spare_core()
         placed: Future | None = None  # of a _Placed
         verdicts: Future | None = None  # of FrameGrid.prepare
         with ThreadPoolExecutor(max_workers=1) as pool:
@@ -983,9 +979,7 @@ class DRCPO(Transform):
                     rows = rows[accepted]
                     placed, verdicts = self._prepare_e_hpr(frame, boxes, rows, frame_grid, pool)
                 with stats.stage("drcpo.construction", 0) as record:
-                    if overlap:
-                        early = []
-                    objects = self._construct(rows, rng, stats, early, pool, boxes, frame)
+                    objects = self._construct(rows, rng, stats)
                     record["points_out"] = sum(len(o.points) for o in objects)
             else:  # whole: the box grows while constructing, so place with the final size
                 with stats.stage("drcpo.construction", 0) as record:
@@ -998,7 +992,8 @@ class DRCPO(Transform):
                     placed, verdicts = self._prepare_e_hpr(frame, boxes, rows, frame_grid, pool)
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
-                insertions = self._self_occlusion(frame, rows, boxes, objects, stats, early)
+                helper = pool if _spare_core() else None
+                insertions = self._self_occlusion(frame, rows, boxes, objects, stats, helper)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
                 points, owner, cleared_by = self._insert(frame, insertions, _done(placed))
@@ -1117,20 +1112,8 @@ class DRCPO(Transform):
             boxes, accepted = boxes[~occluded], accepted[~occluded]
         return boxes, accepted
 
-    def _construct(
-        self,
-        rows: np.ndarray,
-        rng: np.random.Generator,
-        stats: Stats,
-        early: list[Any] | None = None,
-        pool: ThreadPoolExecutor | None = None,
-        boxes: np.ndarray | None = None,
-        frame: Frame | None = None,
-    ) -> list[Any]:
-        """Constructed objects (all in one compiled call); with ``early`` (a list), each
-        object's s-HPR is then queued on ``pool`` (its future appended to ``early``)."""
-        # One batch, then s-HPR: measured end to end (bench_augment), no slower than batches
-        # of 1, 2, 4, ... that start the second thread sooner, and less CPU.
+    def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
+        """Constructed objects (all in one compiled call)."""
         objects = construction.construct_objects(
             self.database,
             rows,
@@ -1139,27 +1122,9 @@ class DRCPO(Transform):
             self._construction,
             self.index.max_counts,
         )
-        for k, (name, built) in enumerate(zip(self.database.names[rows], objects, strict=True)):
+        for name, built in zip(self.database.names[rows], objects, strict=True):
             stats.construction(str(name), built.iterations)
-            if early is not None:
-                early.append(
-                    pool.submit(self._object_s_hpr, built, boxes[k], frame.points.shape[1])
-                )
         return objects
-
-    def _placed_points(self, built: Any, box: np.ndarray, dim: int) -> np.ndarray:
-        """An object's constructed points placed in ``box``, with the frame's ``dim`` columns."""
-        return match_features(from_canonical(built.points, box), dim)
-
-    def _object_s_hpr(self, built: Any, box: np.ndarray, dim: int) -> np.ndarray:
-        """One object's placed points after s-HPR."""
-        placed = self._placed_points(built, box, dim)
-        if not len(placed):
-            return placed
-        visible = occlusion.self_occlusion(
-            placed, box, self.config.self_occlusion.radius_factor, method="reference"
-        )
-        return _rows(placed, visible)
 
     def _self_occlusion(
         self,
@@ -1168,42 +1133,40 @@ class DRCPO(Transform):
         boxes: np.ndarray,
         objects: Sequence[Any],
         stats: Stats,
-        early: Sequence[Any] | None = None,
+        pool: ThreadPoolExecutor | None = None,
     ) -> list[_Insertion]:
         """Placed points of each object after s-HPR; objects left too sparse are dropped.
-
-        ``early``: per object, the future of its s-HPR queued during construction; those not
-        started yet are taken back and done here, two at a time.
-        """
+        ``pool``: a running pool whose thread takes part when it is free."""
         settings = self.config.self_occlusion
+        sizes = [len(o.points) for o in objects]
         dim = frame.points.shape[1]
-        placed_objects: list[Any] = [None] * len(objects)
-        left = list(range(len(objects)))
-        if early is not None:
-            left = [k for k, future in enumerate(early) if future.cancel()]
-        for k in left:
-            placed_objects[k] = self._placed_points(objects[k], boxes[k], dim)
+        canonical = [o.points for o in objects]
+        placed = match_features(
+            from_canonical_many(
+                np.concatenate(canonical) if canonical else np.zeros((0, dim), np.float32),
+                np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
+                np.asarray(sizes, dtype=np.int64),
+            ),
+            dim,
+        )
+        placed_objects = np.split(placed, np.cumsum(sizes)[:-1]) if sizes else []
         if settings.enabled:
             # One hull per object ("reference": drcpo.hull's certified hull, Qhull where it
             # gives up; much faster than the per-point method for objects), two at a time.
-            jobs = [(placed_objects[k], boxes[k]) for k in left if len(placed_objects[k])]
+            jobs = [(p, b) for p, b in zip(placed_objects, boxes, strict=True) if len(p)]
             masks = iter(
-                occlusion.self_occlusion_many(jobs, settings.radius_factor, method="reference")
+                occlusion.self_occlusion_many(
+                    jobs, settings.radius_factor, method="reference", pool=pool
+                )
             )
-            for k in left:
-                if len(placed_objects[k]):
-                    placed_objects[k] = _rows(placed_objects[k], next(masks))
-        if early is not None:
-            for k, future in enumerate(early):
-                if placed_objects[k] is None:
-                    placed_objects[k] = future.result()
+            placed_objects = [_rows(p, next(masks)) if len(p) else p for p in placed_objects]
         insertions = []
-        for row, box, placed in zip(rows, boxes, placed_objects, strict=True):
+        for row, box, points in zip(rows, boxes, placed_objects, strict=True):
             name = str(self.database.names[row])
-            if len(placed) < settings.min_points:
+            if len(points) < settings.min_points:
                 stats.rejected(self.name, name, "self_occlusion")
                 continue
-            insertions.append(_Insertion(int(row), name, box, placed))
+            insertions.append(_Insertion(int(row), name, box, points))
         return insertions
 
     def _insert(
