@@ -458,12 +458,27 @@ def test_matches_the_reference_implementation(database, config):
         for row, cands, scale in zip(rows, candidates, scales, strict=True)
     ]
     batch = construct_objects(database, rows, candidates, batch_rng, config, scales)
+    # In chunks of 2, each handed over as it is built: the same objects, the same draws.
+    chunk_rng, handed = np.random.default_rng(11), []
+    chunked = construct_objects(
+        database,
+        rows,
+        candidates,
+        chunk_rng,
+        config,
+        scales,
+        chunk=2,
+        on_chunk=lambda first, objects: handed.append((first, len(objects))),
+    )
+    assert handed == [(first, len(rows[first : first + 2])) for first in range(0, len(rows), 2)]
     for k, (row, cands, scale) in enumerate(zip(rows, candidates, scales, strict=True)):
         single = construct_object(database, row, cands, single_rng, config, scale)
         assert_same_as_reference(single, expected[k])
         assert_same_as_reference(batch[k], expected[k])
+        assert_same_as_reference(chunked[k], expected[k])
     state = expected_rng.bit_generator.state
     assert single_rng.bit_generator.state == state == batch_rng.bit_generator.state
+    assert chunk_rng.bit_generator.state == state
     if config.max_iterations:
         assert sum(e[2] for e in expected) > 0  # the case does construct
 

@@ -610,33 +610,50 @@ def test_frame_grid_equals_the_two_passes(seed):
         assert not found[0][cleared].any()
 
 
-def test_frame_grid_prepared_verdicts_are_reused_or_dropped(seed=1):
-    from concurrent.futures import ThreadPoolExecutor
-
-    from drcpo.occlusion import FrameGrid
+def test_behind_may_depend_on_the_inserted_points_verdicts(seed=1):
+    # The DR.CPO pipeline decides the frame points only behind the objects that keep enough
+    # points: ``behind`` is then a function of the inserted points' verdicts.
+    from drcpo.occlusion import FrameGrid, hidden_by_insertion
 
     frame, cleared, inserted, behind = _insertion_scene(seed)
-    plain = FrameGrid.build(frame).hidden_by_insertion(cleared, inserted, behind, method="local")
-    # Prepared with the same cleared points, on another thread still running.
-    grid = FrameGrid.build(frame)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        future = pool.submit(grid.prepare, cleared, behind)
-        found = grid.hidden_by_insertion(cleared, inserted, behind, method="local", after=future)
-    for got, want in zip(found, plain, strict=True):
-        np.testing.assert_array_equal(got, want)
-    # Prepared with more cleared points (an object dropped later): only "hidden" is kept.
-    more = cleared | (np.arange(len(frame)) % 7 == 0)
-    grid = FrameGrid.build(frame)
-    grid.prepare(more, behind & ~more)
-    found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
-    for got, want in zip(found, plain, strict=True):
-        np.testing.assert_array_equal(got, want)
-    # Prepared with fewer cleared points than used: nothing is reused.
-    grid = FrameGrid.build(frame)
-    grid.prepare(np.zeros(len(frame), bool), behind)
-    found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
-    for got, want in zip(found, plain, strict=True):
-        np.testing.assert_array_equal(got, want)
+    radius = 1e5
+    points = np.concatenate([frame[~cleared], inserted])
+    is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
+    hidden_inserted = _two_passes(
+        points, is_inserted, np.zeros(len(points), bool), np.zeros(3), radius
+    )
+    half = behind & (np.arange(len(frame)) % 2 == 0)  # what the function will answer
+    expected = _two_passes(
+        points,
+        is_inserted,
+        np.concatenate([half[~cleared], np.zeros(len(inserted), bool)]),
+        np.zeros(3),
+        radius,
+    )
+    seen = []
+
+    def behind_of(removed):
+        seen.append(removed.copy())
+        return half
+
+    grid = FrameGrid.build(frame, radius=radius)
+    found = grid.hidden_by_insertion(cleared, inserted, behind_of, method="local")
+    np.testing.assert_array_equal(seen[0], hidden_inserted[is_inserted])
+    np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
+    # The same through the plain function, with either method.
+    for method in ("local", "reference"):
+        seen.clear()
+        removed = hidden_by_insertion(
+            points,
+            is_inserted,
+            lambda gone: (
+                seen.append(gone.copy()) or np.append(half[~cleared], np.zeros(len(inserted), bool))
+            ),
+            radius=radius,
+            method=method,
+        )
+        np.testing.assert_array_equal(seen[0], hidden_inserted)
+        np.testing.assert_array_equal(removed, expected)
 
 
 def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
@@ -653,7 +670,6 @@ def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
     undecided = FrameGrid._undecided
     monkeypatch.setattr(FrameGrid, "_undecided", lambda *a: settled.append(1) or undecided(*a))
     grid = FrameGrid.build(frame, radius=radius)
-    grid.prepare(cleared, behind)
     found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
     assert settled  # the plain passes took over
     np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)

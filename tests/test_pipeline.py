@@ -540,7 +540,8 @@ def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
     in_inserted = BoxQuery(out.points).inside_any(inserted, margin=0.1)
     assert {row.tobytes() for row in out.points[in_inserted]} >= new_rows
     # Input points that are gone: inside an inserted box (room for it) or, with the inserted
-    # scope, hidden behind an inserted object (inside the view window of an inserted box).
+    # scope, hidden behind an inserted object kept (in the view window of its box, beyond the
+    # box's nearest point).
     kept_rows = row_set(out.points)
     gone = np.array([row.tobytes() not in kept_rows for row in before.points], dtype=bool)
     if config.external_occlusion.scope == "inserted" and gone.any():
@@ -548,7 +549,7 @@ def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
         _, viewpoint = transform.e_hpr_setting()
         grown = inserted.copy()
         grown[:, 3:6] += 0.2
-        core = view_windows(before.points, grown, viewpoint)
+        core = view_windows(before.points, grown, viewpoint, behind=True)
         assert (cleared | core)[gone].all()
     return {"added": added, "dropped": dropped, "gone": int(gone.sum())}
 
@@ -942,7 +943,10 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
     points = np.concatenate([wall, layer, cube])
     points = np.column_stack([points, np.zeros(len(points))]).astype(np.float32)
     owner = np.repeat([-1, 0], [len(wall) + len(layer), len(cube)])
-    keep = transform._external_occlusion(points, owner, [_Insertion(0, "Car", box, points[-4000:])])
+    keep, dropped = transform._external_occlusion(
+        points, owner, [_Insertion(0, "Car", box, points[-4000:])]
+    )
+    assert not dropped.any()  # the cube stays, with its visible face
     shadow = (np.abs(wall[:, 1]) < 0.8) & (np.abs(wall[:, 2]) < 0.8)
     assert not keep[: len(wall)][shadow].any()  # the wall behind the box is hidden now
     assert keep[: len(wall)][(np.abs(wall[:, 1]) > 1.5)].all()

@@ -35,7 +35,7 @@ formulation as the reference.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -157,12 +157,15 @@ def construct_objects(
     rng: np.random.Generator,
     config: ConstructionConfig | None = None,
     class_max_counts: Mapping[str, np.ndarray] | Sequence[np.ndarray | None] | None = None,
+    *,
+    chunk: int | None = None,
+    on_chunk: Callable[[int, list[ConstructedObject]], None] | None = None,
 ) -> list[ConstructedObject]:
-    """:func:`construct_object` for several objects in one compiled call.
+    """:func:`construct_object` for several objects in compiled calls.
 
     The objects draw from ``rng`` one after the other, so the result (and ``rng``'s state
-    afterwards) is that of calling :func:`construct_object` on each in turn. Every input is
-    checked before anything is drawn.
+    afterwards) is that of calling :func:`construct_object` on each in turn, however they are
+    chunked. Every input is checked before anything is drawn.
 
     Args:
         database: a :class:`drcpo.database.GroundTruthDatabase`.
@@ -173,10 +176,13 @@ def construct_objects(
         config: :class:`ConstructionConfig` (paper defaults when ``None``).
         class_max_counts: per class name (the index's ``max_counts``; a class left out uses its
             objects' own maxima), or per object (``None`` entries likewise), or ``None``.
+        chunk: objects per compiled call (``None``: all in one).
+        on_chunk: called after each call with the index of its first object and its objects,
+            e.g. to start work on them while the next ones are built.
 
     Returns:
         The :class:`ConstructedObject` of each row, in order. Their arrays are views into
-        arrays shared by the batch.
+        arrays shared by their chunk.
     """
     config = config or ConstructionConfig()
     n_objects = len(database)
@@ -191,28 +197,31 @@ def construct_objects(
     if len(rows) == 0:
         return []
     points, offsets = _database_arrays(database)
-    if config.mode == "partition":
-        out = _construct_partition(
-            points,
-            offsets,
-            rows,
-            candidates,
-            dims,
-            grids,
-            mirror,
-            scales,
-            own_scale,
-            float(config.margin),
-            config.max_iterations,
-            float(config.coverage),
-            rng,
-        )
-    else:
-        orders = _whole_orders(candidates, rng, config.max_iterations)
-        out = _construct_whole(
-            points, offsets, rows, orders, dims, grids, mirror, scales, own_scale, config.coverage
-        )
-    return _objects(*out)
+    step = len(rows) if chunk is None else max(1, int(chunk))
+    objects: list[ConstructedObject] = []
+    for first in range(0, len(rows), step):
+        part = slice(first, first + step)
+        settings = (dims[part], grids[part], mirror[part], scales[part], own_scale[part])
+        if config.mode == "partition":
+            out = _construct_partition(
+                points,
+                offsets,
+                rows[part],
+                candidates[part],
+                *settings,
+                float(config.margin),
+                config.max_iterations,
+                float(config.coverage),
+                rng,
+            )
+        else:
+            orders = _whole_orders(candidates[part], rng, config.max_iterations)
+            out = _construct_whole(points, offsets, rows[part], orders, *settings, config.coverage)
+        built = _objects(*out)
+        objects += built
+        if on_chunk is not None:
+            on_chunk(first, built)
+    return objects
 
 
 def _valid_rows(rows, n_objects: int) -> np.ndarray:

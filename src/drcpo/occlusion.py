@@ -74,9 +74,10 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from collections.abc import Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numba as nb
@@ -214,7 +215,7 @@ def hidden_point_removal(
 def hidden_by_insertion(
     points: np.ndarray,
     inserted: np.ndarray,
-    behind: np.ndarray,
+    behind: np.ndarray | Callable[[np.ndarray], np.ndarray],
     viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
     radius: float = 100000.0,
     *,
@@ -235,7 +236,8 @@ def hidden_by_insertion(
         points: ``(N, 3 + C)`` the frame after insertion (metres).
         inserted: ``bool (N,)`` the inserted points.
         behind: ``bool (N,)`` original points whose removal is to be decided (points of
-            ``inserted`` are ignored here).
+            ``inserted`` are ignored here), or a function that returns them given the
+            inserted points to remove (``bool (N,)``), which are decided first.
         viewpoint, radius, method, workers: as in :func:`hidden_point_removal`.
 
     Returns:
@@ -246,37 +248,56 @@ def hidden_by_insertion(
     radius = _check_radius(radius)
     if method not in HPR_METHODS:
         raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
-    inserted = _check_query(inserted, len(xyz))
-    behind = _check_query(behind, len(xyz)) & ~inserted
+    n = len(xyz)
+    inserted = _check_query(inserted, n)
     workers = _check_workers(workers)
-    removed = np.zeros(len(xyz), dtype=bool)
-    wanted = inserted | behind
-    if not wanted.any():
-        return removed
+    removed = np.zeros(n, dtype=bool)
+    if not callable(behind):
+        behind = _check_query(behind, n) & ~inserted
+        if not (inserted | behind).any():
+            return removed
     setup = _Setup.build(xyz, center, radius)
     if setup.size == 0:
         return removed
     if _resolve_method(method, setup) == "local":
         original = np.flatnonzero(~inserted)
-        grid = FrameGrid.build(xyz[original], center, radius, spare=len(xyz) - len(original))
+
+        def behind_frame(removed_inserted: np.ndarray) -> np.ndarray:
+            if not callable(behind):
+                return _check_query(behind, n)[original]
+            found = np.zeros(n, dtype=bool)
+            found[inserted] = removed_inserted
+            return _check_query(behind(found), n)[original]
+
+        grid = FrameGrid.build(xyz[original], center, radius, spare=n - len(original))
         found = grid.hidden_by_insertion(
             np.zeros(len(original), dtype=bool),
             xyz[inserted],
-            behind[original],
+            behind_frame,
             method="local",
             workers=workers,
         )
         if found is not None:
             removed[original], removed[inserted] = found
             return removed
-    visible = hidden_point_removal(
-        xyz, center, radius, method=method, query=wanted, workers=workers
-    )
-    removed = wanted & ~visible
+
+    def hidden(query: np.ndarray) -> np.ndarray:
+        if not query.any():
+            return np.zeros(n, dtype=bool)
+        return query & ~hidden_point_removal(
+            xyz, center, radius, method=method, query=query, workers=workers
+        )
+
+    if callable(behind):
+        removed = hidden(inserted)
+        behind = _check_query(behind(removed.copy()), n) & ~inserted
+        removed |= hidden(behind)
+    else:
+        removed = hidden(inserted | behind)
     suspects = behind & removed
     if suspects.any():
         original = np.flatnonzero(~inserted)
-        before = np.ones(len(xyz), dtype=bool)
+        before = np.ones(n, dtype=bool)
         before[original] = hidden_point_removal(
             xyz[original], center, radius, method=method, query=suspects[original], workers=workers
         )
@@ -1154,7 +1175,6 @@ class FrameGrid:
             self._azimuth,
             self._position,
         )
-        self._prepared: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def build(
@@ -1253,42 +1273,37 @@ class FrameGrid:
         self,
         cleared: np.ndarray,
         inserted: np.ndarray,
-        behind: np.ndarray,
+        behind: np.ndarray | Callable[[np.ndarray], np.ndarray] | None,
         *,
         method: str = "auto",
         workers: int | None = None,
         pool: ThreadPoolExecutor | None = None,
-        after: Future | None = None,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """:func:`hidden_by_insertion` of the frame without its ``cleared`` points plus the
         ``inserted`` ones, with the per-point test; ``None`` when ``method`` would not use it
         on that set (too few points, ``R`` not far above the ranges, points at the viewpoint):
         the caller then asks :func:`hidden_by_insertion`. The inserted points are decided
-        first, so a :meth:`prepare` still running elsewhere (``after``, its future) has time
-        to finish before the frame's points need it.
+        first; ``behind`` may be a function of their verdicts.
 
         Args:
             cleared: ``bool (N,)`` frame points taken out (room made for the objects).
             inserted: ``(K, 3 + C)`` inserted points, metres.
-            behind: ``bool (N,)`` frame points whose removal is to be decided.
+            behind: ``bool (N,)`` frame points whose removal is to be decided, or a function
+                that, given the inserted points to remove (``bool (K,)``), returns them.
             method: as in :func:`hidden_by_insertion`.
             workers: threads (``None``: up to two of the CPUs this process may use).
             pool: a running pool whose thread may take part (else one is started for the call
-                when ``workers > 1``).
-            after: see above.
+                when ``workers > 1`` and the work is large enough).
 
         Returns:
             ``bool (N,)`` frame points and ``bool (K,)`` inserted points to remove.
         """
         n = self.size
         cleared = _check_query(cleared, n)
-        behind = _check_query(behind, n) & ~cleared
         xyz = _check_points(inserted)
         workers = _check_workers(workers)
         k = len(xyz)
         removed, removed_inserted = np.zeros(n, dtype=bool), np.zeros(k, dtype=bool)
-        if k == 0 and not behind.any():
-            return removed, removed_inserted
         rel = xyz - self.center
         ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
         if not np.isfinite(ranges).all():
@@ -1296,38 +1311,68 @@ class FrameGrid:
             raise DataError(f"inserted points: row {row} is too far from the viewpoint for float64")
         r_min = min(self._r_min, float(ranges.min(initial=np.inf)))
         r_max = max(self._r_max, float(ranges.max(initial=0.0)))
-        if not self._local_applies(n - int(cleared.sum()) + k, r_min, r_max, method):
+        if k and not self._local_applies(n - int(cleared.sum()) + k, r_min, r_max, method):
             return None
         positions = self._add(rel, ranges)
-        rho_max = 2.0 * self.radius - r_min
         absent = np.zeros(n + k, dtype=bool)
         absent[:n] = cleared[self._order]
-        scene = self._scene(n + k, absent)
-        queries = np.concatenate([n + np.arange(k), np.flatnonzero(behind[self._order])])
+        decide = partial(
+            self._verdicts,
+            self._scene(n + k, absent),
+            r_min,
+            2.0 * self.radius - r_min,
+            workers,
+            pool,
+        )
+        verdicts = decide(n + np.arange(k))
+        removed_inserted[positions] = verdicts == _VERDICT_REMOVE
+        undecided = positions[verdicts == _VERDICT_UNDECIDED_WITH]
+        if len(undecided):
+            nothing = np.zeros(0, dtype=np.int64)
+            removed_inserted[undecided] = self._undecided(
+                nothing, nothing, undecided, cleared, xyz
+            )[1]
+        if callable(behind):
+            behind = behind(removed_inserted)
+        behind = _check_query(behind, n) & ~cleared
+        if not behind.any():
+            return removed, removed_inserted
+        if not k and not self._local_applies(n - int(cleared.sum()), r_min, r_max, method):
+            return None
+        queries = np.flatnonzero(behind[self._order])
+        verdicts = decide(queries)
+        frame_rows = self._order[queries]
+        removed[frame_rows] = verdicts == _VERDICT_REMOVE
+        pending = verdicts >= _VERDICT_UNDECIDED_WITHOUT
+        if pending.any():
+            removed[frame_rows[pending]] = self._undecided(
+                verdicts[pending], frame_rows[pending], np.zeros(0, np.int64), cleared, xyz
+            )[0]
+        return removed, removed_inserted
+
+    def _verdicts(
+        self,
+        scene: tuple,
+        r_min: float,
+        rho_max: float,
+        workers: int,
+        pool: ThreadPoolExecutor | None,
+        queries: np.ndarray,
+    ) -> np.ndarray:
+        """:func:`_insertion_verdicts` of the sorted ``queries``, on two threads when worth it."""
+        if not len(queries):
+            return np.zeros(0, dtype=np.int8)
         cones = _first_cones(self._ranges[queries], r_min, rho_max)
         parallel = workers > 1 and len(queries) >= (
             _FRAME_PARALLEL_MIN if pool is not None else _PARALLEL_MIN
         )
-        helper = (pool or ThreadPoolExecutor(max_workers=1)) if parallel else None
-        # The inserted points' parts first, apart from the frame points' (which may wait).
-        chunks = _FRAME_CHUNKS if parallel else 2
-        first = max(1, round(chunks * k / len(queries)))
-        slots = np.arange(len(queries))
-        parts = [p for p in np.array_split(slots[:k], first) if len(p)]
-        parts += [p for p in np.array_split(slots[k:], max(1, chunks - first)) if len(p)]
+        parts = np.array_split(np.arange(len(queries)), _FRAME_CHUNKS if parallel else 1)
 
         def kernel(part: np.ndarray) -> np.ndarray:
-            known = np.zeros(len(part), dtype=np.int8)
-            frame = part[part >= k]
-            if len(frame):
-                if after is not None:
-                    after.result()
-                known[len(part) - len(frame) :] = self._prepared_states(cleared, queries[frame])
             return _insertion_verdicts(
                 queries[part],
                 cones[part],
-                known,
-                n,
+                self.size,
                 self.radius,
                 *scene,
                 r_min,
@@ -1335,69 +1380,7 @@ class FrameGrid:
                 _BRUTE_BUDGET,
             )
 
-        try:
-            verdicts = np.concatenate(_shared_chunks(kernel, parts, helper))
-        finally:
-            if helper is not None and helper is not pool:
-                helper.shutdown()
-        frame_rows = self._order[queries[k:]]
-        removed[frame_rows] = verdicts[k:] == _VERDICT_REMOVE
-        removed_inserted[positions] = verdicts[:k] == _VERDICT_REMOVE
-        if (verdicts >= _VERDICT_UNDECIDED_WITHOUT).any():
-            self._undecided(
-                verdicts[k:],
-                verdicts[:k],
-                frame_rows,
-                positions,
-                cleared,
-                xyz,
-                removed,
-                removed_inserted,
-            )
-        return removed, removed_inserted
-
-    def prepare(self, cleared: np.ndarray, behind: np.ndarray) -> None:
-        """Decide now the points of ``behind`` (``bool (N,)``) among the frame's points without
-        its ``cleared`` ones (``bool (N,)``), before any inserted point is known (the DR.CPO
-        pipeline does it on a second thread while the objects are built). A later
-        :meth:`hidden_by_insertion` with the same ``cleared`` then only adds the inserted
-        points' part; with fewer cleared points, it reuses the points found hidden."""
-        n = self.size
-        cleared = _check_query(cleared, n).copy()
-        behind = _check_query(behind, n) & ~cleared
-        self._prepared = None
-        if not behind.any() or not self._local_applies(n, self._r_min, self._r_max, "local"):
-            return
-        absent = cleared[self._order]
-        queries = np.flatnonzero(behind[self._order])
-        rho_max = 2.0 * self.radius - self._r_min
-        cones = _first_cones(self._ranges[queries], self._r_min, rho_max)
-        states = _without_states(
-            queries,
-            cones,
-            self.radius,
-            *self._scene(n, absent),
-            self._r_min,
-            rho_max,
-            _BRUTE_BUDGET,
-        )
-        known = np.zeros(n, dtype=np.int8)
-        known[queries] = states
-        self._prepared = (cleared, known)
-
-    def _prepared_states(self, cleared: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        """States :meth:`prepare` found for the sorted frame ``positions`` that still hold with
-        ``cleared`` points taken out (0: to decide)."""
-        if self._prepared is None:
-            return np.zeros(len(positions), dtype=np.int8)
-        prepared_cleared, known = self._prepared
-        states = known[positions]
-        if not np.array_equal(prepared_cleared, cleared):
-            if (cleared & ~prepared_cleared).any():
-                return np.zeros(len(positions), dtype=np.int8)
-            # more points now: a point hidden among fewer is hidden among them too
-            states[states != _WITHOUT_HIDDEN] = _WITHOUT_UNKNOWN
-        return states
+        return np.concatenate(_shared_chunks(kernel, parts, pool, start=parallel))
 
     def _scene(self, count: int, absent: np.ndarray) -> tuple:
         """The kernels' view of the first ``count`` sorted points, ``absent`` ones skipped."""
@@ -1453,49 +1436,45 @@ class FrameGrid:
     def _undecided(
         self,
         frame_verdicts: np.ndarray,
-        inserted_verdicts: np.ndarray,
         frame_rows: np.ndarray,
-        positions: np.ndarray,
+        inserted_rows: np.ndarray,
         cleared: np.ndarray,
         inserted: np.ndarray,
-        removed: np.ndarray,
-        removed_inserted: np.ndarray,
-    ) -> None:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Settle the points the kernel gave up on (its budget of full scans spent) with the
-        plain passes of :func:`hidden_point_removal`, in place."""
+        plain passes of :func:`hidden_point_removal`: the frame points ``frame_rows`` (with
+        their kernel verdicts) and the inserted points ``inserted_rows``. Returns whether each
+        is to be removed."""
         originals = np.flatnonzero(~cleared)
         points = np.concatenate([_check_points(self._points)[originals], inserted])
         row_of = np.full(self.size, -1, dtype=np.int64)
         row_of[originals] = np.arange(len(originals))
-        # Frame points undecided without the objects: visible without them?
-        without = frame_rows[frame_verdicts == _VERDICT_UNDECIDED_WITHOUT]
-        visible_before = np.zeros(0, dtype=bool)
-        if len(without):
+        with_objects = frame_verdicts == _VERDICT_UNDECIDED_WITH
+        without = frame_verdicts == _VERDICT_UNDECIDED_WITHOUT
+        if without.any():  # only the frame points visible without the objects can go
             query = np.zeros(len(originals), dtype=bool)
-            query[row_of[without]] = True
+            query[row_of[frame_rows[without]]] = True
             visible = hidden_point_removal(
                 points[: len(originals)], self.center, self.radius, method="local", query=query
             )
-            visible_before = visible[row_of[without]]
-        # Points undecided with the objects (the frame's ones visible without them).
-        with_rows = np.concatenate(
-            [frame_rows[frame_verdicts == _VERDICT_UNDECIDED_WITH], without[visible_before]]
-        )
+            with_objects[without] = visible[row_of[frame_rows[without]]]
         query = np.zeros(len(points), dtype=bool)
-        query[row_of[with_rows]] = True
-        undecided_inserted = positions[inserted_verdicts == _VERDICT_UNDECIDED_WITH]
-        query[len(originals) + undecided_inserted] = True
+        query[row_of[frame_rows[with_objects]]] = True
+        query[len(originals) + inserted_rows] = True
+        removed_frame = np.zeros(len(frame_rows), dtype=bool)
+        removed_inserted = np.zeros(len(inserted_rows), dtype=bool)
         if query.any():
             visible = hidden_point_removal(
                 points, self.center, self.radius, method="local", query=query
             )
-            removed[with_rows] = ~visible[row_of[with_rows]]
-            removed_inserted[undecided_inserted] = ~visible[len(originals) + undecided_inserted]
+            removed_frame[with_objects] = ~visible[row_of[frame_rows[with_objects]]]
+            removed_inserted = ~visible[len(originals) + inserted_rows]
+        return removed_frame, removed_inserted
 
 
 _VERDICT_KEEP, _VERDICT_REMOVE, _VERDICT_UNDECIDED_WITHOUT, _VERDICT_UNDECIDED_WITH = 0, 1, 2, 3
-# A frame point among the frame's points alone (see _without_state); 0: not decided yet.
-_WITHOUT_UNKNOWN, _WITHOUT_CLEAR, _WITHOUT_HIDDEN, _WITHOUT_VISIBLE, _WITHOUT_UNRESOLVED = range(5)
+# A frame point among the frame's points alone (see _without_state).
+_WITHOUT_CLEAR, _WITHOUT_HIDDEN, _WITHOUT_VISIBLE, _WITHOUT_UNRESOLVED = range(1, 5)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -2196,7 +2175,6 @@ def _without_states(
 def _insertion_verdicts(
     queries,
     cones,
-    known,
     n_original,
     radius,
     rays,
@@ -2218,8 +2196,7 @@ def _insertion_verdicts(
     """e-HPR's inserted scope for the sorted points ``queries`` (first cones ``cones``) on a
     grid whose cells are sorted by range (``radius``: ``R``): the frame's
     points (positions below ``n_original``) go when visible without the inserted ones and
-    hidden with them, inserted points when hidden. ``known``: per query, the frame point's
-    :func:`_without_state` if already decided, else 0. Per query: keep 0, remove 1, or which
+    hidden with them, inserted points when hidden. Per query: keep 0, remove 1, or which
     verdict it could not settle within ``brute_budget`` full scans: without the inserted
     points 2, with them 3.
 
@@ -2236,32 +2213,30 @@ def _insertion_verdicts(
         i = queries[slot]
         cone = cones[slot]
         if i < n_original:
-            state = known[slot]
-            if state == _WITHOUT_UNKNOWN:
-                state, brutes, s1, s2, t = _without_state(
-                    i,
-                    cone,
-                    radius,
-                    rays,
-                    rel,
-                    ranges,
-                    rho,
-                    elevation,
-                    azimuth,
-                    starts,
-                    absent,
-                    origin,
-                    size,
-                    rows,
-                    columns,
-                    r_min,
-                    rho_max,
-                    s1,
-                    s2,
-                    t,
-                    brutes,
-                    brute_budget,
-                )
+            state, brutes, s1, s2, t = _without_state(
+                i,
+                cone,
+                radius,
+                rays,
+                rel,
+                ranges,
+                rho,
+                elevation,
+                azimuth,
+                starts,
+                absent,
+                origin,
+                size,
+                rows,
+                columns,
+                r_min,
+                rho_max,
+                s1,
+                s2,
+                t,
+                brutes,
+                brute_budget,
+            )
             if state == _WITHOUT_HIDDEN:
                 verdicts[slot] = _VERDICT_KEEP
                 continue

@@ -24,6 +24,7 @@ import math
 import os
 import shutil
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -786,17 +787,60 @@ class GroundTruthSampling(Transform):
 # --------------------------------------------------------------------------------------------
 # DR.CPO
 # --------------------------------------------------------------------------------------------
+_CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
+
+
+class _WorkQueue:
+    """Jobs done, in any order, by one thread of ``pool`` whenever it is free (after
+    :meth:`start`) and by the calling thread in :meth:`results`. A job's answer must not
+    depend on which thread does it."""
+
+    def __init__(self, pool: ThreadPoolExecutor | None) -> None:
+        self._pool = pool
+        self._jobs: deque[tuple[int, Callable[[], Any]]] = deque()
+        self._results: dict[int, Any] = {}
+        self._helper: Future | None = None
+
+    def add(self, key: int, job: Callable[[], Any]) -> None:
+        self._jobs.append((key, job))
+
+    def start(self) -> None:
+        """Let the pool's thread take jobs, unless it is on it already."""
+        if self._pool is None or (self._helper is not None and not self._helper.done()):
+            return
+        if self._helper is not None:
+            self._helper.result()  # (raises what a job raised there)
+        self._helper = self._pool.submit(self._drain)
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                key, job = self._jobs.popleft()  # atomic: the threads never share a job
+            except IndexError:
+                return
+            self._results[key] = job()
+
+    def results(self) -> dict[int, Any]:
+        """Every job's answer by key, once all are done (a pool thread that has not started
+        is not waited for)."""
+        try:
+            self._drain()
+        except BaseException:
+            self._jobs.clear()  # the pool's thread stops after its current job
+            raise
+        if self._helper is not None and not self._helper.cancel():
+            self._helper.result()
+        return self._results
+
+
 @dataclass(frozen=True, eq=False)
 class _Placed:
-    """What e-HPR and the labels need of the placed boxes alone (worked out while the objects
-    are built): the boxes ``(A, 7)``; per frame point, the last box holding it (``int64
-    (N,)``, -1: none) and whether it lies behind a box in its view window (``bool (N,)``;
-    ``None``: every direction is some box's); the frame's points in each of its own boxes."""
+    """What e-HPR needs of the placed boxes alone (worked out while the objects are built):
+    the boxes ``(A, 7)``; per frame point, the last box holding it (``int64 (N,)``, -1:
+    none); each box's source row; their view windows."""
 
     boxes: np.ndarray
     owners: np.ndarray
-    behind: np.ndarray | None
-    box_counts: np.ndarray
     rows: np.ndarray  # each box's source row
     windows: tuple[np.ndarray, ...]  # _box_windows of the boxes grown by _WINDOW_SLACK
 
@@ -970,16 +1014,21 @@ class DRCPO(Transform):
             rows = self._sample(rng, stats)
         objects: list[Any] = []
         placed: Future | None = None  # of a _Placed
-        verdicts: Future | None = None  # of FrameGrid.prepare
         with ThreadPoolExecutor(max_workers=1) as pool:
             frame_grid = self._frame_grid(frame, rows, pool)
+            # s-HPR of each object, done by this thread and the pool's when it is free.
+            s_hpr = _WorkQueue(pool if _spare_core() else None)
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
                     boxes, accepted = self._place(frame, rows, None, rng, stats)
                     rows = rows[accepted]
-                    placed, verdicts = self._prepare_e_hpr(frame, boxes, rows, frame_grid, pool)
+                    placed = self._placed_task(frame, boxes, rows, frame_grid, pool)
+                # With placement first, objects go to s-HPR chunk by chunk as they are built
+                # (the answers do not depend on it); the construction stage's time then
+                # includes the s-HPR work done meanwhile.
                 with stats.stage("drcpo.construction", 0) as record:
-                    objects = self._construct(rows, rng, stats)
+                    queue = partial(self._queue_s_hpr, s_hpr, boxes, frame.points.shape[1])
+                    objects = self._construct(rows, rng, stats, queue)
                     record["points_out"] = sum(len(o.points) for o in objects)
             else:  # whole: the box grows while constructing, so place with the final size
                 with stats.stage("drcpo.construction", 0) as record:
@@ -989,11 +1038,13 @@ class DRCPO(Transform):
                     dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
                     boxes, accepted = self._place(frame, rows, dims, rng, stats)
                     rows, objects = rows[accepted], [objects[i] for i in accepted]
-                    placed, verdicts = self._prepare_e_hpr(frame, boxes, rows, frame_grid, pool)
+                    placed = self._placed_task(frame, boxes, rows, frame_grid, pool)
+                self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], 0, objects)
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
-                helper = pool if _spare_core() else None
-                insertions = self._self_occlusion(frame, rows, boxes, objects, stats, helper)
+                done = s_hpr.results()
+                visible = [done[k] for k in range(len(rows))]
+                insertions = self._insertions(rows, boxes, visible, stats)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
                 points, owner, cleared_by = self._insert(frame, insertions, _done(placed))
@@ -1001,13 +1052,13 @@ class DRCPO(Transform):
             with stats.stage("drcpo.external_occlusion", len(points)) as record:
                 grid = frame_grid() if frame_grid is not None and insertions else None
                 helper = pool if _spare_core() else None
-                keep = self._external_occlusion(
-                    points, owner, insertions, grid, cleared_by, helper, placed, verdicts
+                keep, dropped = self._external_occlusion(
+                    points, owner, insertions, grid, cleared_by, helper, _done(placed)
                 )
                 record["points_out"] = int(keep.sum())
             with stats.stage("drcpo.labels", int(keep.sum())) as record:
                 out = self._settle(
-                    frame, points, owner, keep, cleared_by, insertions, stats, grid, _done(placed)
+                    frame, points, owner, keep, dropped, cleared_by, insertions, stats
                 )
                 record["points_out"] = len(out)
         return out
@@ -1026,46 +1077,26 @@ class DRCPO(Transform):
         build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius)
         return pool.submit(build).result if _spare_core() else build
 
-    def _prepare_e_hpr(
+    def _placed_task(
         self,
         frame: Frame,
         boxes: np.ndarray,
         rows: np.ndarray,
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         pool: ThreadPoolExecutor,
-    ) -> tuple[Future | None, Future | None]:
-        """On two cores, start on ``pool`` what e-HPR needs of the placed ``boxes`` (of source
-        ``rows``) alone, worked out while the objects are built: first (a :class:`_Placed`) the
-        box owning each frame point (see :meth:`BoxQuery.owners`), the boxes' view windows and
-        the frame's points in each of its own boxes; then, in the frame's grid, the verdicts of
-        the frame points behind the boxes without the objects (see
-        :meth:`~drcpo.occlusion.FrameGrid.prepare`). Their futures, ``None`` where nothing is
-        started."""
+    ) -> Future | None:
+        """On two cores, start on ``pool`` working out the :class:`_Placed` of the placed
+        ``boxes`` (of source ``rows``) while the objects are built; its future, or ``None``
+        when nothing is started."""
         if frame_grid is None or len(boxes) == 0 or not _spare_core():
-            return None, None
+            return None
         _, viewpoint = self.e_hpr_setting()
 
         def place() -> _Placed:
-            # (All on the pool: measured faster overall than owners and windows done here.)
-            query = BoxQuery(frame.points)
-            owners = query.owners(boxes)
-            grown = _grown(boxes)
-            box_windows = _box_windows(grown, viewpoint)
-            spans = _window_spans(grown, viewpoint, True, box_windows)
-            behind = None
-            if spans is not None:
-                behind = (owners < 0) & frame_grid().in_windows(spans)
-            counts = query.counts(frame.boxes)
-            return _Placed(boxes, owners, behind, counts, rows, box_windows)
+            owners = BoxQuery(frame.points).owners(boxes)
+            return _Placed(boxes, owners, rows, _box_windows(_grown(boxes), viewpoint))
 
-        placed = pool.submit(place)
-
-        def decide() -> None:
-            done = placed.result()  # the task before this one
-            if done.behind is not None:
-                frame_grid().prepare(done.owners >= 0, done.behind)
-
-        return placed, pool.submit(decide)
+        return pool.submit(place)
 
     def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
         """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
@@ -1112,8 +1143,15 @@ class DRCPO(Transform):
             boxes, accepted = boxes[~occluded], accepted[~occluded]
         return boxes, accepted
 
-    def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
-        """Constructed objects (all in one compiled call)."""
+    def _construct(
+        self,
+        rows: np.ndarray,
+        rng: np.random.Generator,
+        stats: Stats,
+        on_chunk: Callable[[int, list[Any]], None] | None = None,
+    ) -> list[Any]:
+        """Constructed objects; with ``on_chunk``, built :data:`_CHUNK` at a time and handed to
+        it as they come (see :func:`~drcpo.construction.construct_objects`)."""
         objects = construction.construct_objects(
             self.database,
             rows,
@@ -1121,49 +1159,58 @@ class DRCPO(Transform):
             rng,
             self._construction,
             self.index.max_counts,
+            chunk=_CHUNK if on_chunk is not None else None,
+            on_chunk=on_chunk,
         )
         for name, built in zip(self.database.names[rows], objects, strict=True):
             stats.construction(str(name), built.iterations)
         return objects
 
-    def _self_occlusion(
-        self,
-        frame: Frame,
-        rows: np.ndarray,
-        boxes: np.ndarray,
-        objects: Sequence[Any],
-        stats: Stats,
-        pool: ThreadPoolExecutor | None = None,
-    ) -> list[_Insertion]:
-        """Placed points of each object after s-HPR; objects left too sparse are dropped.
-        ``pool``: a running pool whose thread takes part when it is free."""
-        settings = self.config.self_occlusion
-        sizes = [len(o.points) for o in objects]
-        dim = frame.points.shape[1]
-        canonical = [o.points for o in objects]
+    def _queue_s_hpr(
+        self, work: _WorkQueue, boxes: np.ndarray, dim: int, first: int, objects: Sequence[Any]
+    ) -> None:
+        """Queue on ``work`` the s-HPR of ``objects`` (numbers ``first``, ``first + 1``, ... of
+        ``boxes``): their points placed (all at once), with the frame's ``dim`` columns."""
+        sizes = np.array([len(o.points) for o in objects], dtype=np.int64)
+        if not len(objects):
+            return
         placed = match_features(
             from_canonical_many(
-                np.concatenate(canonical) if canonical else np.zeros((0, dim), np.float32),
-                np.asarray(boxes, dtype=np.float64).reshape(-1, 7),
-                np.asarray(sizes, dtype=np.int64),
+                np.concatenate([o.points for o in objects]),
+                boxes[first : first + len(objects)],
+                sizes,
             ),
             dim,
         )
-        placed_objects = np.split(placed, np.cumsum(sizes)[:-1]) if sizes else []
-        if settings.enabled:
-            # One hull per object ("reference": drcpo.hull's certified hull, Qhull where it
-            # gives up; much faster than the per-point method for objects), two at a time.
-            jobs = [(p, b) for p, b in zip(placed_objects, boxes, strict=True) if len(p)]
-            masks = iter(
-                occlusion.self_occlusion_many(
-                    jobs, settings.radius_factor, method="reference", pool=pool
-                )
-            )
-            placed_objects = [_rows(p, next(masks)) if len(p) else p for p in placed_objects]
+        for k, points in enumerate(np.split(placed, np.cumsum(sizes)[:-1]), first):
+            work.add(k, partial(self._object_s_hpr, points, boxes[k]))
+        work.start()
+
+    def _object_s_hpr(self, points: np.ndarray, box: np.ndarray) -> np.ndarray:
+        """One placed object's points after s-HPR (one hull: drcpo.hull's certified one, Qhull
+        where it gives up; much faster than the per-point method for objects)."""
+        settings = self.config.self_occlusion
+        if not settings.enabled or not len(points):
+            return points
+        visible = occlusion.self_occlusion(
+            points, box, settings.radius_factor, method="reference", workers=1
+        )
+        return _rows(points, visible)
+
+    def _insertions(
+        self,
+        rows: np.ndarray,
+        boxes: np.ndarray,
+        visible: Sequence[np.ndarray],
+        stats: Stats,
+    ) -> list[_Insertion]:
+        """The objects left with at least ``self_occlusion.min_points`` points after s-HPR
+        (``visible``: each object's placed points left), the others rejected."""
+        minimum = self.config.self_occlusion.min_points
         insertions = []
-        for row, box, points in zip(rows, boxes, placed_objects, strict=True):
+        for row, box, points in zip(rows, boxes, visible, strict=True):
             name = str(self.database.names[row])
-            if len(points) < settings.min_points:
+            if len(points) < minimum:
                 stats.rejected(self.name, name, "self_occlusion")
                 continue
             insertions.append(_Insertion(int(row), name, box, points))
@@ -1199,66 +1246,93 @@ class DRCPO(Transform):
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
         pool: ThreadPoolExecutor | None = None,
-        placed: Future | None = None,
-        verdicts: Future | None = None,
-    ) -> np.ndarray:
-        """``bool (N,)``: points kept by e-HPR (or the range-image mode) under the scope rule.
+        placed: _Placed | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
+        and the insertions left with too few points in their box, ``bool (len(insertions),)``.
 
-        Scope ``frame``: every hidden point goes. Scope ``inserted``: visibility is decided only
-        for the inserted points and the original points in the view windows of the inserted
-        boxes (the directions they cover), each exactly against the whole frame; inserted
-        points hidden go, and original points hidden with the objects but visible without them.
-        With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see
-        :meth:`_insert`), the frame's points are not sorted again; ``pool`` may lend a thread;
-        ``placed``, ``verdicts``: see :meth:`_prepare_e_hpr` (the verdicts still running: the
-        frame's points wait for them, and the inserted ones are decided meanwhile; not started:
-        cancelled, and their work done here).
+        Scope ``frame``: every hidden point goes. Scope ``inserted``: the inserted points are
+        decided first, each exactly against the whole frame, and hidden ones go; then, for the
+        original points behind the boxes of the objects that keep enough points, in their view
+        windows (the directions they cover), those hidden with the objects but visible without
+        them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
+        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again; ``pool``
+        may lend a thread; ``placed``: see :meth:`_placed_task`.
         """
         settings = self.config.external_occlusion
-        keep = np.ones(len(points), dtype=bool)
-        if not settings.enabled or len(points) == 0:
-            return keep
-        if settings.scope == "frame":
-            return self._visible(points)
-        if not insertions:
-            return keep
-        radius, viewpoint = self.e_hpr_setting()
         inserted = owner >= 0
+        keep = np.ones(len(points), dtype=bool)
+        if settings.enabled and len(points) and settings.scope == "frame":
+            keep = self._visible(points)
+        if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
+            return keep, self._dropped(points, owner, insertions, keep)
+        _, viewpoint = self.e_hpr_setting()
+        first = int(np.count_nonzero(~inserted))  # the original points come first
+        known = placed.windows_of(insertions) if placed is not None else None
+        found: dict[str, np.ndarray] = {}
+
+        def behind_kept(removed_inserted: np.ndarray, frame_points: np.ndarray) -> np.ndarray:
+            # ``frame_points``: in the grid's order and number, or the original points'.
+            held = np.ones(len(points), dtype=bool)
+            held[first:] = ~removed_inserted
+            found["dropped"] = dropped = self._dropped(points, owner, insertions, held)
+            kept = np.flatnonzero(~dropped)
+            grown = _grown([insertions[k].box for k in kept])
+            windows = _window_spans(
+                grown, viewpoint, True, None if known is None else [w[kept] for w in known]
+            )
+            if grid is not None and len(frame_points) == grid.size:
+                return grid.in_windows(windows) if windows is not None else frame_points.copy()
+            return _in_windows(frame_points, windows, viewpoint)
+
         if settings.mode == "hpr" and grid is not None and cleared_by is not None:
             cleared = cleared_by >= 0
-            if verdicts is not None and verdicts.cancel():
-                verdicts = None  # not started: its work is done here
-            placed = _done(placed)  # (still running: its windows are redone here meanwhile)
-            if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
-                behind_frame = placed.behind if placed.behind is not None else ~cleared
-            else:
-                known = placed.windows_of(insertions) if placed is not None else None
-                grown = _grown([i.box for i in insertions])
-                windows = _window_spans(grown, viewpoint, True, known)
-                behind_frame = ~cleared & (
-                    grid.in_windows(windows) if windows is not None else True
-                )
-            found = grid.hidden_by_insertion(
-                cleared, points[inserted], behind_frame, pool=pool, after=verdicts
+            result = grid.hidden_by_insertion(
+                cleared,
+                points[first:],
+                lambda removed: behind_kept(removed, ~cleared),
+                pool=pool,
             )
-            if found is not None:
-                return ~np.concatenate([found[0][~cleared], found[1]])
-        windows = _window_spans(_grown([i.box for i in insertions]), viewpoint, behind=True)
-        behind = ~inserted & _in_windows(points, windows, viewpoint)
+            if result is not None:
+                keep = ~np.concatenate([result[0][~cleared], result[1]])
+                return keep, found["dropped"]
         if settings.mode == "hpr":
-            return ~occlusion.hidden_by_insertion(points, inserted, behind, viewpoint, radius)
-        visible = self._visible(points, query=inserted | behind)
+            radius, _ = self.e_hpr_setting()
+            removed = occlusion.hidden_by_insertion(
+                points,
+                inserted,
+                lambda gone: np.append(behind_kept(gone[first:], points[:first]), inserted[first:]),
+                viewpoint,
+                radius,
+            )
+            return ~removed, found["dropped"]
+        visible = self._visible(points)
         keep[inserted & ~visible] = False
-        suspects = np.flatnonzero(behind & ~visible)
+        behind = behind_kept(~keep[first:], points[:first])
+        suspects = np.flatnonzero(behind & ~visible[:first])
         if len(suspects):
-            original = np.flatnonzero(~inserted)
-            wanted = np.zeros(len(original), dtype=bool)
-            wanted[np.searchsorted(original, suspects)] = True
+            wanted = np.zeros(first, dtype=bool)
+            wanted[suspects] = True
             # Only points visible without the inserted objects go; those hidden even without
             # them stay: HPR's own errors must not delete real points.
-            before = self._visible(points[original], query=wanted)
-            keep[original[wanted & before]] = False
-        return keep
+            before = self._visible(points[:first], query=wanted)
+            keep[:first][wanted & before] = False
+        return keep, found["dropped"]
+
+    def _dropped(
+        self,
+        points: np.ndarray,
+        owner: np.ndarray,
+        insertions: Sequence[_Insertion],
+        keep: np.ndarray,
+    ) -> np.ndarray:
+        """``bool (len(insertions),)``: objects with fewer than ``min_points_after`` of their
+        points that ``keep`` (``bool (N,)``) holds in their own box (construction may leave
+        some a few cm outside it)."""
+        if not insertions:
+            return np.zeros(0, dtype=bool)
+        survivors = BoxQuery(points).own_counts(owner, [i.box for i in insertions], keep)
+        return survivors < self.config.min_points_after
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
@@ -1282,51 +1356,30 @@ class DRCPO(Transform):
         points: np.ndarray,
         owner: np.ndarray,
         keep: np.ndarray,
+        dropped: np.ndarray,
         cleared_by: np.ndarray,
         insertions: Sequence[_Insertion],
         stats: Stats,
-        grid: occlusion.FrameGrid | None = None,
-        placed: _Placed | None = None,
     ) -> Frame:
         """The output frame: drop inserted objects and original boxes left with too few points.
 
-        An inserted object with fewer than ``min_points_after`` points after e-HPR is dropped
-        with all its points, and the frame points it displaced or (scope ``inserted``) hid
-        come back, so it leaves no trace. An original box is dropped when it lost points and
-        is left with fewer than ``min_points_after``, unless it had fewer already. ``grid``:
-        the frame's e-HPR grid, if built (its directions of the frame's points are reused);
-        ``placed``: see :meth:`_prepare_e_hpr` (its box counts and windows are reused).
+        An inserted object of ``dropped`` goes with all its points, and the frame points it
+        displaced come back (e-HPR removed frame points only behind the objects kept), so it
+        leaves no trace. An original box is dropped when it lost points and is left with fewer
+        than ``min_points_after``, unless it had fewer already.
         """
-        minimum = self.config.min_points_after
-        # Points in the box itself count (construction may leave some a few cm outside).
-        survivors = BoxQuery(points).own_counts(owner, [i.box for i in insertions], keep)
-        dropped = survivors < minimum
         original_rows = np.flatnonzero(cleared_by < 0)  # frame row of each original point
         removed = cleared_by >= 0
-        removed[original_rows[~keep[: len(original_rows)]]] = True
-        kept = [i for i, gone in zip(insertions, dropped, strict=True) if not gone]
         if dropped.any():
             removed &= ~np.append(dropped, False)[cleared_by]  # (index -1: the frame's own)
-            if self.config.external_occlusion.scope == "inserted":
-                # Original points hidden only inside the view windows of dropped objects
-                # come back.
-                hidden = np.flatnonzero(removed & (cleared_by < 0))
-                _, viewpoint = self.e_hpr_setting()
-                known = placed.windows_of(kept) if placed is not None else None
-                windows = _window_spans(_grown([i.box for i in kept]), viewpoint, False, known)
-                if windows is not None and grid is not None:
-                    core = np.zeros(len(hidden), dtype=bool)
-                    _window_scan(*grid.directions(hidden), windows, core)
-                else:
-                    core = _in_windows(frame.points[hidden], windows, viewpoint)
-                removed[hidden[~core]] = False
+        removed[original_rows[~keep[: len(original_rows)]]] = True
         for insertion, gone in zip(insertions, dropped, strict=True):
             if gone:
                 stats.rejected(self.name, insertion.name, "external_occlusion")
             else:
                 stats.added(self.name, insertion.name)
-        box_counts = placed.box_counts if placed is not None else None
-        drop_original = self._sparse_originals(frame, removed, box_counts)
+        kept = [i for i, gone in zip(insertions, dropped, strict=True) if not gone]
+        drop_original = self._sparse_originals(frame, removed)
         for name in frame.names[drop_original]:
             stats.label_dropped(str(name))
         inserted_keep = keep & ~np.append(dropped, True)[owner]  # (index -1: not inserted)
@@ -1343,13 +1396,10 @@ class DRCPO(Transform):
             ),
         )
 
-    def _sparse_originals(
-        self, frame: Frame, removed: np.ndarray, box_counts: np.ndarray | None = None
-    ) -> np.ndarray:
+    def _sparse_originals(self, frame: Frame, removed: np.ndarray) -> np.ndarray:
         """``bool (M,)``: frame boxes that lost points and now hold fewer than the minimum,
         having held at least the minimum before. Only boxes holding removed points can have
-        lost any, so only those are counted (``box_counts``: the frame's points in each box,
-        if known)."""
+        lost any, so only those are counted."""
         minimum = self.config.min_points_after
         drop = np.zeros(len(frame.boxes), dtype=bool)
         if not removed.any() or len(frame.boxes) == 0:
@@ -1357,10 +1407,7 @@ class DRCPO(Transform):
         lost = BoxQuery(_rows(frame.points, removed)).counts(frame.boxes)
         touched = np.flatnonzero(lost)
         if len(touched):
-            if box_counts is not None:
-                had = box_counts[touched]
-            else:
-                had = BoxQuery(frame.points).counts(frame.boxes[touched])
+            had = BoxQuery(frame.points).counts(frame.boxes[touched])
             drop[touched] = (had >= minimum) & (had - lost[touched] < minimum)
         return drop
 
