@@ -42,21 +42,6 @@ def test_canonical_round_trip_keeps_features(rng):
     np.testing.assert_allclose(g.from_canonical(canonical, box), points, atol=1e-5)
 
 
-def test_from_canonical_many_equals_one_by_one_bit_for_bit(rng):
-    sizes = np.array([0, 7, 1, 40])
-    points = rng.normal(size=(sizes.sum(), 5)).astype(np.float32)
-    boxes = np.column_stack(
-        [rng.uniform(-50, 50, (4, 3)), rng.uniform(0.5, 5, (4, 3)), rng.uniform(-4, 4, 4)]
-    )
-    together = g.from_canonical_many(points, boxes, sizes)
-    assert together.dtype == np.float32
-    parts = np.split(points, np.cumsum(sizes)[:-1])
-    alone = [g.from_canonical(part, box) for part, box in zip(parts, boxes, strict=True)]
-    np.testing.assert_array_equal(together, np.concatenate(alone))
-    with pytest.raises(ValueError, match="sizes"):
-        g.from_canonical_many(points, boxes, sizes + 1)
-
-
 def test_canonical_pose_puts_box_corners_on_axis_aligned_box():
     box = np.array([10.0, 5.0, -1.0, 4.0, 2.0, 1.5, 0.7])
     canonical = g.to_canonical(g.box_corners(box)[0], box)

@@ -101,33 +101,6 @@ def from_canonical(points: np.ndarray, box: np.ndarray) -> np.ndarray:
     return out
 
 
-def from_canonical_many(points: np.ndarray, boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-    """:func:`from_canonical` of several objects at once, with the same values.
-
-    Args:
-        points: ``(N, 3+)`` canonical points of the objects, one after the other.
-        boxes: ``(M, 7)`` each object's box.
-        sizes: ``int (M,)`` points per object (summing to ``N``).
-
-    Returns:
-        A new array like ``points``, each object's rows placed at its box's pose.
-    """
-    boxes = _check_boxes(boxes)
-    sizes = np.asarray(sizes, dtype=np.int64)
-    if len(sizes) != len(boxes) or int(sizes.sum()) != len(points):
-        raise ValueError(f"sizes {sizes.tolist()} do not split {len(points)} points in boxes")
-    # Scalar cos and sin per box, as rotate_points_z takes them (an array call may round apart).
-    cos = np.repeat([np.cos(h) for h in boxes[:, 6]], sizes)
-    sin = np.repeat([np.sin(h) for h in boxes[:, 6]], sizes)
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
-    centre = np.repeat(boxes[:, :3], sizes, axis=0)
-    out = np.array(points, copy=True)
-    out[:, 0] = cos * xyz[:, 0] - sin * xyz[:, 1] + centre[:, 0]
-    out[:, 1] = sin * xyz[:, 0] + cos * xyz[:, 1] + centre[:, 1]
-    out[:, 2] = xyz[:, 2] + centre[:, 2]
-    return out
-
-
 def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
     """Which points lie in which rotated boxes: ``bool (N, M)``.
 

@@ -54,7 +54,6 @@ from drcpo.geometry import (
     bev_corners,
     bev_overlap_area,
     from_canonical,
-    from_canonical_many,
     rotate_points_z,
     wrap_angle,
 )
@@ -878,9 +877,11 @@ class DRCPO(Transform):
        (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
        any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
        the box); see :mod:`drcpo.placement`. A placed box whose sensor-facing surface lies
-       (by at least ``placement.occluded_fraction``, default: all of it) behind the frame's
-       points in a z-buffer at the sensor's resolution is rejected too (``occluded``): e-HPR
-       would remove it anyway, so it is not built. In ``whole`` mode the box grows during
+       (by at least ``placement.occluded_fraction``, default 95 %) behind the frame's points
+       in a z-buffer at the sensor's resolution is rejected too (``occluded``): e-HPR would
+       almost always leave it too few points (on the KITTI sample and synthetic frames, 3 of
+       1,538 objects e-HPR kept had a share of 0.95 or more, against 2,020 of 6,640 it
+       dropped), so it is not built and hides nothing. In ``whole`` mode the box grows during
        construction, so objects are constructed first and placed with their final size.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
@@ -1170,25 +1171,16 @@ class DRCPO(Transform):
         self, work: _WorkQueue, boxes: np.ndarray, dim: int, first: int, objects: Sequence[Any]
     ) -> None:
         """Queue on ``work`` the s-HPR of ``objects`` (numbers ``first``, ``first + 1``, ... of
-        ``boxes``): their points placed (all at once), with the frame's ``dim`` columns."""
-        sizes = np.array([len(o.points) for o in objects], dtype=np.int64)
-        if not len(objects):
-            return
-        placed = match_features(
-            from_canonical_many(
-                np.concatenate([o.points for o in objects]),
-                boxes[first : first + len(objects)],
-                sizes,
-            ),
-            dim,
-        )
-        for k, points in enumerate(np.split(placed, np.cumsum(sizes)[:-1]), first):
-            work.add(k, partial(self._object_s_hpr, points, boxes[k]))
+        ``boxes``), placed with the frame's ``dim`` columns."""
+        for k, built in enumerate(objects, first):
+            work.add(k, partial(self._object_s_hpr, built.points, boxes[k], dim))
         work.start()
 
-    def _object_s_hpr(self, points: np.ndarray, box: np.ndarray) -> np.ndarray:
-        """One placed object's points after s-HPR (one hull: drcpo.hull's certified one, Qhull
-        where it gives up; much faster than the per-point method for objects)."""
+    def _object_s_hpr(self, canonical: np.ndarray, box: np.ndarray, dim: int) -> np.ndarray:
+        """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull:
+        drcpo.hull's certified one, Qhull where it gives up; much faster than the per-point
+        method for objects)."""
+        points = match_features(from_canonical(canonical, box), dim)
         settings = self.config.self_occlusion
         if not settings.enabled or not len(points):
             return points
