@@ -915,6 +915,16 @@ def _scatter_sorted(
 
 
 @nb.njit(cache=True, nogil=True)
+def _cell_numbers(elevation, azimuth, origin, height, rows, columns, out):  # pragma: no cover
+    # FrameGrid's cell of each direction: row floor((elevation - origin) / height) clamped to
+    # the rows, column floor((azimuth + pi) * columns / 2 pi) modulo the columns.
+    per_radian = columns / (2 * math.pi)
+    for i in range(elevation.shape[0]):
+        row = min(max(math.floor((elevation[i] - origin) / height), 0), rows - 1)
+        out[i] = row * columns + int((azimuth[i] + math.pi) * per_radian) % columns
+
+
+@nb.njit(cache=True, nogil=True)
 def _sort_cells(order, keys, starts, offset):  # pragma: no cover - numba
     # Each cell's run of ``order`` (positions ``starts`` minus ``offset``) sorted by ``keys``;
     # cells are small, so an insertion sort, except for the odd crowded one.
@@ -1222,9 +1232,9 @@ class FrameGrid:
         origin, height, rows, columns = self._geometry
         # Rows are clamped: inserted points beyond the frame's elevations join its edge rows,
         # which the kernels' cell ranges clamp the same way.
-        row = np.clip(np.floor((elevation - origin) / height), 0, rows - 1).astype(np.int64)
-        column = ((azimuth + np.pi) * (columns / (2 * math.pi))).astype(np.int64) % columns
-        return row * columns + column
+        cells = np.empty(len(elevation), dtype=np.int64)
+        _cell_numbers(elevation, azimuth, origin, height, rows, columns, cells)
+        return cells
 
     def _sort(
         self,

@@ -1265,9 +1265,9 @@ class DRCPO(Transform):
 
         def behind_kept(removed_inserted: np.ndarray, frame_points: np.ndarray) -> np.ndarray:
             # ``frame_points``: in the grid's order and number, or the original points'.
-            held = np.ones(len(points), dtype=bool)
-            held[first:] = ~removed_inserted
-            found["dropped"] = dropped = self._dropped(points, owner, insertions, held)
+            found["dropped"] = dropped = self._dropped(
+                points[first:], owner[first:], insertions, ~removed_inserted
+            )
             kept = np.flatnonzero(~dropped)
             grown = _grown([insertions[k].box for k in kept])
             windows = _window_spans(
