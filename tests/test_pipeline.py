@@ -388,6 +388,19 @@ def test_stats_accumulate_over_a_pipeline(small_db, rng):
     assert "global_scaling" not in out.metadata["augment_stats"]["stages"]
 
 
+@pytest.mark.parametrize("dim", [3, 4, 6])
+def test_placed_object_is_from_canonical_bit_for_bit(dim, rng):
+    from drcpo.pipeline import _placed_object
+
+    canonical = (rng.normal(size=(300, 4)) * [2.0, 1.0, 0.8, 1.0]).astype(np.float32)
+    for heading in (0.0, 1.0, -2.9, np.pi):
+        box = np.array([31.7, -12.3, -0.9, 4.0, 1.7, 1.5, heading])
+        expected = match_features(from_canonical(canonical, box), dim)
+        got = _placed_object(canonical, box, dim)
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, expected)
+
+
 def test_stats_helper_counts():
     stats = Stats()
     stats.tried("drcpo", "Car", 3)
