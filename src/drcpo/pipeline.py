@@ -1237,7 +1237,7 @@ class DRCPO(Transform):
         """Points after insertion (the frame's points outside the boxes, then the objects'),
         each point's owner (-1: an original point, else the insertion's number) and, per frame
         point, the insertion whose box it had to make room for (-1: none). ``placed``: see
-        :meth:`_prepare_e_hpr`; its owners are reused when every placed object is inserted."""
+        :meth:`_placed_task`; its owners are reused when every placed object is inserted."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
