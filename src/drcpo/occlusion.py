@@ -639,7 +639,7 @@ class _Setup:
     @classmethod
     def build(cls, xyz: np.ndarray, center: np.ndarray, radius: float) -> _Setup:
         rel = xyz - center
-        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        ranges = _norms(rel)
         if not np.isfinite(ranges).all():
             row = int(np.flatnonzero(~np.isfinite(ranges))[0])
             raise DataError(f"points: row {row} is too far from the viewpoint for float64")
@@ -876,6 +876,97 @@ def _directions(points, center):  # pragma: no cover - numba
         azimuth[i] = math.atan2(y, x)
         elevation[i] = math.atan2(z, math.hypot(x, y))
     return rel, azimuth, elevation, bad
+
+
+@nb.njit(cache=True, nogil=True)
+def _norms(rel):  # pragma: no cover - numba
+    # |rel| per row, (x x + y y) + z z, as every range of this module is computed.
+    out = np.empty(rel.shape[0])
+    for i in range(rel.shape[0]):
+        x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
+        out[i] = math.sqrt(x * x + y * y + z * z)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _build_frame_grid(points, center, radius, spare, row_height, column_width):  # pragma: no cover
+    # FrameGrid's arrays in one pass over its steps: directions and ranges, the cell geometry
+    # (cells about a typical first neighbourhood wide, never smaller than an even share of the
+    # covered directions, at most 0.25 rad), the points sorted by cell and by range within a
+    # cell, and the sorted copies with ``spare`` zeroed rows after them. Returns the first
+    # non-finite row and the first row too far for float64 (-1: none), the smallest and
+    # largest range, the geometry (origin, row height, rows, columns), then the arrays.
+    n = points.shape[0]
+    rel, azimuth, elevation, bad = _directions(points, center)
+    ranges = _norms(rel)
+    far = -1
+    r_min, r_max = np.inf, 0.0
+    for i in range(n):
+        r = ranges[i]
+        if not math.isfinite(r):
+            if far < 0 and bad < 0:
+                far = i
+            continue
+        r_min, r_max = min(r_min, r), max(r_max, r)
+    origin, height, rows, columns = 0.0, 1.0, 1, 1
+    if n and bad < 0 and far < 0:
+        low, high = elevation.min(), elevation.max()
+        size = math.sqrt(max(high - low, 1e-3) * 2 * math.pi / n)
+        if 2.0 * radius > r_max * (1.0 + 1e-12):
+            rho_max = 2.0 * radius - r_min
+            typical = np.median(ranges[:: max(1, n // 4096)])  # a sample is enough here
+            cone = min(max((typical - r_min) / rho_max, 0.0), 2.0) / 2.0
+            size = max(size, 2.0 * math.asin(math.sqrt(cone)))
+        size = min(size, 0.25)
+        origin, height = low, size * row_height
+        rows = int((high - low) / height) + 1
+        columns = max(1, int(2 * math.pi / (size * column_width)))
+    starts = np.zeros((2, rows * columns + 1), dtype=np.int64)
+    total = n + spare
+    out_rel, out_rays = np.empty((total, 3)), np.empty((total, 3))
+    out_ranges, out_rho = np.empty(total), np.empty(total)
+    out_elevation, out_azimuth = np.empty(total), np.empty(total)
+    position = np.empty(n, dtype=np.int64)
+    order = np.empty(0, dtype=np.int64)
+    if bad < 0 and far < 0:
+        cells = np.empty(n, dtype=np.int64)
+        _cell_numbers(elevation, azimuth, origin, height, rows, columns, cells)
+        order = _counting_sort_into(cells, starts[0], 0)
+        _sort_cells(order, ranges, starts[0], 0)
+        _scatter_sorted(
+            order,
+            rel,
+            ranges,
+            elevation,
+            azimuth,
+            2.0 * radius,
+            out_rel,
+            out_ranges,
+            out_rho,
+            out_rays,
+            out_elevation,
+            out_azimuth,
+            position,
+        )
+    return (
+        bad,
+        far,
+        r_min,
+        r_max,
+        origin,
+        height,
+        rows,
+        columns,
+        starts,
+        order,
+        out_rel,
+        out_ranges,
+        out_rho,
+        out_rays,
+        out_elevation,
+        out_azimuth,
+        position,
+    )
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -1146,37 +1237,20 @@ class FrameGrid:
         self._points = points
         self.center = center
         self.radius = radius
-        n = len(points)
-        rel, azimuth, elevation, bad = _directions(points, center)
+        # One compiled call: the GIL is taken twice, however busy the other threads are.
+        built = _build_frame_grid(
+            points, center, radius, spare, _FRAME_ROW_HEIGHT, _FRAME_COLUMN_WIDTH
+        )
+        bad, far, self._r_min, self._r_max, *geometry = built[:8]
         if bad >= 0:
             _check_points(points)  # raises, naming the rows
-        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))  # the ranges _Setup.build takes
-        if not np.isfinite(ranges).all():
-            row = int(np.flatnonzero(~np.isfinite(ranges))[0])
-            raise DataError(f"points: row {row} is too far from the viewpoint for float64")
-        self._r_min = float(ranges.min(initial=np.inf))
-        self._r_max = float(ranges.max(initial=0.0))
-        self._geometry = self._cells_geometry(ranges, elevation)
-        _, _, rows, columns = self._geometry
-        self._starts = np.zeros((2, rows * columns + 1), dtype=np.int64)
-        self._order = order = self._sort(elevation, azimuth, ranges, 0, 0)
-        # Sorted copies, with room for the inserted points after the frame's; all of it is
-        # written now, so that adding the inserted points faults in no memory.
-        total = n + spare
-        self._rays = np.empty((total, 3))
-        self._rel = np.empty((total, 3))
-        self._ranges = np.empty(total)
-        self._rho = np.empty(total)
-        self._elevation = np.empty(total)
-        self._azimuth = np.empty(total)
-        self._position = np.empty(n, dtype=np.int64)
-        _scatter_sorted(
-            order,
-            rel,
-            ranges,
-            elevation,
-            azimuth,
-            2.0 * radius,
+        if far >= 0:
+            raise DataError(f"points: row {far} is too far from the viewpoint for float64")
+        self._geometry = (geometry[0], geometry[1], int(geometry[2]), int(geometry[3]))
+        # Sorted copies, with room for the inserted points after the frame's.
+        (
+            self._starts,
+            self._order,
             self._rel,
             self._ranges,
             self._rho,
@@ -1184,7 +1258,7 @@ class FrameGrid:
             self._elevation,
             self._azimuth,
             self._position,
-        )
+        ) = built[8:]
 
     @classmethod
     def build(
@@ -1206,27 +1280,6 @@ class FrameGrid:
     @property
     def size(self) -> int:
         return len(self._points)
-
-    def _cells_geometry(
-        self, ranges: np.ndarray, elevation: np.ndarray
-    ) -> tuple[float, float, int, int]:
-        n = len(ranges)
-        if n == 0:
-            return 0.0, 1.0, 1, 1
-        low, high = float(elevation.min()), float(elevation.max())
-        area = max(high - low, 1e-3) * 2 * math.pi
-        size = math.sqrt(area / n)
-        if 2.0 * self.radius > self._r_max * (1.0 + 1e-12):
-            # about a typical first neighbourhood, as the generic grid
-            rho_max = 2.0 * self.radius - self._r_min
-            typical = np.median(ranges[:: max(1, n // 4096)])  # a sample is enough here
-            median = _first_cones(np.array([typical]), self._r_min, rho_max)[0]
-            size = max(size, float(median))
-        size = min(size, 0.25)
-        height = size * _FRAME_ROW_HEIGHT
-        rows = int((high - low) / height) + 1
-        columns = max(1, int(2 * math.pi / (size * _FRAME_COLUMN_WIDTH)))
-        return low, height, rows, columns
 
     def _cells(self, elevation: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
         origin, height, rows, columns = self._geometry
@@ -1315,7 +1368,7 @@ class FrameGrid:
         k = len(xyz)
         removed, removed_inserted = np.zeros(n, dtype=bool), np.zeros(k, dtype=bool)
         rel = xyz - self.center
-        ranges = np.sqrt(np.einsum("ij,ij->i", rel, rel))
+        ranges = _norms(rel)
         if not np.isfinite(ranges).all():
             row = int(np.flatnonzero(~np.isfinite(ranges))[0])
             raise DataError(f"inserted points: row {row} is too far from the viewpoint for float64")

@@ -376,9 +376,7 @@ def _placed_object(canonical: np.ndarray, box: np.ndarray, dim: int) -> np.ndarr
     values: the same float64 operations, with numpy's cos and sin of the heading)."""
     heading = np.float64(box[6])
     out = np.zeros((len(canonical), dim), dtype=np.float32)
-    _place_rows(
-        np.asarray(canonical, dtype=np.float32), np.cos(heading), np.sin(heading), box, out
-    )
+    _place_rows(np.asarray(canonical, dtype=np.float32), np.cos(heading), np.sin(heading), box, out)
     return out
 
 
