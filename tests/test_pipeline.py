@@ -966,6 +966,35 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
     assert keep[len(wall) : len(wall) + len(layer)].all()  # hidden before: HPR's call, kept
 
 
+@pytest.mark.parametrize("mode", ["hpr", "range_image"])
+def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, mode, rng):
+    from drcpo.pipeline import _Insertion
+
+    db, index, _ = synthetic_world
+    transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})
+    # A wall 15 m ahead; object A (3 points, too few to keep) right in front of wall point P;
+    # object B, dense, 25 m ahead beside the wall's edge: P lies in B's view window but in
+    # front of B, so only A (dropped) could hide it, and P must stay.
+    y, z = np.meshgrid(np.linspace(-3.0, 2.5, 56), np.linspace(-1.0, 1.0, 21))
+    wall = np.column_stack([np.full(y.size, 15.0), y.ravel(), z.ravel()])
+    p = np.flatnonzero((np.abs(wall[:, 1] - 2.5) < 1e-9) & (np.abs(wall[:, 2]) < 1e-9))[0]
+    a_points = wall[p] * np.array([[10.0 / 15.0], [10.01 / 15.0], [10.02 / 15.0]])
+    box_a = np.array([10.0, wall[p, 1] * 10.0 / 15.0, 0.0, 0.5, 0.5, 0.5, 0.0])
+    box_b = np.array([25.0, 5.0, 0.0, 2.0, 4.0, 2.0, 0.0])
+    cube = rng.uniform(-0.5, 0.5, (3000, 3)) * box_b[3:6] + box_b[:3]
+    xyz = np.concatenate([wall, a_points, cube])
+    points = np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32)
+    owner = np.repeat([-1, 0, 1], [len(wall), len(a_points), len(cube)])
+    insertions = [
+        _Insertion(0, "Pedestrian", box_a, points[len(wall) : len(wall) + 3]),
+        _Insertion(1, "Car", box_b, points[len(wall) + 3 :]),
+    ]
+    keep, dropped = transform._external_occlusion(points, owner, insertions)
+    assert dropped.tolist() == [True, False]
+    assert keep[p]  # hidden by A alone: A is gone, so P stays
+    assert keep[: len(wall)].all()  # nothing of the wall lies behind B
+
+
 @pytest.mark.parametrize("config", [{}, {"self_occlusion": {"min_points": 40}}])
 def test_drcpo_frame_grid_paths_give_the_plain_answer(kitti_world, config, monkeypatch):
     # The frame's grid, prepared on a second thread while objects are built (with s-HPR

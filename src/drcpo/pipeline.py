@@ -910,16 +910,19 @@ class DRCPO(Transform):
        is dropped (``self_occlusion``).
     5. **Insert**: frame points inside the accepted boxes are removed, the objects' points added.
     6. **e-HPR** from the detector preset's viewpoint and radius. Scope ``frame`` (the paper)
-       removes every hidden point of the frame. Scope ``inserted`` (default) removes only
-       inserted points that are hidden and original points that lie behind an inserted box,
-       in its view window (the azimuth and elevation it covers), and are hidden with the
-       objects but visible without them; visibility is decided only for those points, each
-       exactly against the whole frame (HPR queries), so HPR's own errors never delete real,
-       visible points and directions without inserted objects cost nothing.
-    7. **Labels**: an inserted object left with fewer than ``min_points_after`` points in its
-       box is dropped with all its points (reason ``external_occlusion``), and the frame points
-       it displaced or hid come back. An original box that lost points and holds fewer than
-       ``min_points_after`` is dropped, unless it already had fewer before.
+       removes every hidden point of the frame. Scope ``inserted`` (default) first removes the
+       inserted points that are hidden; an object then left with fewer than
+       ``min_points_after`` points in its box is dropped (see 7). It then removes the original
+       points that lie behind the box of an object kept, in its view window (the azimuth and
+       elevation it covers), and are hidden with the objects but visible without them.
+       Visibility is decided only for those points, each exactly against the whole frame (HPR
+       queries), so HPR's own errors never delete real, visible points and directions without
+       inserted objects cost nothing.
+    7. **Labels**: an object dropped by e-HPR goes with all its points (reason
+       ``external_occlusion``), and the frame points it displaced come back (with scope
+       ``inserted``, those it alone hid were never removed). An original box that lost points
+       and holds fewer than ``min_points_after`` is dropped, unless it already had fewer
+       before.
 
     Args:
         database: the ground-truth database (canonical points).
