@@ -880,7 +880,7 @@ def _directions(points, center):  # pragma: no cover - numba
 
 @nb.njit(cache=True, nogil=True)
 def _norms(rel):  # pragma: no cover - numba
-    # |rel| per row, (x x + y y) + z z, as every range of this module is computed.
+    # |rel| per row as (x x + y y) + z z: the ranges of _Setup.build and FrameGrid alike.
     out = np.empty(rel.shape[0])
     for i in range(rel.shape[0]):
         x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
