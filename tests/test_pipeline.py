@@ -686,6 +686,24 @@ def test_determinism_across_runs_and_a_forked_worker(synthetic_world):
     assert not np.array_equal(other[1], first[1])
 
 
+def test_same_output_on_one_core_as_on_two(kitti_world, monkeypatch):
+    # A data-loader worker pinned to one core runs every step on its own thread; the frame
+    # must be the one two threads give.
+    import drcpo.pipeline as pipeline_module
+    from drcpo import occlusion
+
+    db, index, frames = kitti_world
+    transform = DRCPO(db, index)
+    two = [transform(frame, np.random.default_rng(30 + i)) for i, frame in enumerate(frames)]
+    monkeypatch.setattr(pipeline_module, "_spare_core", lambda: False)
+    monkeypatch.setattr(occlusion, "_check_workers", lambda workers: 1)
+    for i, (frame, out) in enumerate(zip(frames, two, strict=True)):
+        one = transform(frame, np.random.default_rng(30 + i))
+        np.testing.assert_array_equal(one.points, out.points)
+        np.testing.assert_array_equal(one.boxes, out.boxes)
+        assert one.metadata["augment_stats"]["objects"] == out.metadata["augment_stats"]["objects"]
+
+
 def test_drcpo_dict_in_dict_out_and_features(synthetic_world):
     db, index, frames = synthetic_world
     frame = frames[0]
