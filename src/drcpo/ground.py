@@ -28,7 +28,6 @@ Without any usable point (empty frame) the model is the given road plane, or fla
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -172,10 +171,10 @@ class GroundModel:
         else:
             frame_plane = given
         centres = _cell_centres(origin, cs, shape).reshape(-1, 2)
-        plane_z = (centres @ frame_plane[:2] + frame_plane[2]).reshape(shape)
+        plane_z = _plane_z(centres, frame_plane).reshape(shape)
         # A cell's lowest point sits anywhere in it; carry it to the centre along the plane.
         # Only occupied cells have one (the others stay at inf).
-        shift = (centres[occupied] - lowest[:, :2]) @ frame_plane[:2]
+        shift = _plane_z(centres[occupied] - lowest[:, :2], frame_plane, 0.0)
         low = lowest[:, 2] + shift
         level = plane_z.reshape(-1)[occupied]
         outlier = (low < level - config.max_below_plane) | (low > level + config.max_above_plane)
@@ -191,14 +190,13 @@ class GroundModel:
     # Queries ------------------------------------------------------------------------------
     def plane_height_at(self, xy: np.ndarray) -> np.ndarray:
         """Height ``(K,)`` of the frame-wide plane at ``(K, 2)`` positions."""
-        xy = _check_xy(xy)
-        return xy @ self.plane[:2] + self.plane[2]
+        return _plane_z(_check_xy(xy), self.plane)
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         """Ground height ``float64 (K,)`` (metres) at BEV positions ``(K, 2+)`` (x, y, metres)."""
         xy = _check_xy(xy)
         if self.heights is None:
-            return xy @ self.plane[:2] + self.plane[2]
+            return _plane_z(xy, self.plane)
         out = np.empty(len(xy))
         _interpolate(
             xy,
@@ -303,26 +301,14 @@ def _ransac_plane(
     normals, offsets, length = _plane_hypotheses(seeds, picks, cos_tilt)
     if len(normals) == 0:
         return _least_squares_plane(seeds)
-    # The distances go through the same BLAS product as always (its rounding decides ties),
-    # into a reused buffer: a fresh one of this size costs more in page faults than the product.
+    # The distances n . p are summed in one fixed order, not by BLAS: a threaded BLAS product
+    # leaves its worker threads spinning on the other core after the call, where this
+    # transform's second thread works, and its rounding depends on the machine's kernels.
     limit = config.ransac_threshold * length
-    distance = _scratch("ransac", len(scored) * len(normals)).reshape(len(scored), len(normals))
-    best = _most_inliers(np.matmul(scored, normals.T, out=distance), offsets, limit)
-    inliers = np.abs(seeds @ normals[best] - offsets[best]) <= limit[best]
+    best = _most_inliers(scored, normals, offsets, limit)
+    inliers = _within(seeds, normals[best], offsets[best], limit[best])
     chosen = seeds[inliers]
     return _least_squares_plane(chosen) if len(chosen) >= 3 else _least_squares_plane(seeds)
-
-
-_SCRATCH = threading.local()
-
-
-def _scratch(name: str, size: int) -> np.ndarray:
-    """A ``float64 (size,)`` buffer reused by this thread across calls (contents undefined)."""
-    buffer = getattr(_SCRATCH, name, None)
-    if buffer is None or len(buffer) < size:
-        buffer = np.empty(max(size, 1 << 16))
-        setattr(_SCRATCH, name, buffer)
-    return buffer[:size]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -349,14 +335,38 @@ def _plane_hypotheses(seeds, picks, cos_tilt):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True)
-def _most_inliers(distance, offsets, limit):  # pragma: no cover - numba
-    # Column with the most |distance - offset| <= limit (the first on ties), row by row.
-    counts = np.zeros(distance.shape[1], np.int64)
-    for s in range(distance.shape[0]):
-        row = distance[s]
-        for h in range(distance.shape[1]):  # branch-free: vectorises
-            counts[h] += np.int64(abs(row[h] - offsets[h]) <= limit[h])
+def _most_inliers(points, normals, offsets, limit):  # pragma: no cover - numba
+    # The hypothesis with the most points p with |n . p - offset| <= limit (the first on
+    # ties); n . p summed as x, then y, then z, as _within sums it.
+    nx, ny, nz = normals[:, 0].copy(), normals[:, 1].copy(), normals[:, 2].copy()
+    counts = np.zeros(normals.shape[0], np.int64)
+    for s in range(points.shape[0]):
+        x, y, z = points[s, 0], points[s, 1], points[s, 2]
+        for h in range(nx.shape[0]):  # branch-free: vectorises
+            distance = x * nx[h] + y * ny[h] + z * nz[h]
+            counts[h] += np.int64(abs(distance - offsets[h]) <= limit[h])
     return np.argmax(counts)
+
+
+@numba.njit(cache=True, nogil=True)
+def _within(points, normal, offset, limit):  # pragma: no cover - numba
+    # bool per point: |n . p - offset| <= limit, summed as _most_inliers sums it.
+    out = np.empty(points.shape[0], dtype=np.bool_)
+    for s in range(points.shape[0]):
+        distance = points[s, 0] * normal[0] + points[s, 1] * normal[1] + points[s, 2] * normal[2]
+        out[s] = abs(distance - offset) <= limit
+    return out
+
+
+def _plane_z(xy: np.ndarray, plane: np.ndarray, offset: float | None = None) -> np.ndarray:
+    """``a x + b y + c`` of ``plane = (a, b, c)`` at ``(K, 2+)`` positions (``offset`` in place
+    of ``c`` if given). Element-wise, not a BLAS product: BLAS threads a product this size and
+    leaves its worker threads spinning on the other core after it returns."""
+    xy = np.asarray(xy, dtype=np.float64)
+    out = xy[:, 0] * plane[0]
+    out += xy[:, 1] * plane[1]
+    out += plane[2] if offset is None else offset
+    return out
 
 
 def _least_squares_plane(xyz: np.ndarray) -> np.ndarray:
