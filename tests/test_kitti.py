@@ -272,6 +272,17 @@ def test_fov_mask_reproduces_openpcdet_num_points_in_gt(kitti_sample):
         assert counts == info["annos"]["num_points_in_gt"][: len(frame.boxes)].tolist()
 
 
+def test_products_in_blocks_equal_one_product(rng):
+    # Large point sets go through the calibration's products in blocks (so that BLAS keeps to
+    # one thread); every row must come out as from one product.
+    from drcpo.datasets.kitti import _PRODUCT_ROWS, _product
+
+    rows = (rng.normal(size=(2 * _PRODUCT_ROWS + 123, 4)) * 30).astype(np.float32)
+    matrix = rng.normal(size=(4, 3)).astype(np.float32)
+    np.testing.assert_array_equal(_product(rows, matrix), rows @ matrix)
+    np.testing.assert_array_equal(_product(rows[:10], matrix), rows[:10] @ matrix)
+
+
 def test_fov_mask_keeps_points_in_front_within_the_image(calib):
     points = np.array(
         [

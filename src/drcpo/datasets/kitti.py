@@ -31,6 +31,10 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 
 DEFAULT_IMAGE_SHAPE = (375, 1242)
+#: Rows per matrix product: below the size at which OpenBLAS starts its worker threads, which
+#: then spin on the other cores for about 0.1 s after the call (where DR.CPO's second thread
+#: works). Each row is computed as in one product over all rows.
+_PRODUCT_ROWS = 8192
 """``(height, width)`` in pixels of most KITTI images; used when a frame's image is absent."""
 
 DONT_CARE = "DontCare"
@@ -58,7 +62,7 @@ class Calibration:
     def lidar_to_rect(self, points: np.ndarray) -> np.ndarray:
         """LiDAR ``(N, 3+)`` to rectified camera coordinates ``(N, 3)``."""
         hom = np.hstack([np.asarray(points)[:, :3], np.ones((len(points), 1), np.float32)])
-        return hom @ (self.Tr_velo_to_cam.T @ self.R0_rect.T)
+        return _product(hom, self.Tr_velo_to_cam.T @ self.R0_rect.T)
 
     def rect_to_lidar(self, points_rect: np.ndarray) -> np.ndarray:
         """Rectified camera ``(N, 3)`` to LiDAR coordinates ``(N, 3)``."""
@@ -67,14 +71,25 @@ class Calibration:
         v2c = np.eye(4, dtype=np.float32)
         v2c[:3, :] = self.Tr_velo_to_cam
         hom = np.hstack([points_rect, np.ones((len(points_rect), 1), np.float32)])
-        return (hom @ np.linalg.inv((r0 @ v2c).T))[:, :3]
+        return _product(hom, np.linalg.inv((r0 @ v2c).T))[:, :3]
 
     def rect_to_image(self, points_rect: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project rectified points ``(N, 3)`` with P2: pixels ``(N, 2)`` and depth ``(N,)``."""
         hom = np.hstack([points_rect, np.ones((len(points_rect), 1), np.float32)])
-        projected = hom @ self.P2.T
+        projected = _product(hom, self.P2.T)
         depth = projected[:, 2] - self.P2[2, 3]
         return projected[:, :2] / projected[:, 2:3], depth
+
+
+def _product(rows: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """``rows @ matrix`` in blocks of :data:`_PRODUCT_ROWS` rows (the same values)."""
+    if len(rows) <= _PRODUCT_ROWS:
+        return rows @ matrix
+    out = np.empty((len(rows), matrix.shape[1]), dtype=np.result_type(rows, matrix))
+    for start in range(0, len(rows), _PRODUCT_ROWS):
+        block = slice(start, start + _PRODUCT_ROWS)
+        np.matmul(rows[block], matrix, out=out[block])
+    return out
 
 
 def camera_boxes_to_lidar(boxes_camera: np.ndarray, calib: Calibration) -> np.ndarray:
@@ -398,7 +413,7 @@ def fov_mask(
     """
     rect = calib.lidar_to_rect(np.asarray(points, dtype=np.float32))
     hom = np.hstack([rect, np.ones((len(rect), 1), np.float32)])
-    projected = hom @ calib.P2.T
+    projected = _product(hom, calib.P2.T)
     depth = projected[:, 2] - calib.P2[2, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = projected[:, 0] / rect[:, 2]
