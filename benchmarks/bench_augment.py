@@ -158,9 +158,7 @@ def main(argv: list[str] | None = None) -> dict:
         cda = build_pipeline("default", database, index, kind="cda")
         drcpo = build_pipeline("default", database, index, kind="drcpo")
         # Warm-up, every frame through both pipelines: numba compilation, first touch of the
-        # memory-mapped database, and time for the BLAS worker threads that the frames'
-        # camera-view cut (a threaded float32 product) left spinning to go to sleep; they
-        # would otherwise take the second core from DR.CPO for the first ~0.1 s.
+        # memory-mapped database and of each frame's data.
         for f, frame in enumerate(frames):
             time_call(cda, frame, 900_000 + f)
             time_call(drcpo, frame, 900_000 + f)
