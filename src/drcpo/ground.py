@@ -301,9 +301,8 @@ def _ransac_plane(
     normals, offsets, length = _plane_hypotheses(seeds, picks, cos_tilt)
     if len(normals) == 0:
         return _least_squares_plane(seeds)
-    # The distances n . p are summed in one fixed order, not by BLAS: a threaded BLAS product
-    # leaves its worker threads spinning on the other core after the call, where this
-    # transform's second thread works, and its rounding depends on the machine's kernels.
+    # The distances n . p are summed in one fixed order, not by BLAS, whose rounding (which
+    # decides ties) depends on the machine's kernels.
     limit = config.ransac_threshold * length
     best = _most_inliers(scored, normals, offsets, limit)
     inliers = _within(seeds, normals[best], offsets[best], limit[best])
@@ -360,8 +359,7 @@ def _within(points, normal, offset, limit):  # pragma: no cover - numba
 
 def _plane_z(xy: np.ndarray, plane: np.ndarray, offset: float | None = None) -> np.ndarray:
     """``a x + b y + c`` of ``plane = (a, b, c)`` at ``(K, 2+)`` positions (``offset`` in place
-    of ``c`` if given). Element-wise, not a BLAS product: BLAS threads a product this size and
-    leaves its worker threads spinning on the other core after it returns."""
+    of ``c`` if given), element-wise: the same sums on every machine, unlike a BLAS product."""
     xy = np.asarray(xy, dtype=np.float64)
     out = xy[:, 0] * plane[0]
     out += xy[:, 1] * plane[1]
