@@ -2069,11 +2069,24 @@ def _radial_clear(
     )
     first = (col_lo % columns + columns) % columns
     masked = absent.shape[0] > 0
+    # Cells from the query's own outwards: a blocker, when there is one, usually lies right
+    # next to the query's ray, and the answer does not depend on the order.
+    n_rows = row_hi - row_lo + 1
+    own_row = min(max(math.floor((elevation[i] - origin) / size), row_lo), row_hi) - row_lo
+    own_k = math.floor((azimuth[i] + math.pi) / (2.0 * math.pi / columns)) - col_lo
+    own_k = min(max(own_k, 0), col_n - 1)
     for member in range(starts.shape[0]):
         if not members & (1 << member):
             continue
-        for row in range(row_lo, row_hi + 1):
-            for k in range(col_n):
+        for a in range(2 * n_rows):
+            row = own_row + ((a + 1) // 2 if a % 2 else -(a // 2))
+            if row < 0 or row >= n_rows:
+                continue
+            row += row_lo
+            for b in range(2 * col_n):
+                k = own_k + ((b + 1) // 2 if b % 2 else -(b // 2))
+                if k < 0 or k >= col_n:
+                    continue
                 column = first + k
                 if column >= columns:
                     column -= columns
