@@ -43,13 +43,7 @@ def make_database(rng, classes=(("Car", CAR, 60), ("Pedestrian", PEDESTRIAN, 20)
 
 
 def class_max_counts(database, name, mirrored=True):
-    grid = grid_for(name)
-    counts = []
-    for row in database.rows_of_class(name):
-        points = database.object_points(row)
-        points = mirror_points(points) if mirrored else points
-        counts.append(partition_counts(points, database.boxes[row, 3:6], grid))
-    return np.max(counts, axis=0)
+    return class_max_counts_for(database, name, grid_for(name), mirrored)
 
 
 @pytest.fixture(scope="module")

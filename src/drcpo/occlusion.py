@@ -2193,61 +2193,6 @@ def _without_state(
 
 
 @nb.njit(cache=True, nogil=True)
-def _without_states(
-    queries,
-    cones,
-    radius,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    r_min,
-    rho_max,
-    brute_budget,
-):
-    """:func:`_without_state` of the sorted frame points ``queries`` (first cones ``cones``)."""
-    states = np.empty(queries.shape[0], dtype=np.int8)
-    s1 = np.empty(256)
-    s2 = np.empty(256)
-    t = np.empty(256)
-    brutes = 0
-    for slot in range(queries.shape[0]):
-        states[slot], brutes, s1, s2, t = _without_state(
-            queries[slot],
-            cones[slot],
-            radius,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            r_min,
-            rho_max,
-            s1,
-            s2,
-            t,
-            brutes,
-            brute_budget,
-        )
-    return states
-
-
-@nb.njit(cache=True, nogil=True)
 def _insertion_verdicts(
     queries,
     cones,
