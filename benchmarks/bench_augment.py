@@ -3,7 +3,8 @@
 CDA = ground-truth sampling + global augmentation; DR.CPO = ground-truth sampling + DR.CPO +
 global augmentation (the paper's reference configuration), both with the paper defaults. The
 database is synthetic and KITTI-sized (Car 14,357, Pedestrian 2,207, Cyclist 734 objects, points
-on the faces a sensor would see), indexed with K = 400. Frames are the real KITTI sample in
+on the faces a sensor would see, inside their boxes as in a database cut with points_in_boxes),
+indexed with K = 400. Frames are the real KITTI sample in
 ``../shared/data/kitti_sample`` cut to the camera's field of view, as OpenPCDet trains KITTI,
 when present, else frames of the built-in synthetic world.
 
@@ -61,7 +62,11 @@ def synthetic_object(rng: np.random.Generator, name: str) -> ObjectRecord:
     axis = np.array([0, 0, 1, 1, 2])[face]
     sign = np.array([0.5, -0.5, 0.5, -0.5, 0.5])[face]
     local[np.arange(count), axis] = sign
-    xyz = local * dims + rng.normal(0.0, 0.02, (count, 3))
+    # Range noise of a few cm, inward on the seen face: a database cut with points_in_boxes
+    # (OpenPCDet's and drcpo's) holds only the points inside each box.
+    noise = rng.normal(0.0, 0.02, (count, 3))
+    noise[np.arange(count), axis] = -np.sign(sign) * np.abs(noise[np.arange(count), axis])
+    xyz = np.clip(local * dims + noise, -dims / 2, dims / 2)
     intensity = rng.uniform(0.0, 1.0, count)
     box = np.array(
         [
@@ -79,7 +84,7 @@ def synthetic_object(rng: np.random.Generator, name: str) -> ObjectRecord:
 
 def database_and_index(counts: dict[str, int], k: int, work: Path, seed: int = 0):
     """The synthetic database and its index under ``work`` (built once, then reused)."""
-    db_dir = work / f"db_{'_'.join(f'{n}{c}' for n, c in counts.items())}_k{k}"
+    db_dir = work / f"db_{'_'.join(f'{n}{c}' for n, c in counts.items())}_k{k}_inside"
     if (db_dir / "index" / "manifest.json").is_file():
         database = GroundTruthDatabase.open(db_dir)
         return database, load_index(database), 0.0

@@ -154,3 +154,23 @@ def test_canonical_iou3d_is_iou3d_of_centred_boxes(rng):
     np.testing.assert_allclose(
         g.canonical_iou3d(dims_a[:, None], dims_b[None]), g.boxes_iou3d(a, b), atol=1e-9
     )
+
+
+def test_box_holding_moves_out_only_the_faces_points_lie_beyond(rng):
+    box = np.array([10.0, -4.0, -0.8, 4.0, 1.8, 1.5, 0.7])
+    canonical = rng.uniform(-0.5, 0.5, (300, 3)) * box[3:6]
+    inside = g.from_canonical(canonical, box)
+    np.testing.assert_array_equal(g.box_holding(box, inside), box)
+    np.testing.assert_array_equal(g.box_holding(box, np.zeros((0, 4))), box)
+    # Two points 4 cm beyond the front face and 2 cm above the top.
+    canonical = np.vstack([canonical, [[2.04, 0.1, 0.0], [-1.0, 0.3, 0.77]]])
+    points = g.from_canonical(canonical, box).astype(np.float32)
+    held = g.box_holding(box, points, pad=1e-4)
+    assert g.points_in_boxes(points, held[None]).all()
+    assert held[6] == box[6]
+    growth = np.array([0.04 + 1e-4, 0.0, 0.02 + 1e-4])
+    np.testing.assert_allclose(held[3:6], box[3:6] + growth, atol=1e-5)
+    # The back, sides and bottom stay where they were.
+    local = g.to_canonical(g.box_corners(held[None])[0], box)[:, :3]
+    np.testing.assert_allclose(local.min(axis=0), -box[3:6] / 2, atol=1e-9)
+    np.testing.assert_allclose(local.max(axis=0), box[3:6] / 2 + growth, atol=1e-5)

@@ -3,6 +3,7 @@ one, awkward inputs, forked workers, s-HPR / e-HPR presets and the range-image m
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import threading
 import warnings
@@ -696,9 +697,11 @@ def test_frame_grid_windows_select_by_direction(rng):
     points = rng.normal(0, 20, (4000, 3))
     grid = FrameGrid.build(points, (0.0, 0.0, 0.5))
     rel = points - [0.0, 0.0, 0.5]
-    horizontal = np.hypot(rel[:, 0], rel[:, 1])
-    azimuth, elevation = np.arctan2(rel[:, 1], rel[:, 0]), np.arctan2(rel[:, 2], horizontal)
-    distance = np.hypot(horizontal, rel[:, 2])
+    # libm's atan2 and hypot (math's), which the grid uses on every CPU
+    horizontal = np.array([math.hypot(x, y) for x, y in rel[:, :2]])
+    azimuth = np.array([math.atan2(y, x) for x, y in rel[:, :2]])
+    elevation = np.array([math.atan2(z, h) for z, h in zip(rel[:, 2], horizontal, strict=True)])
+    distance = np.array([math.hypot(h, z) for h, z in zip(horizontal, rel[:, 2], strict=True)])
     windows = np.array([[-0.3, 0.2, -0.1, 0.3, 10.0], [2.9, np.pi, -1.0, 1.0, -np.inf]])
     expected = np.zeros(len(points), dtype=bool)
     for az0, az1, el0, el1, near in windows:

@@ -548,17 +548,18 @@ def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
         members = before.points[query.inside(box)]
         non_ground = int((~ground.is_ground(members, tolerance)).sum()) if len(members) else 0
         assert non_ground <= config.placement.max_non_ground_points
-    # Points: every output point is an input point, bit for bit, or lies in an inserted box.
+    # Points: every output point is an input point, bit for bit, or lies in an inserted box
+    # (its label holds every point the object brings).
     new_rows = row_set(out.points) - row_set(before.points)
-    in_inserted = BoxQuery(out.points).inside_any(inserted, margin=0.1)
+    in_inserted = BoxQuery(out.points).inside_any(inserted)
     assert {row.tobytes() for row in out.points[in_inserted]} >= new_rows
-    # Input points that are gone: inside an inserted box (room for it) or, with the inserted
-    # scope, hidden behind an inserted object kept (in the view window of its box, beyond the
-    # box's nearest point).
+    # Input points that are gone: in an inserted object's room (see DRCPO.room) or, with the
+    # inserted scope, hidden behind an inserted object kept (in the view window of its box,
+    # beyond the box's nearest point).
     kept_rows = row_set(out.points)
     gone = np.array([row.tobytes() not in kept_rows for row in before.points], dtype=bool)
     if config.external_occlusion.scope == "inserted" and gone.any():
-        cleared = BoxQuery(before.points).inside_any(inserted)
+        cleared = BoxQuery(before.points).inside_any(inserted, margin=transform.room)
         _, viewpoint = transform.e_hpr_setting()
         grown = inserted.copy()
         grown[:, 3:6] += 0.2
@@ -975,7 +976,7 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
     points = np.column_stack([points, np.zeros(len(points))]).astype(np.float32)
     owner = np.repeat([-1, 0], [len(wall) + len(layer), len(cube)])
     keep, dropped = transform._external_occlusion(
-        points, owner, [_Insertion(0, "Car", box, points[-4000:])]
+        points, owner, [_Insertion(0, "Car", box, box, points[-4000:])]
     )
     assert not dropped.any()  # the cube stays, with its visible face
     shadow = (np.abs(wall[:, 1]) < 0.8) & (np.abs(wall[:, 2]) < 0.8)
@@ -1004,8 +1005,8 @@ def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, mode, rng)
     points = np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32)
     owner = np.repeat([-1, 0, 1], [len(wall), len(a_points), len(cube)])
     insertions = [
-        _Insertion(0, "Pedestrian", box_a, points[len(wall) : len(wall) + 3]),
-        _Insertion(1, "Car", box_b, points[len(wall) + 3 :]),
+        _Insertion(0, "Pedestrian", box_a, box_a, points[len(wall) : len(wall) + 3]),
+        _Insertion(1, "Car", box_b, box_b, points[len(wall) + 3 :]),
     ]
     keep, dropped = transform._external_occlusion(points, owner, insertions)
     assert dropped.tolist() == [True, False]

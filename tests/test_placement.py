@@ -14,6 +14,7 @@ from drcpo.placement import (
     REASONS,
     OcclusionMap,
     PlacementConfig,
+    _cell_of,
     _cells,
     _facing_samples,
     _in_fov,
@@ -84,6 +85,34 @@ def test_no_two_boxes_overlap_and_footprints_stay_in_the_area(rng):
     assert (np.abs(corners[..., 1]) <= 40 + 1e-9).all()
     np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(60)[result.accepted])
     assert ((result.boxes[:, 6] >= -np.pi) & (result.boxes[:, 6] < np.pi)).all()
+
+
+def test_clearance_keeps_room_around_each_placed_footprint(rng):
+    frame = scene(rng, existing_boxes())
+
+    def rooms_overlap(result):
+        room = result.boxes.copy()
+        room[:, 3:5] += 0.6
+        overlap = bev_overlap_area(room, np.concatenate([room, frame.boxes]))
+        overlap[:, : len(room)][np.diag_indices(len(room))] = 0
+        return (overlap > 0).any()
+
+    crowded = {"x_range": (0, 30), "y_range": (-15, 15), "max_tries": 4}
+    result = place_objects(frame, sizes(60), None, rng, PlacementConfig(clearance=0.3, **crowded))
+    assert len(result.accepted) >= 10
+    np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(60)[result.accepted])
+    assert not rooms_overlap(result)
+    room = result.boxes.copy()
+    room[:, 3:5] += 0.6
+    corners = bev_corners(room)
+    assert (corners[..., 0] >= -1e-9).all() and (corners[..., 0] <= 30 + 1e-9).all()
+    # Without clearance, boxes come closer than that to one another.
+    tight = place_objects(
+        frame, sizes(60), None, np.random.default_rng(0), PlacementConfig(**crowded)
+    )
+    assert rooms_overlap(tight)
+    with pytest.raises(ConfigError, match="placement.clearance"):
+        PlacementConfig(clearance=-0.1)
 
 
 def test_boxes_stand_on_sloped_uneven_ground(rng):
@@ -399,9 +428,26 @@ def test_fast_cells_match_the_trigonometry(rng):
         dtype=np.float32,
     )
     cells = _cells(offsets, *_DIRECTIONS, constants, OcclusionMap.ROWS)
+    # Exactly the trigonometric cells of the scalar path (libm's float32 atan2) ...
+    exact = np.array(
+        [
+            _cell_of(x, y, z, constants, OcclusionMap.COLUMNS, OcclusionMap.ROWS)
+            for x, y, z in offsets
+        ]
+    )
+    np.testing.assert_array_equal(cells, exact)
+    # ... and numpy's, except where the direction lies within float32 rounding of a boundary
+    # (numpy's vectorised float32 arctan2 may differ from libm's in the last bit on some CPUs).
     row, column = numpy_cells(offsets)
-    np.testing.assert_array_equal(cells[:, 0], row)
-    np.testing.assert_array_equal(cells[:, 1], column)
+    rel = offsets.astype(np.float64)
+    azimuth = (np.arctan2(rel[:, 1], rel[:, 0]) + math.pi) / OcclusionMap.AZIMUTH_STEP
+    elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1])) + math.pi / 2
+    elevation /= OcclusionMap.ELEVATION_STEP
+    on_edge = (np.abs(azimuth - np.round(azimuth)) < 1e-4) | (
+        np.abs(elevation - np.round(elevation)) < 1e-4
+    )
+    differ = (cells[:, 0] != row) | (cells[:, 1] != column)
+    assert not (differ & ~on_edge).any()
 
 
 def numpy_occluded(points, viewpoint, boxes, cleared=None, tolerance=0.5):

@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from drcpo.errors import DrcpoError
 
@@ -28,7 +29,8 @@ console = Console(stderr=True)
 
 def fail(message: str) -> None:
     """Print an error message and exit with status 1."""
-    console.print(f"[bold red]error:[/] {message}")
+    # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
+    console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
     raise typer.Exit(1)
 
 

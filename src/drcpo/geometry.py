@@ -140,6 +140,41 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) 
     return out
 
 
+def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.ndarray:
+    """The ``(7,)`` box, same heading, that holds ``box`` and every one of ``points``.
+
+    Each face moves out only as far as the points beyond it need, plus ``pad`` metres (far
+    above the rounding of :func:`points_in_boxes`, which then counts every point as inside);
+    a box that already holds all points comes back unchanged.
+
+    Args:
+        box: ``(7,)`` box.
+        points: ``(N, 3+)`` points, metres.
+        pad: metres left between an outlying point and the moved face.
+    """
+    box = _check_boxes(box)[0]
+    xyz = np.asarray(points)[:, :3].astype(np.float64)
+    if len(xyz) == 0:
+        return box
+    cos, sin = np.cos(box[6:7])[0], np.sin(box[6:7])[0]  # numpy's, as points_in_boxes
+    delta = xyz - box[:3]
+    local = np.column_stack(
+        [delta[:, 0] * cos + delta[:, 1] * sin, -delta[:, 0] * sin + delta[:, 1] * cos, delta[:, 2]]
+    )
+    half = box[3:6] / 2.0
+    if (np.abs(local) <= half).all():
+        return box
+    low = np.minimum(-half, local.min(axis=0) - pad)
+    high = np.maximum(half, local.max(axis=0) + pad)
+    shift = (low + high) / 2.0
+    grown = box.copy()
+    grown[0] += shift[0] * cos - shift[1] * sin
+    grown[1] += shift[0] * sin + shift[1] * cos
+    grown[2] += shift[2]
+    grown[3:6] = high - low
+    return grown
+
+
 def _cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 

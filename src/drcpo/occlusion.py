@@ -860,8 +860,9 @@ def _counting_sort_into(cell, starts, offset):  # pragma: no cover - numba
 @nb.njit(cache=True, nogil=True)
 def _directions(points, center):  # pragma: no cover - numba
     # Per point (x, y, z in float64) relative to ``center``: its offset, ``arctan2(y, x)`` and
-    # ``arctan2(z, hypot(x, y))``, in one pass (libm's functions, which numpy's arctan2 and
-    # hypot call), and the first row holding a NaN or infinite coordinate (-1: none).
+    # ``arctan2(z, hypot(x, y))``, in one pass (libm's functions; numpy's vectorised arctan2
+    # may differ in the last bit on some CPUs), and the first row holding a NaN or infinite
+    # coordinate (-1: none).
     n = points.shape[0]
     rel = np.empty((n, 3))
     azimuth, elevation = np.empty(n), np.empty(n)
@@ -1225,7 +1226,8 @@ class FrameGrid:
     :meth:`in_windows` selects points by direction cell by cell.
 
     Directions are ``arctan2(y, x)`` (azimuth) and ``arctan2(z, hypot(x, y))`` (elevation)
-    of a point relative to the viewpoint, as :func:`drcpo.pipeline.view_windows` computes them.
+    of a point relative to the viewpoint, by libm (as :func:`drcpo.pipeline.view_windows`
+    computes them).
 
     Attributes:
         center: ``(3,)`` the viewpoint, metres.
@@ -1308,8 +1310,9 @@ class FrameGrid:
         """Azimuth, elevation (radians) and ``hypot(hypot(x, y), z)`` (metres) of the frame
         points ``rows`` (indices) relative to the viewpoint, as :meth:`in_windows` uses them."""
         positions = self._position[rows]
-        rel = self._rel[positions]
-        distance = np.hypot(np.hypot(rel[:, 0], rel[:, 1]), rel[:, 2])
+        distance = np.array(
+            [math.hypot(math.hypot(x, y), z) for x, y, z in self._rel[positions]], dtype=np.float64
+        ).reshape(-1)
         return self._azimuth[positions], self._elevation[positions], distance
 
     def in_windows(self, windows: np.ndarray) -> np.ndarray:

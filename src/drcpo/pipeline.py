@@ -53,6 +53,7 @@ from drcpo.frame import Frame
 from drcpo.geometry import (
     bev_corners,
     bev_overlap_area,
+    box_holding,
     from_canonical,
     rotate_points_z,
     wrap_angle,
@@ -808,6 +809,7 @@ class GroundTruthSampling(Transform):
 # DR.CPO
 # --------------------------------------------------------------------------------------------
 _CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
+_FIT_PAD = 1e-4  # metres between a label's moved face and the point beyond it (see box_holding)
 
 
 class _WorkQueue:
@@ -878,10 +880,12 @@ class _Placed:
 
 @dataclass(frozen=True, eq=False)
 class _Insertion:
-    """One object on its way into the frame: source row, class, placed box, placed points."""
+    """One object on its way into the frame: source row, class, placed box, its label (the
+    placed box grown to hold the points, see :meth:`DRCPO._object_s_hpr`), placed points."""
 
     row: int
     name: str
+    placed: np.ndarray
     box: np.ndarray
     points: np.ndarray
 
@@ -897,18 +901,23 @@ class DRCPO(Transform):
        nothing): a random heading and position, the box bottom on the frame's ground estimate
        (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
        any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
-       the box); see :mod:`drcpo.placement`. A placed box whose sensor-facing surface lies
-       (by at least ``placement.occluded_fraction``, default 95 %) behind the frame's points
-       in a z-buffer at the sensor's resolution is rejected too (``occluded``): e-HPR would
-       almost always leave it too few points (on the KITTI sample and synthetic frames, 3 of
-       1,538 objects e-HPR kept had a share of 0.95 or more, against 2,020 of 6,640 it
-       dropped), so it is not built and hides nothing. In ``whole`` mode the box grows during
-       construction, so objects are constructed first and placed with their final size.
+       the box); see :mod:`drcpo.placement`. Each footprint keeps :attr:`room` free around
+       it, as the object's label may grow by that much (step 4). A placed box whose
+       sensor-facing surface lies (by at least ``placement.occluded_fraction``, default 95 %)
+       behind the frame's points in a z-buffer at the sensor's resolution is rejected too
+       (``occluded``): e-HPR would almost always leave it too few points (on the KITTI sample
+       and synthetic frames, 10 of 1,676 objects e-HPR kept had a share of 0.95 or more,
+       against 2,655 of 4,673 it dropped), so it is not built and hides nothing. In ``whole``
+       mode the box grows during construction, so objects are constructed first and placed
+       with their final size.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
        ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
-       is dropped (``self_occlusion``).
-    5. **Insert**: frame points inside the accepted boxes are removed, the objects' points added.
+       is dropped (``self_occlusion``). The object's label is its placed box with the faces
+       that points lie beyond moved out to hold them: construction keeps points up to
+       ``construction.margin`` outside the source box, and s-HPR keeps the outermost.
+    5. **Insert**: frame points within the accepted objects' room (their placed box grown by
+       :attr:`room`) are removed, the objects' points added.
     6. **e-HPR** from the detector preset's viewpoint and radius. Scope ``frame`` (the paper)
        removes every hidden point of the frame. Scope ``inserted`` (default) first removes the
        inserted points that are hidden; an object then left with fewer than
@@ -980,7 +989,17 @@ class DRCPO(Transform):
             max_nonground_points=p.max_non_ground_points,
             ground_tolerance=p.ground_tolerance,
             max_tries=p.attempts,
+            clearance=self.room,
         )
+
+    @property
+    def room(self) -> float:
+        """Metres by which an object's label may exceed its placed box on any side: the
+        construction margin (``partition`` mode keeps points that far outside the source box)
+        and twice :data:`_FIT_PAD`. Placement keeps that much room free around each box, and
+        the frame's points within it make way for the object."""
+        margin = self.config.construction.margin if self._construction.mode == "partition" else 0
+        return float(margin) + 2.0 * _FIT_PAD
 
     def _check_index(self, classes: Sequence[str]) -> None:
         """The index must partition and mirror each class as construction does."""
@@ -1118,7 +1137,7 @@ class DRCPO(Transform):
         _, viewpoint = self.e_hpr_setting()
 
         def place() -> _Placed:
-            owners = BoxQuery(frame.points).owners(boxes)
+            owners = BoxQuery(frame.points).owners(_grown(boxes, self.room))
             return _Placed(boxes, owners, rows, _box_windows(_grown(boxes), viewpoint))
 
         return pool.submit(place)
@@ -1200,52 +1219,58 @@ class DRCPO(Transform):
             work.add(k, partial(self._object_s_hpr, built.points, boxes[k], dim))
         work.start()
 
-    def _object_s_hpr(self, canonical: np.ndarray, box: np.ndarray, dim: int) -> np.ndarray:
+    def _object_s_hpr(
+        self, canonical: np.ndarray, box: np.ndarray, dim: int
+    ) -> tuple[np.ndarray, np.ndarray]:
         """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull:
         drcpo.hull's certified one, Qhull where it gives up; much faster than the per-point
-        method for objects)."""
+        method for objects), and its label: ``box`` with the faces that points lie beyond
+        (construction keeps points up to its margin outside; s-HPR keeps the outermost ones)
+        moved out to hold them, so that the label holds every point the object brings."""
         points = _placed_object(canonical, box, dim)
         settings = self.config.self_occlusion
-        if not settings.enabled or not len(points):
-            return points
-        visible = occlusion.self_occlusion(
-            points, box, settings.radius_factor, method="reference", workers=1
-        )
-        return _rows(points, visible)
+        if settings.enabled and len(points):
+            visible = occlusion.self_occlusion(
+                points, box, settings.radius_factor, method="reference", workers=1
+            )
+            points = _rows(points, visible)
+        return points, box_holding(box, points, _FIT_PAD)
 
     def _insertions(
         self,
         rows: np.ndarray,
         boxes: np.ndarray,
-        visible: Sequence[np.ndarray],
+        visible: Sequence[tuple[np.ndarray, np.ndarray]],
         stats: Stats,
     ) -> list[_Insertion]:
         """The objects left with at least ``self_occlusion.min_points`` points after s-HPR
-        (``visible``: each object's placed points left), the others rejected."""
+        (``visible``: each object's placed points left and its label), the others rejected."""
         minimum = self.config.self_occlusion.min_points
         insertions = []
-        for row, box, points in zip(rows, boxes, visible, strict=True):
+        for row, box, (points, label) in zip(rows, boxes, visible, strict=True):
             name = str(self.database.names[row])
             if len(points) < minimum:
                 stats.rejected(self.name, name, "self_occlusion")
                 continue
-            insertions.append(_Insertion(int(row), name, box, points))
+            insertions.append(_Insertion(int(row), name, box, label, points))
         return insertions
 
     def _insert(
         self, frame: Frame, insertions: Sequence[_Insertion], placed: _Placed | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Points after insertion (the frame's points outside the boxes, then the objects'),
-        each point's owner (-1: an original point, else the insertion's number) and, per frame
-        point, the insertion whose box it had to make room for (-1: none). ``placed``: see
-        :meth:`_placed_task`; its owners are reused when every placed object is inserted."""
+        """Points after insertion (the frame's points outside the objects' room, see
+        :attr:`room`, then the objects'), each point's owner (-1: an original point, else the
+        insertion's number) and, per frame point, the insertion it had to make room for (-1:
+        none). ``placed``: see :meth:`_placed_task`; its owners are reused when every placed
+        object is inserted."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
         if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
             cleared_by = placed.owners
         else:
-            cleared_by = BoxQuery(frame.points).owners(np.array([i.box for i in insertions]))
+            rooms = _grown([i.placed for i in insertions], self.room)
+            cleared_by = BoxQuery(frame.points).owners(rooms)
         original = cleared_by < 0
         points = np.concatenate([_rows(frame.points, original), *(i.points for i in insertions)])
         owner = np.concatenate(
@@ -1293,7 +1318,7 @@ class DRCPO(Transform):
                 points[first:], owner[first:], insertions, ~removed_inserted
             )
             kept = np.flatnonzero(~dropped)
-            grown = _grown([insertions[k].box for k in kept])
+            grown = _grown([insertions[k].placed for k in kept])
             windows = _window_spans(
                 grown, viewpoint, True, None if known is None else [w[kept] for w in known]
             )
@@ -1493,25 +1518,29 @@ def _in_windows(
         return np.ones(len(points), dtype=bool)
     inside = np.zeros(len(points), dtype=bool)
     if len(points) and len(windows):
-        rel = points[:, :3].astype(np.float64) - viewpoint
-        horizontal = np.hypot(rel[:, 0], rel[:, 1])
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        elevation = np.arctan2(rel[:, 2], horizontal)
-        _window_scan(azimuth, elevation, np.hypot(horizontal, rel[:, 2]), windows, inside)
+        _window_scan(points, np.asarray(viewpoint, dtype=np.float64), windows, inside)
     return inside
 
 
 @nb.njit(cache=True, nogil=True)
-def _window_scan(azimuth, elevation, distance, windows, inside):  # pragma: no cover - numba
-    # Per point, the windows in order until one holds it (radians, metres).
-    for i in range(azimuth.shape[0]):
+def _window_scan(points, viewpoint, windows, inside):  # pragma: no cover - numba
+    # Per point, its direction by libm's atan2 and hypot, as FrameGrid's (numpy's vectorised
+    # arctan2 may differ in the last bit on some CPUs), then the windows in order until one
+    # holds it (radians, metres).
+    for i in range(points.shape[0]):
+        x = np.float64(points[i, 0]) - viewpoint[0]
+        y = np.float64(points[i, 1]) - viewpoint[1]
+        z = np.float64(points[i, 2]) - viewpoint[2]
+        horizontal = math.hypot(x, y)
+        azimuth, elevation = math.atan2(y, x), math.atan2(z, horizontal)
+        distance = math.hypot(horizontal, z)
         for w in range(windows.shape[0]):
             if (
-                azimuth[i] >= windows[w, 0]
-                and azimuth[i] <= windows[w, 1]
-                and elevation[i] >= windows[w, 2]
-                and elevation[i] <= windows[w, 3]
-                and distance[i] >= windows[w, 4]
+                azimuth >= windows[w, 0]
+                and azimuth <= windows[w, 1]
+                and elevation >= windows[w, 2]
+                and elevation <= windows[w, 3]
+                and distance >= windows[w, 4]
             ):
                 inside[i] = True
                 break

@@ -59,6 +59,9 @@ class PlacementConfig:
         max_nonground_points: most non-ground frame points a placed box may hold.
         ground_tolerance: points more than this (metres) above the ground are non-ground.
         max_tries: poses tried per object.
+        clearance: metres of room kept free on every side of each placed footprint (for an
+            object that may grow its box by that much once built): the footprint grown by it
+            must lie in the area and overlap no box, nor any other grown footprint.
     """
 
     x_range: tuple[float, float] = (0.0, 70.4)
@@ -69,6 +72,7 @@ class PlacementConfig:
     max_nonground_points: int = 10
     ground_tolerance: float = 0.2
     max_tries: int = 1
+    clearance: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("x_range", "y_range"):
@@ -99,6 +103,8 @@ class PlacementConfig:
             )
         if int(self.max_tries) != self.max_tries or self.max_tries < 1:
             raise ConfigError(f"placement.max_tries must be an integer >= 1, got {self.max_tries}")
+        if not (np.isfinite(self.clearance) and self.clearance >= 0):
+            raise ConfigError(f"placement.clearance must be >= 0 metres, got {self.clearance}")
         object.__setattr__(self, "max_tries", int(self.max_tries))
         object.__setattr__(self, "max_nonground_points", int(self.max_nonground_points))
 
@@ -182,19 +188,22 @@ def place_objects(
     verdicts = np.zeros(len(dims), dtype=np.int64)  # 0: placed, else 1 + index in REASONS
     counts = np.zeros(len(REASONS) + 1, dtype=np.int64)
     occupied = frame.boxes
+    room = dims.copy()  # each footprint with its clearance: sampled and checked for collisions
+    room[:, :2] += 2.0 * config.clearance
     pending = np.arange(len(dims))
     attempts = 0
     for _ in range(config.max_tries):
         if len(pending) == 0:
             break
         attempts += len(pending)
-        boxes = sample_poses(dims[pending], rng, config)
-        verdict = _judge(boxes, pending, source_z, occupied, obstacles, config)
+        boxes = sample_poses(room[pending], rng, config)
+        verdict = _judge(boxes, pending, dims, source_z, occupied, obstacles, config)
         counts += np.bincount(verdict, minlength=len(counts))
         verdicts[pending] = verdict
         ok = verdict == 0
-        placed[pending[ok]] = boxes[ok]
         occupied = np.concatenate([occupied, boxes[ok]])
+        boxes[:, 3:5] = dims[pending, :2]
+        placed[pending[ok]] = boxes[ok]
         pending = pending[~ok]
     accepted = np.flatnonzero(verdicts == 0)
     return PlacementResult(
@@ -213,13 +222,15 @@ _REASON_NAMES = np.array(["", *REASONS], dtype=object)  # by verdict
 def _judge(
     boxes: np.ndarray,
     pending: np.ndarray,
+    dims: np.ndarray,
     source_z: np.ndarray | None,
     occupied: np.ndarray,
     obstacles: _Obstacles,
     config: PlacementConfig,
 ) -> np.ndarray:
     """Set each box's height and return its verdict ``int64 (K,)``: 0 (placed) or 1 + the
-    index of its rejection reason in :data:`REASONS`."""
+    index of its rejection reason in :data:`REASONS`. ``boxes`` are the footprints with their
+    clearance; the obstacle test takes the objects' own sizes, ``dims[pending]``."""
     verdict = np.zeros(len(boxes), dtype=np.int64)
     fits = np.isfinite(boxes[:, 0])
     verdict[~fits] = _OUT_OF_RANGE
@@ -233,7 +244,9 @@ def _judge(
         boxes[live, 2] = source_z[pending[live]]
     verdict[live[hit]] = _COLLISION
     live = live[~hit]
-    blocked = obstacles.count(boxes[live]) > config.max_nonground_points
+    own = boxes[live]
+    own[:, 3:5] = dims[pending[live], :2]
+    blocked = obstacles.count(own) > config.max_nonground_points
     verdict[live[blocked]] = _OBSTACLE
     live = live[~blocked]
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
@@ -736,8 +749,9 @@ def _pseudo_angle(x, y):  # pragma: no cover - numba
 
 @numba.njit(cache=True, nogil=True)
 def _cell_of(x, y, z, constants, columns, rows):  # pragma: no cover - numba
-    # Row and column of one float32 offset from the viewpoint, exactly as numpy computes them
-    # on float32 arrays (arctan2, hypot, then the float32 cell arithmetic).
+    # Row and column of one float32 offset from the viewpoint by float32 trigonometry (libm's
+    # atan2 and hypot, then the float32 cell arithmetic), as numpy computes them on float32
+    # arrays up to its vectorised arctan2's last bit on some CPUs.
     azimuth = np.float32(math.atan2(y, x))
     elevation = np.float32(math.atan2(z, np.float32(np.hypot(x, y))))
     column = math.floor(np.float32(np.float32(azimuth + constants[0]) / constants[2]))
