@@ -657,6 +657,72 @@ def test_behind_may_depend_on_the_inserted_points_verdicts(seed=1):
         np.testing.assert_array_equal(removed, expected)
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_hidden_groups_count_samples_hidden_among_the_frame_points(seed):
+    # Each sample decided as a point added to the frame's points without the cleared ones
+    # (the definition: one HPR per sample), then counted per group against the share.
+    from concurrent.futures import ThreadPoolExecutor
+
+    from drcpo.occlusion import FrameGrid
+
+    frame, cleared, _, _ = _insertion_scene(seed)
+    rng = np.random.default_rng(seed)
+    # Groups of samples in small boxes: half anywhere, half right behind the frame's objects.
+    anywhere = np.column_stack(
+        [rng.uniform(8, 35, 12), rng.uniform(-12, 12, 12), rng.uniform(-1.6, 0.5, 12)]
+    )
+    on_objects = np.flatnonzero(~cleared & (frame[:, 2] > -1.0))
+    behind = frame[rng.choice(on_objects, 12)] * 1.4
+    centres = np.concatenate([anywhere, behind])
+    samples = np.concatenate([c + rng.uniform(-0.2, 0.2, (10, 3)) for c in centres])
+    offsets = np.append(np.arange(0, len(samples), 10), len(samples))
+    offsets = np.insert(offsets, 3, offsets[3])  # and a group without samples
+    kept = frame[~cleared].astype(np.float64)
+    hidden_each = np.array(
+        [
+            not hidden_point_removal(np.vstack([kept, sample]), np.zeros(3), 1e5)[-1]
+            for sample in samples
+        ]
+    )
+    counts = np.add.reduceat(hidden_each, offsets[:-1]) * (np.diff(offsets) > 0)
+    sizes = np.diff(offsets)
+    assert 0 < hidden_each.mean() < 1
+    grid = FrameGrid.build(frame, radius=1e5)
+    mixed = False
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for share in (0.2, 0.5, 0.8, 1.0):
+            expected = (sizes > 0) & (counts >= np.ceil(share * sizes - 1e-9))
+            mixed |= 0 < expected.sum() < len(expected) - 1
+            for helper in (None, pool):
+                found = grid.hidden_groups(samples, offsets, cleared, share, helper)
+                np.testing.assert_array_equal(found, expected)
+    assert mixed
+    # Not applicable where R is not above the ranges.
+    assert FrameGrid.build(frame, radius=10.0).hidden_groups(samples, offsets, cleared, 1.0) is None
+
+
+def test_frame_grid_memory_is_reused_and_grown():
+    from drcpo.occlusion import FrameGrid, GridMemory
+
+    frame, cleared, inserted, behind = _insertion_scene(0)
+    expected = FrameGrid.build(frame).hidden_by_insertion(cleared, inserted, behind, method="local")
+    memory = GridMemory()
+    memory.ints = np.empty(10, dtype=np.int64)  # far too short for the cells: replaced
+    small = FrameGrid.build(frame[:500], spare=0, memory=memory)
+    assert len(memory.ints) >= 3 * 500 and small.size == 500
+    floats = memory.floats
+    for _ in range(2):  # the second build finds its memory ready
+        found = FrameGrid.build(frame, memory=memory).hidden_by_insertion(
+            cleared, inserted, behind, method="local"
+        )
+        for a, b in zip(found, expected, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert memory.floats is not floats  # grown once, for the larger frame
+    grown = memory.floats
+    FrameGrid.build(frame[:1000], memory=memory)
+    assert memory.floats is grown  # and kept
+
+
 def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
     from drcpo.occlusion import FrameGrid
 

@@ -23,6 +23,7 @@ from drcpo.placement import (
     box_members,
     place_objects,
     sample_poses,
+    surface_samples,
 )
 
 AREA = PlacementConfig()
@@ -113,6 +114,20 @@ def test_clearance_keeps_room_around_each_placed_footprint(rng):
     assert rooms_overlap(tight)
     with pytest.raises(ConfigError, match="placement.clearance"):
         PlacementConfig(clearance=-0.1)
+
+
+def test_surface_samples_lie_on_the_faces_seen_from_the_viewpoint():
+    boxes = np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0], [0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.4]])
+    # Level with the first box's centre, the viewpoint sees its back face (x = 8) only; it
+    # lies inside the second box, which shows it nothing.
+    samples, offsets = surface_samples(boxes, np.array([0.0, 0.0, -1.0]))
+    assert offsets.tolist() == [0, 20, 20]
+    np.testing.assert_allclose(samples[:, 0], 8.0)
+    assert np.ptp(samples[:, 1]) == pytest.approx(2.0)
+    assert np.ptp(samples[:, 2]) == pytest.approx(1.5)
+    assert len(np.unique(samples, axis=0)) == 20
+    above, offsets = surface_samples(boxes[:1], np.zeros(3))  # above the top: back and top
+    assert offsets.tolist() == [0, 40] and np.isclose(above[:, 2], -0.25).sum() == 20 + 5
 
 
 def test_boxes_stand_on_sloped_uneven_ground(rng):

@@ -239,12 +239,12 @@ class PlacementSettings:
         metadata=_spec("int", "poses tried per sampled object (the paper: 1)", low=1, high=1000),
     )
     occluded_fraction: float | None = field(
-        default=0.95,
+        default=1.0,
         metadata=_spec(
             "float",
             "reject a placed box before construction once this share of its sensor-facing "
-            "surface lies behind frame points (e-HPR would almost always drop it; 1.0: only "
-            "fully hidden boxes; null: never)",
+            "surface e-HPR hides behind the frame's points (it would almost always drop the "
+            "object; 1.0: only fully hidden boxes; null: never)",
             low=0.0,
             high=1.0,
             low_open=True,

@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -151,6 +152,7 @@ _FIRST_WIDENING = 1.3  # first neighbourhood of a point the plane normal to its 
 _PROBE_NARROWING = 0.5  # the probe for hidden points looks this far, relative to the first
 _BRUTE_ANGLE = 0.6  # radians: wider neighbourhoods scan every point
 _BRUTE_BUDGET = 64  # full scans per call before the leftovers go to the reference hull
+_GROUP_BRUTE_BUDGET = 4  # full scans per group of FrameGrid.hidden_groups
 _STATE_HIDDEN, _STATE_VISIBLE, _STATE_UNRESOLVED = 0, 1, 2
 
 
@@ -839,6 +841,14 @@ def _counting_sort(cell, starts):  # pragma: no cover - numba
 def _counting_sort_into(cell, starts, offset):  # pragma: no cover - numba
     # _counting_sort that also counts the cells, writing their first sorted positions plus
     # ``offset`` into ``starts`` (in place: no scratch array as large as the grid).
+    order = np.empty(len(cell), dtype=np.int64)
+    _counting_sort_to(cell, starts, offset, order)
+    return order
+
+
+@nb.njit(cache=True, nogil=True)
+def _counting_sort_to(cell, starts, offset, order):  # pragma: no cover - numba
+    # _counting_sort_into, writing the order into ``order``.
     cells = starts.shape[0] - 1
     starts[:] = 0
     for c in cell:
@@ -846,7 +856,6 @@ def _counting_sort_into(cell, starts, offset):  # pragma: no cover - numba
     starts[0] = offset
     for c in range(cells):
         starts[c + 1] += starts[c]
-    order = np.empty(len(cell), dtype=np.int64)
     for i in range(len(cell) - 1, -1, -1):  # backwards from each cell's end: stable
         c = cell[i]
         starts[c + 1] -= 1
@@ -854,20 +863,16 @@ def _counting_sort_into(cell, starts, offset):  # pragma: no cover - numba
     for c in range(cells):  # starts[c + 1] now holds cell c's first position
         starts[c] = starts[c + 1]
     starts[cells] = offset + len(cell)
-    return order
 
 
 @nb.njit(cache=True, nogil=True)
-def _directions(points, center):  # pragma: no cover - numba
-    # Per point (x, y, z in float64) relative to ``center``: its offset, ``arctan2(y, x)`` and
-    # ``arctan2(z, hypot(x, y))``, in one pass (libm's functions; numpy's vectorised arctan2
-    # may differ in the last bit on some CPUs), and the first row holding a NaN or infinite
-    # coordinate (-1: none).
-    n = points.shape[0]
-    rel = np.empty((n, 3))
-    azimuth, elevation = np.empty(n), np.empty(n)
+def _directions(points, center, rel, azimuth, elevation):  # pragma: no cover - numba
+    # Per point (x, y, z in float64) relative to ``center``, into the given arrays: its
+    # offset, ``arctan2(y, x)`` and ``arctan2(z, hypot(x, y))`` (libm's functions; numpy's
+    # vectorised arctan2 may differ in the last bit on some CPUs). Returns the first row
+    # holding a NaN or infinite coordinate (-1: none).
     bad = -1
-    for i in range(n):
+    for i in range(points.shape[0]):
         x = np.float64(points[i, 0]) - center[0]
         y = np.float64(points[i, 1]) - center[1]
         z = np.float64(points[i, 2]) - center[2]
@@ -876,30 +881,83 @@ def _directions(points, center):  # pragma: no cover - numba
         rel[i, 0], rel[i, 1], rel[i, 2] = x, y, z
         azimuth[i] = math.atan2(y, x)
         elevation[i] = math.atan2(z, math.hypot(x, y))
-    return rel, azimuth, elevation, bad
+    return bad
 
 
 @nb.njit(cache=True, nogil=True)
 def _norms(rel):  # pragma: no cover - numba
-    # |rel| per row as (x x + y y) + z z: the ranges of _Setup.build and FrameGrid alike.
     out = np.empty(rel.shape[0])
-    for i in range(rel.shape[0]):
-        x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
-        out[i] = math.sqrt(x * x + y * y + z * z)
+    _norms_to(rel, out)
     return out
 
 
 @nb.njit(cache=True, nogil=True)
-def _build_frame_grid(points, center, radius, spare, row_height, column_width):  # pragma: no cover
+def _norms_to(rel, out):  # pragma: no cover - numba
+    # |rel| per row as (x x + y y) + z z: the ranges of _Setup.build and FrameGrid alike.
+    for i in range(rel.shape[0]):
+        x, y, z = rel[i, 0], rel[i, 1], rel[i, 2]
+        out[i] = math.sqrt(x * x + y * y + z * z)
+
+
+class GridMemory:
+    """Memory a :class:`FrameGrid` is built in, kept for the next grid: fresh memory costs a
+    page fault per 4 KiB on first use, which made a frame's grid built on a second thread
+    about twice as slow. A grid built in it is valid until the next one is."""
+
+    def __init__(self) -> None:
+        self.floats = np.empty(0)
+        self.ints = np.empty(0, dtype=np.int64)
+
+    def reserve(self, count: int, spare: int) -> tuple[np.ndarray, np.ndarray]:
+        """Buffers for a grid of ``count`` points with ``spare`` rows (the int64 one may
+        still be too short for the cells; the build then replaces it)."""
+        floats = 6 * count + 10 * (count + spare)
+        ints = 7 * count + 2
+        if len(self.floats) < floats:
+            self.floats = np.empty(floats + floats // 4)
+        if len(self.ints) < ints:
+            self.ints = np.empty(ints + ints // 4, dtype=np.int64)
+        return self.floats, self.ints
+
+
+_THREAD_MEMORY = threading.local()
+
+
+def thread_grid_memory() -> GridMemory:
+    """The calling thread's :class:`GridMemory` (one grid at a time per thread)."""
+    memory = getattr(_THREAD_MEMORY, "grid", None)
+    if memory is None:
+        memory = _THREAD_MEMORY.grid = GridMemory()
+    return memory
+
+
+@nb.njit(cache=True, nogil=True)
+def _build_frame_grid(
+    points, center, radius, spare, row_height, column_width, floats, ints
+):  # pragma: no cover
     # FrameGrid's arrays in one pass over its steps: directions and ranges, the cell geometry
     # (cells about a typical first neighbourhood wide, never smaller than an even share of the
     # covered directions, at most 0.25 rad), the points sorted by cell and by range within a
-    # cell, and the sorted copies with ``spare`` zeroed rows after them. Returns the first
-    # non-finite row and the first row too far for float64 (-1: none), the smallest and
-    # largest range, the geometry (origin, row height, rows, columns), then the arrays.
+    # cell, and the sorted copies with ``spare`` zeroed rows after them, all in ``floats`` and
+    # ``ints`` (GridMemory.reserve's; ``ints`` is replaced when too short for the cells).
+    # Returns the first non-finite row and the first row too far for float64 (-1: none), the
+    # smallest and largest range, the geometry (origin, row height, rows, columns), then the
+    # arrays and the int64 buffer used.
     n = points.shape[0]
-    rel, azimuth, elevation, bad = _directions(points, center)
-    ranges = _norms(rel)
+    total = n + spare
+    rel = floats[: 3 * n].reshape((n, 3))
+    azimuth = floats[3 * n : 4 * n]
+    elevation = floats[4 * n : 5 * n]
+    ranges = floats[5 * n : 6 * n]
+    base = 6 * n
+    out_rel = floats[base : base + 3 * total].reshape((total, 3))
+    out_rays = floats[base + 3 * total : base + 6 * total].reshape((total, 3))
+    out_ranges = floats[base + 6 * total : base + 7 * total]
+    out_rho = floats[base + 7 * total : base + 8 * total]
+    out_elevation = floats[base + 8 * total : base + 9 * total]
+    out_azimuth = floats[base + 9 * total : base + 10 * total]
+    bad = _directions(points, center, rel, azimuth, elevation)
+    _norms_to(rel, ranges)
     far = -1
     r_min, r_max = np.inf, 0.0
     for i in range(n):
@@ -922,17 +980,17 @@ def _build_frame_grid(points, center, radius, spare, row_height, column_width): 
         origin, height = low, size * row_height
         rows = int((high - low) / height) + 1
         columns = max(1, int(2 * math.pi / (size * column_width)))
-    starts = np.zeros((2, rows * columns + 1), dtype=np.int64)
-    total = n + spare
-    out_rel, out_rays = np.empty((total, 3)), np.empty((total, 3))
-    out_ranges, out_rho = np.empty(total), np.empty(total)
-    out_elevation, out_azimuth = np.empty(total), np.empty(total)
-    position = np.empty(n, dtype=np.int64)
-    order = np.empty(0, dtype=np.int64)
+    cells_count = rows * columns + 1
+    if ints.shape[0] < 3 * n + 2 * cells_count:
+        ints = np.empty(3 * n + 2 * cells_count + n, dtype=np.int64)
+    cells = ints[:n]
+    position = ints[n : 2 * n]
+    order = ints[2 * n : 3 * n]
+    starts = ints[3 * n : 3 * n + 2 * cells_count].reshape((2, cells_count))
+    starts[:] = 0
     if bad < 0 and far < 0:
-        cells = np.empty(n, dtype=np.int64)
         _cell_numbers(elevation, azimuth, origin, height, rows, columns, cells)
-        order = _counting_sort_into(cells, starts[0], 0)
+        _counting_sort_to(cells, starts[0], 0, order)
         _sort_cells(order, ranges, starts[0], 0)
         _scatter_sorted(
             order,
@@ -949,6 +1007,8 @@ def _build_frame_grid(points, center, radius, spare, row_height, column_width): 
             out_azimuth,
             position,
         )
+    else:
+        order = order[:0]
     return (
         bad,
         far,
@@ -967,6 +1027,7 @@ def _build_frame_grid(points, center, radius, spare, row_height, column_width): 
         out_elevation,
         out_azimuth,
         position,
+        ints,
     )
 
 
@@ -1235,14 +1296,30 @@ class FrameGrid:
         size: number of frame points.
     """
 
-    def __init__(self, points: np.ndarray, center: np.ndarray, radius: float, spare: int) -> None:
+    def __init__(
+        self,
+        points: np.ndarray,
+        center: np.ndarray,
+        radius: float,
+        spare: int,
+        memory: GridMemory | None = None,
+    ) -> None:
         self._points = points
         self.center = center
         self.radius = radius
+        memory = memory if memory is not None else GridMemory()
         # One compiled call: the GIL is taken twice, however busy the other threads are.
         built = _build_frame_grid(
-            points, center, radius, spare, _FRAME_ROW_HEIGHT, _FRAME_COLUMN_WIDTH
+            points,
+            center,
+            radius,
+            spare,
+            _FRAME_ROW_HEIGHT,
+            _FRAME_COLUMN_WIDTH,
+            *memory.reserve(len(points), spare),
         )
+        memory.ints = built[-1]
+        built = built[:-1]
         bad, far, self._r_min, self._r_max, *geometry = built[:8]
         if bad >= 0:
             _check_points(points)  # raises, naming the rows
@@ -1270,14 +1347,16 @@ class FrameGrid:
         radius: float = 100000.0,
         *,
         spare: int = 4096,
+        memory: GridMemory | None = None,
     ) -> FrameGrid:
         """The grid of ``points`` ``(N, 3 + C)`` (metres; not copied: leave them unchanged)
         seen from ``viewpoint`` ``(3,)`` with e-HPR radius ``radius``; ``spare``: inserted
-        points it takes without reallocating."""
+        points it takes without reallocating; ``memory``: where to build it (see
+        :class:`GridMemory`; fresh memory when ``None``)."""
         array = np.asarray(points)
         if array.dtype not in (np.float32, np.float64) or array.ndim != 2 or array.shape[1] < 3:
             array = _check_points(points)  # validated (or refused) and converted
-        return cls(array, _check_viewpoint(viewpoint), _check_radius(radius), spare)
+        return cls(array, _check_viewpoint(viewpoint), _check_radius(radius), spare, memory)
 
     @property
     def size(self) -> int:
@@ -1415,6 +1494,74 @@ class FrameGrid:
                 verdicts[pending], frame_rows[pending], np.zeros(0, np.int64), cleared, xyz
             )[0]
         return removed, removed_inserted
+
+    def hidden_groups(
+        self,
+        samples: np.ndarray,
+        offsets: np.ndarray,
+        cleared: np.ndarray,
+        share: float,
+        pool: ThreadPoolExecutor | None = None,
+    ) -> np.ndarray | None:
+        """Which groups of ``samples`` are at least ``share`` hidden among the frame's points
+        without the ``cleared`` ones (each sample decided exactly, as a point added to them
+        alone); ``None`` when the per-point test does not apply (``R`` not above the ranges,
+        points at the viewpoint). A group is decided as soon as its count allows: samples the
+        plane normal to their ray shows visible first, the others then one by one. Samples the
+        test gives up on (its budget of full scans per group spent) count as visible. ``pool``
+        may lend a thread (the answer does not depend on it).
+
+        Args:
+            samples: ``(S, 3)`` points, metres.
+            offsets: ``int (M + 1,)`` group ``m`` is ``samples[offsets[m]:offsets[m + 1]]``.
+            cleared: ``bool (N,)`` frame points left out.
+            share: fraction in ``[0, 1]``; a group without samples is never hidden.
+
+        Returns:
+            ``bool (M,)``.
+        """
+        n = self.size
+        cleared = _check_query(cleared, n)
+        xyz = _check_points(samples)
+        offsets = np.asarray(offsets, dtype=np.int64)
+        hidden = np.zeros(len(offsets) - 1, dtype=bool)
+        if not len(xyz) or not n:
+            return hidden
+        rel = xyz - self.center
+        ranges = _norms(rel)
+        r_min = min(self._r_min, float(ranges.min()))
+        r_max = max(self._r_max, float(ranges.max()))
+        if not (np.isfinite(ranges).all() and self._local_applies(n, r_min, r_max, "local")):
+            return None
+        order = self._add(rel, ranges)
+        position = np.empty(len(xyz), dtype=np.int64)
+        position[order] = n + np.arange(len(xyz))
+        absent = np.zeros(n + len(xyz), dtype=bool)
+        absent[:n] = cleared[self._order]
+        rho_max = 2.0 * self.radius - r_min
+        cones = _first_cones(ranges, r_min, rho_max)
+        sizes = np.diff(offsets)
+        allowed = sizes - np.ceil(share * sizes - 1e-9).astype(np.int64)  # visible ones allowed
+        scene = self._scene(n + len(xyz), absent)
+
+        def kernel(part: np.ndarray) -> None:
+            lo, hi = part[0], part[-1] + 1
+            _hidden_groups(
+                position,
+                cones,
+                offsets[lo : hi + 1],
+                allowed[lo:hi],
+                self.radius,
+                *scene,
+                r_min,
+                rho_max,
+                _GROUP_BRUTE_BUDGET,
+                hidden[lo:hi],
+            )
+
+        parts = [part for part in np.array_split(np.arange(len(hidden)), 4) if len(part)]
+        _shared_chunks(kernel, parts, pool)
+        return hidden
 
     def _verdicts(
         self,
@@ -2339,6 +2486,103 @@ def _insertion_verdicts(
         else:
             verdicts[slot] = _VERDICT_UNDECIDED_WITH
     return verdicts
+
+
+@nb.njit(cache=True, nogil=True)
+def _hidden_groups(
+    position,
+    cones,
+    offsets,
+    allowed,
+    radius,
+    rays,
+    rel,
+    ranges,
+    rho,
+    elevation,
+    azimuth,
+    starts,
+    absent,
+    origin,
+    size,
+    rows,
+    columns,
+    r_min,
+    rho_max,
+    brute_budget,
+    hidden,
+):  # pragma: no cover - numba
+    # FrameGrid.hidden_groups: per group, the samples' radial planes first (cheap, and one
+    # visible sample more than ``allowed`` settles the group), then the full test.
+    s1 = np.empty(256)
+    s2 = np.empty(256)
+    t = np.empty(256)
+    for m in range(offsets.shape[0] - 1):
+        lo, hi = offsets[m], offsets[m + 1]
+        if hi == lo:
+            continue
+        brutes = 0  # a budget per group: the verdicts do not depend on how groups are split
+        visible = 0
+        blocked = np.empty(hi - lo, dtype=np.int64)
+        n_blocked = 0
+        for k in range(lo, hi):
+            if _radial_clear(
+                position[k],
+                cones[k],
+                _ORIGINALS,
+                radius,
+                rays,
+                rel,
+                ranges,
+                rho,
+                elevation,
+                azimuth,
+                starts,
+                absent,
+                origin,
+                size,
+                rows,
+                columns,
+            ):
+                visible += 1
+                if visible > allowed[m]:
+                    break
+            else:
+                blocked[n_blocked] = k
+                n_blocked += 1
+        if visible > allowed[m]:
+            continue
+        for b in range(n_blocked):
+            k = blocked[b]
+            state, brutes, s1, s2, t = _decide(
+                position[k],
+                cones[k],
+                _ORIGINALS | _CERTIFY,
+                rays,
+                rel,
+                ranges,
+                rho,
+                elevation,
+                azimuth,
+                starts,
+                absent,
+                origin,
+                size,
+                rows,
+                columns,
+                r_min,
+                rho_max,
+                s1,
+                s2,
+                t,
+                brutes,
+                brute_budget,
+            )
+            if state != _STATE_HIDDEN:
+                visible += 1
+                if visible > allowed[m]:
+                    break
+        hidden[m] = visible <= allowed[m]
 
 
 @nb.njit(cache=True, nogil=True)

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
-from functools import partial
+from functools import cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -902,14 +902,16 @@ class DRCPO(Transform):
        (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
        any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
        the box); see :mod:`drcpo.placement`. Each footprint keeps :attr:`room` free around
-       it, as the object's label may grow by that much (step 4). A placed box whose
-       sensor-facing surface lies (by at least ``placement.occluded_fraction``, default 95 %)
-       behind the frame's points in a z-buffer at the sensor's resolution is rejected too
-       (``occluded``): e-HPR would almost always leave it too few points (on the KITTI sample
-       and synthetic frames, 10 of 1,676 objects e-HPR kept had a share of 0.95 or more,
-       against 2,655 of 4,673 it dropped), so it is not built and hides nothing. In ``whole``
-       mode the box grows during construction, so objects are constructed first and placed
-       with their final size.
+       it, as the object's label may grow by that much (step 4). A placed box is rejected
+       too (``occluded``) when e-HPR hides at least ``placement.occluded_fraction`` (default
+       1.0: all) of a 5 x 4 grid of samples on each of its sensor-facing faces behind the
+       frame's points, each sample decided exactly as a point added to them (with the
+       ``range_image`` mode: a z-buffer at the sensor's resolution). e-HPR would almost
+       always leave such an object too few points: on the KITTI sample and synthetic frames,
+       3 of 1,676 objects e-HPR kept were that hidden, against 4,182 of 4,673 it dropped (a
+       z-buffer test at 95 % caught 2,655 of them). So it is not built and hides nothing. In
+       ``whole`` mode the box grows during construction, so objects are constructed first
+       and placed with their final size.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
        ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
@@ -1064,9 +1066,11 @@ class DRCPO(Transform):
             s_hpr = _WorkQueue(pool if _spare_core() else None)
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
-                    boxes, accepted = self._place(frame, rows, None, rng, stats)
+                    boxes, accepted, owners = self._place(
+                        frame, rows, None, rng, stats, frame_grid, pool
+                    )
                     rows = rows[accepted]
-                    placed = self._placed_task(frame, boxes, rows, frame_grid, pool)
+                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
                 # With placement first, objects go to s-HPR chunk by chunk as they are built
                 # (the answers do not depend on it); the construction stage's time then
                 # includes the s-HPR work done meanwhile.
@@ -1080,9 +1084,11 @@ class DRCPO(Transform):
                     record["points_out"] = sum(len(o.points) for o in objects)
                 with stats.stage("drcpo.placement", len(frame)):
                     dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
-                    boxes, accepted = self._place(frame, rows, dims, rng, stats)
+                    boxes, accepted, owners = self._place(
+                        frame, rows, dims, rng, stats, frame_grid, pool
+                    )
                     rows, objects = rows[accepted], [objects[i] for i in accepted]
-                    placed = self._placed_task(frame, boxes, rows, frame_grid, pool)
+                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
                 self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], 0, objects)
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
@@ -1110,35 +1116,42 @@ class DRCPO(Transform):
     def _frame_grid(
         self, frame: Frame, rows: np.ndarray, pool: ThreadPoolExecutor
     ) -> Callable[[], occlusion.FrameGrid] | None:
-        """e-HPR's grid of the frame's points (scope ``inserted``), as a call that returns it:
-        on two cores it is built on ``pool`` meanwhile (it does not depend on the objects),
-        else when first asked for. ``None`` when e-HPR will not need it."""
+        """e-HPR's grid of the frame's points (scope ``inserted``, and the ``occluded`` test
+        of placement), as a call that returns it: on two cores it is built on ``pool``
+        meanwhile (it does not depend on the objects), else when first asked for. ``None``
+        when nothing will need it."""
         settings = self.config.external_occlusion
-        needed = settings.enabled and settings.scope == "inserted" and settings.mode == "hpr"
+        needed = settings.enabled and settings.mode == "hpr"
+        needed &= (
+            settings.scope == "inserted" or self.config.placement.occluded_fraction is not None
+        )
         if not needed or len(rows) == 0:
             return None
         radius, viewpoint = self.e_hpr_setting()
-        build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius)
-        return pool.submit(build).result if _spare_core() else build
+        # In this thread's memory, wherever built: the previous call's grid is done with.
+        memory = occlusion.thread_grid_memory()
+        build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius, memory=memory)
+        return pool.submit(build).result if _spare_core() else cache(build)
 
     def _placed_task(
         self,
         frame: Frame,
         boxes: np.ndarray,
         rows: np.ndarray,
+        owners: np.ndarray | None,
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         pool: ThreadPoolExecutor,
     ) -> Future | None:
         """On two cores, start on ``pool`` working out the :class:`_Placed` of the placed
-        ``boxes`` (of source ``rows``) while the objects are built; its future, or ``None``
-        when nothing is started."""
+        ``boxes`` (of source ``rows``; ``owners``: the room each frame point lies in, if known)
+        while the objects are built; its future, or ``None`` when nothing is started."""
         if frame_grid is None or len(boxes) == 0 or not _spare_core():
             return None
         _, viewpoint = self.e_hpr_setting()
 
         def place() -> _Placed:
-            owners = BoxQuery(frame.points).owners(_grown(boxes, self.room))
-            return _Placed(boxes, owners, rows, _box_windows(_grown(boxes), viewpoint))
+            rooms = owners if owners is not None else self._room_owners(frame, boxes)
+            return _Placed(boxes, rooms, rows, _box_windows(_grown(boxes), viewpoint))
 
         return pool.submit(place)
 
@@ -1161,16 +1174,19 @@ class DRCPO(Transform):
         dims: np.ndarray | None,
         rng: np.random.Generator,
         stats: Stats,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects."""
+        frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
+        pool: ThreadPoolExecutor | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Placed boxes ``(A, 7)``, the indices (into ``rows``) of the placed objects and, when
+        worked out, the room (see :attr:`room`) each frame point lies in (``int64 (N,)``, -1:
+        none)."""
         if len(rows) == 0:
-            return np.zeros((0, 7)), np.zeros(0, np.int64)
+            return np.zeros((0, 7)), np.zeros(0, np.int64), None
         source = np.asarray(self.database.boxes[rows], dtype=np.float64)
         dims = source[:, 3:6] if dims is None else dims
         camera = self.config.placement.camera_fov
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
-        check = limit is not None and self.config.external_occlusion.enabled
         # No ground given: place_objects estimates it from the frame's points. (Estimating it
         # on a second thread meanwhile measured slower on the shared cores.)
         result = placement.place_objects(frame, dims, source, rng, self._placement[fov])
@@ -1178,14 +1194,44 @@ class DRCPO(Transform):
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
         boxes, accepted = result.boxes, result.accepted
-        if check and len(boxes):
-            # The frame's points inside the placed boxes make room for them: they hide nothing.
-            z_buffer = OcclusionMap(frame.points, self.e_hpr_setting()[1])
-            occluded = z_buffer.occluded(boxes, cleared=boxes) >= limit
-            for i in accepted[occluded]:
-                stats.rejected(self.name, names[i], "occluded")
-            boxes, accepted = boxes[~occluded], accepted[~occluded]
-        return boxes, accepted
+        if limit is None or not self.config.external_occlusion.enabled or not len(boxes):
+            return boxes, accepted, None
+        owners = self._room_owners(frame, boxes)
+        occluded = self._occluded(frame, boxes, owners, frame_grid, limit, pool)
+        for i in accepted[occluded]:
+            stats.rejected(self.name, names[i], "occluded")
+        renumber = np.full(len(boxes) + 1, -1, dtype=np.int64)  # (index -1: no room)
+        renumber[np.flatnonzero(~occluded)] = np.arange(int((~occluded).sum()))
+        return boxes[~occluded], accepted[~occluded], renumber[owners]
+
+    def _room_owners(self, frame: Frame, boxes: np.ndarray) -> np.ndarray:
+        """``int64 (N,)``: the placed box whose room (see :attr:`room`) holds each frame point
+        (-1: none; placement keeps the rooms apart)."""
+        return BoxQuery(frame.points).owners(_grown(boxes, self.room))
+
+    def _occluded(
+        self,
+        frame: Frame,
+        boxes: np.ndarray,
+        owners: np.ndarray,
+        frame_grid: Callable[[], occlusion.FrameGrid] | None,
+        limit: float,
+        pool: ThreadPoolExecutor | None = None,
+    ) -> np.ndarray:
+        """``bool (A,)``: placed boxes whose sensor-facing surface e-HPR would hide behind the
+        frame's points by at least ``limit`` (the points in the boxes' rooms make way for them
+        and hide nothing). Mode ``hpr``: surface samples decided exactly by HPR among the
+        frame's points (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden
+        where that test does not apply); ``range_image``: a z-buffer at the sensor's
+        resolution (:class:`~drcpo.placement.OcclusionMap`)."""
+        _, viewpoint = self.e_hpr_setting()
+        if frame_grid is not None:
+            samples, offsets = placement.surface_samples(boxes, viewpoint)
+            helper = pool if _spare_core() else None
+            hidden = frame_grid().hidden_groups(samples, offsets, owners >= 0, limit, helper)
+            return hidden if hidden is not None else np.zeros(len(boxes), dtype=bool)
+        z_buffer = OcclusionMap(frame.points, viewpoint)
+        return z_buffer.occluded(boxes, cleared=boxes) >= limit
 
     def _construct(
         self,
@@ -1269,8 +1315,7 @@ class DRCPO(Transform):
         if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
             cleared_by = placed.owners
         else:
-            rooms = _grown([i.placed for i in insertions], self.room)
-            cleared_by = BoxQuery(frame.points).owners(rooms)
+            cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
         original = cleared_by < 0
         points = np.concatenate([_rows(frame.points, original), *(i.points for i in insertions)])
         owner = np.concatenate(

@@ -677,12 +677,27 @@ def _face_templates(steps: tuple[int, int] = (12, 8)) -> tuple[np.ndarray, np.nd
 
 
 _FACE_GRIDS, _FACES = _face_templates()
+# 5 x 4 from edge to edge: an object e-HPR keeps often shows only a rim above an occluder.
+_SURFACE_GRIDS = _face_templates((5, 4))[0]
 _FACE_AXES, _FACE_SIGNS = _FACES[:, 0].astype(np.int64), _FACES[:, 1].copy()
 
 
-def _facing_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Samples ``(M, 5, K, 3)`` on the sides and top of each box in the LiDAR frame, and which
-    of those faces look towards ``viewpoint``: ``bool (M, 5)``.
+def surface_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the faces of each ``(M, 7)`` box that look towards ``viewpoint`` ``(3,)``:
+    a 5 x 4 grid from edge to edge on each such side or top, ``(S, 3)`` metres, box ``m``'s
+    being rows ``offsets[m]:offsets[m + 1]`` of ``offsets`` ``int64 (M + 1,)``."""
+    world, facing = _facing_samples(boxes, viewpoint, _SURFACE_GRIDS)
+    counts = facing.sum(axis=1) * _SURFACE_GRIDS.shape[1]
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return world[facing].reshape(-1, 3), offsets
+
+
+def _facing_samples(
+    boxes: np.ndarray, viewpoint: np.ndarray, grids: np.ndarray = _FACE_GRIDS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``(M, 5, K, 3)`` on the sides and top of each box in the LiDAR frame (the unit
+    ``grids``, ``(5, K, 3)``), and which of those faces look towards ``viewpoint``:
+    ``bool (M, 5)``.
 
     :meth:`OcclusionMap.occluded` computes the same samples (the facing ones only) in numba.
     """
@@ -694,7 +709,7 @@ def _facing_samples(boxes: np.ndarray, viewpoint: np.ndarray) -> tuple[np.ndarra
     )
     axes, signs = _FACES[:, 0].astype(int), _FACES[:, 1]
     facing = signs * view[:, axes] > boxes[:, 3:6][:, axes] / 2.0
-    local = _FACE_GRIDS[None] * boxes[:, None, None, 3:6]
+    local = grids[None] * boxes[:, None, None, 3:6]
     world = np.empty_like(local)
     c, s_ = cos[:, None, None], sin[:, None, None]
     world[..., 0] = c * local[..., 0] - s_ * local[..., 1] + boxes[:, None, None, 0]
