@@ -6,6 +6,7 @@ Boxes are ``(M, 7)``: x, y, z (centre), dx, dy, dz, heading (radians about +z, f
 
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -153,19 +154,18 @@ def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.nd
         pad: metres left between an outlying point and the moved face.
     """
     box = _check_boxes(box)[0]
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
-    if len(xyz) == 0:
+    points = np.asarray(points)
+    if len(points) == 0:
         return box
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"points must have shape (N, 3+), got {points.shape}")
     cos, sin = np.cos(box[6:7])[0], np.sin(box[6:7])[0]  # numpy's, as points_in_boxes
-    delta = xyz - box[:3]
-    local = np.column_stack(
-        [delta[:, 0] * cos + delta[:, 1] * sin, -delta[:, 0] * sin + delta[:, 1] * cos, delta[:, 2]]
-    )
+    extents = _local_extents(points, box, cos, sin)  # (2, 3): lowest, highest
     half = box[3:6] / 2.0
-    if (np.abs(local) <= half).all():
+    if (extents[0] >= -half).all() and (extents[1] <= half).all():
         return box
-    low = np.minimum(-half, local.min(axis=0) - pad)
-    high = np.maximum(half, local.max(axis=0) + pad)
+    low = np.minimum(-half, extents[0] - pad)
+    high = np.maximum(half, extents[1] + pad)
     shift = (low + high) / 2.0
     grown = box.copy()
     grown[0] += shift[0] * cos - shift[1] * sin
@@ -173,6 +173,23 @@ def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.nd
     grown[2] += shift[2]
     grown[3:6] = high - low
     return grown
+
+
+@nb.njit(cache=True, nogil=True)
+def _local_extents(points, box, cos, sin):  # pragma: no cover - numba
+    # Lowest and highest coordinate of the points in the box's own frame, as points_in_boxes
+    # computes them (float64).
+    out = np.empty((2, 3))
+    out[0, :] = np.inf
+    out[1, :] = -np.inf
+    for i in range(points.shape[0]):
+        dx = np.float64(points[i, 0]) - box[0]
+        dy = np.float64(points[i, 1]) - box[1]
+        local = (dx * cos + dy * sin, -dx * sin + dy * cos, np.float64(points[i, 2]) - box[2])
+        for a in range(3):
+            out[0, a] = min(out[0, a], local[a])
+            out[1, a] = max(out[1, a], local[a])
+    return out
 
 
 def _cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:

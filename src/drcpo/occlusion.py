@@ -1273,7 +1273,7 @@ _FRAME_ROW_HEIGHT = 1.0
 _FRAME_COLUMN_WIDTH = 0.5
 # Work items per call, claimed by the threads as they go: small enough that a thread the
 # system stalls for a while holds up little work.
-_FRAME_CHUNKS = 12
+_FRAME_CHUNKS = 32
 _FRAME_PARALLEL_MIN = 256  # queries worth a second thread (one already running: cheap)
 
 

@@ -483,12 +483,18 @@ class BoxQuery:
     def owners(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``int64 (N,)``: the last of the ``(M, 7)`` boxes holding each point (-1: none).
 
-        One pass over the points for all boxes (a per-box query scans every point again);
-        same arithmetic and boundary rule as :meth:`inside`.
+        One pass over the points for all boxes (a per-box query scans every point again): a
+        coarse grid of the boxes' bounds (:func:`~drcpo.placement.box_members`) without a
+        margin, else each point against each box's bounds; same arithmetic and boundary rule
+        as :meth:`inside`.
         """
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         owner = np.full(len(self.points), -1, dtype=np.int64)
-        if len(boxes) and len(owner):
+        if len(boxes) and len(owner) and margin == 0.0:
+            point, box = placement.box_members(self.points, boxes)  # by point, then box
+            last = np.flatnonzero(np.diff(point, append=len(owner)))  # a point's last box
+            owner[point[last]] = box[last]
+        elif len(boxes) and len(owner):
             unused = np.zeros(0, np.int64)
             _box_scan(self.points, boxes, *self._terms(boxes, margin), owner, unused)
         return owner
@@ -497,7 +503,9 @@ class BoxQuery:
         """``int64 (M,)``: points in each box."""
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         counts = np.zeros(len(boxes), dtype=np.int64)
-        if len(boxes) and len(self.points):
+        if len(boxes) and len(self.points) and margin == 0.0:
+            counts = np.bincount(placement.box_members(self.points, boxes)[1], minlength=len(boxes))
+        elif len(boxes) and len(self.points):
             unused = np.zeros(0, np.int64)
             _box_scan(self.points, boxes, *self._terms(boxes, margin), unused, counts)
         return counts
@@ -507,11 +515,13 @@ class BoxQuery:
     ) -> np.ndarray:
         """``int64 (M,)``: per box ``m``, the points with ``owner == m`` (``int (N,)``) and
         ``where`` (``bool (N,)``) that lie in it, in one pass."""
+        owner, where = np.asarray(owner), np.asarray(where, dtype=bool)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        counts = np.zeros(len(boxes), dtype=np.int64)
-        if len(boxes) and len(self.points):
-            _own_box_scan(self.points, owner, where, boxes, *self._terms(boxes, 0.0), counts)
-        return counts
+        if not len(boxes) or not len(self.points):
+            return np.zeros(len(boxes), dtype=np.int64)
+        point, box = placement.box_members(self.points, boxes)
+        own = (owner[point] == box) & where[point]
+        return np.bincount(box[own], minlength=len(boxes)).astype(np.int64)
 
     def _terms(self, boxes: np.ndarray, margin: float) -> tuple[np.ndarray, ...]:
         """Per box: cos, sin of the heading (numpy's, as :meth:`inside`), the BEV reach of the
@@ -552,27 +562,6 @@ def _box_scan(points, boxes, cos, sin, reach, half, owner, counts):  # pragma: n
                     owner[i] = m
                 if with_counts:
                     counts[m] += 1
-
-
-@nb.njit(cache=True, nogil=True)
-def _own_box_scan(points, owner, where, boxes, cos, sin, reach, half, counts):  # pragma: no cover
-    # BoxQuery.own_counts: each point tested against its own box only.
-    for i in range(points.shape[0]):
-        m = owner[i]
-        if m >= 0 and where[i]:
-            if _in_box(
-                np.float64(points[i, 0]) - boxes[m, 0],
-                np.float64(points[i, 1]) - boxes[m, 1],
-                np.float64(points[i, 2]) - boxes[m, 2],
-                cos[m],
-                sin[m],
-                reach[m, 0],
-                reach[m, 1],
-                half[m, 0],
-                half[m, 1],
-                half[m, 2],
-            ):
-                counts[m] += 1
 
 
 @nb.njit(cache=True, nogil=True)
