@@ -868,7 +868,7 @@ def _counting_sort_to(cell, starts, offset, order):  # pragma: no cover - numba
 @nb.njit(cache=True, nogil=True)
 def _directions(points, center, rel, azimuth, elevation):  # pragma: no cover - numba
     # Per point (x, y, z in float64) relative to ``center``, into the given arrays: its
-    # offset, ``arctan2(y, x)`` and ``arctan2(z, hypot(x, y))`` (libm's functions; numpy's
+    # offset, ``arctan2(y, x)`` and ``arctan2(z, sqrt(x x + y y))`` (libm's atan2; numpy's
     # vectorised arctan2 may differ in the last bit on some CPUs). Returns the first row
     # holding a NaN or infinite coordinate (-1: none).
     bad = -1
@@ -880,7 +880,7 @@ def _directions(points, center, rel, azimuth, elevation):  # pragma: no cover - 
             bad = i
         rel[i, 0], rel[i, 1], rel[i, 2] = x, y, z
         azimuth[i] = math.atan2(y, x)
-        elevation[i] = math.atan2(z, math.hypot(x, y))
+        elevation[i] = math.atan2(z, math.sqrt(x * x + y * y))
     return bad
 
 
@@ -1286,7 +1286,7 @@ class FrameGrid:
     points to its cells (no re-sorting of the frame) and skips the frame points they displace;
     :meth:`in_windows` selects points by direction cell by cell.
 
-    Directions are ``arctan2(y, x)`` (azimuth) and ``arctan2(z, hypot(x, y))`` (elevation)
+    Directions are ``arctan2(y, x)`` (azimuth) and ``arctan2(z, sqrt(x x + y y))`` (elevation)
     of a point relative to the viewpoint, by libm (as :func:`drcpo.pipeline.view_windows`
     computes them).
 
@@ -1386,13 +1386,10 @@ class FrameGrid:
         return order
 
     def directions(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Azimuth, elevation (radians) and ``hypot(hypot(x, y), z)`` (metres) of the frame
-        points ``rows`` (indices) relative to the viewpoint, as :meth:`in_windows` uses them."""
+        """Azimuth, elevation (radians) and distance (metres) of the frame points ``rows``
+        (indices) relative to the viewpoint, as :meth:`in_windows` uses them."""
         positions = self._position[rows]
-        distance = np.array(
-            [math.hypot(math.hypot(x, y), z) for x, y, z in self._rel[positions]], dtype=np.float64
-        ).reshape(-1)
-        return self._azimuth[positions], self._elevation[positions], distance
+        return self._azimuth[positions], self._elevation[positions], self._ranges[positions]
 
     def in_windows(self, windows: np.ndarray) -> np.ndarray:
         """``bool (N,)``: points with ``az0 <= azimuth <= az1``, ``el0 <= elevation <= el1`` and
@@ -1406,7 +1403,7 @@ class FrameGrid:
                 windows,
                 self._azimuth,
                 self._elevation,
-                self._rel,
+                self._ranges,
                 self._starts,
                 *self._geometry,
                 found,
@@ -1634,9 +1631,8 @@ class FrameGrid:
                 grown = np.empty((total, *old.shape[1:]))
                 grown[:n] = old[:n]
                 setattr(self, name, grown)
-        horizontal = np.hypot(rel[:, 0], rel[:, 1])
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        elevation = np.arctan2(rel[:, 2], horizontal)
+        azimuth, elevation = np.empty(k), np.empty(k)
+        _directions(rel, np.zeros(3), np.empty((k, 3)), azimuth, elevation)
         order = self._sort(elevation, azimuth, ranges, 1, n)
         np.take(rel, order, axis=0, out=self._rel[n : n + k])
         np.take(ranges, order, out=self._ranges[n : n + k])
@@ -2586,10 +2582,12 @@ def _hidden_groups(
 
 
 @nb.njit(cache=True, nogil=True)
-def _window_members(windows, azimuth, elevation, rel, starts, origin, height, rows, columns, out):
+def _window_members(
+    windows, azimuth, elevation, ranges, starts, origin, height, rows, columns, out
+):
     """Mark in ``out`` the sorted points of member set 0 inside any of ``windows`` (see
-    :meth:`FrameGrid.in_windows`; distance ``hypot(hypot(x, y), z)`` of ``rel``, as numpy's
-    hypot), visiting only the cells each window overlaps, and one more on every side so that
+    :meth:`FrameGrid.in_windows`; distance: ``ranges``), visiting only the cells each window
+    overlaps, and one more on every side so that
     rounding in the cell numbers cannot miss a point."""
     step = 2.0 * math.pi / columns
     for w in range(windows.shape[0]):
@@ -2610,7 +2608,7 @@ def _window_members(windows, azimuth, elevation, rel, starts, origin, height, ro
                         and azimuth[j] <= az1
                         and elevation[j] >= el0
                         and elevation[j] <= el1
-                        and math.hypot(math.hypot(rel[j, 0], rel[j, 1]), rel[j, 2]) >= near
+                        and ranges[j] >= near
                     ):
                         out[j] = True
 

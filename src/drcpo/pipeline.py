@@ -1558,16 +1558,15 @@ def _in_windows(
 
 @nb.njit(cache=True, nogil=True)
 def _window_scan(points, viewpoint, windows, inside):  # pragma: no cover - numba
-    # Per point, its direction by libm's atan2 and hypot, as FrameGrid's (numpy's vectorised
+    # Per point, its direction and distance as FrameGrid's (libm's atan2: numpy's vectorised
     # arctan2 may differ in the last bit on some CPUs), then the windows in order until one
     # holds it (radians, metres).
     for i in range(points.shape[0]):
         x = np.float64(points[i, 0]) - viewpoint[0]
         y = np.float64(points[i, 1]) - viewpoint[1]
         z = np.float64(points[i, 2]) - viewpoint[2]
-        horizontal = math.hypot(x, y)
-        azimuth, elevation = math.atan2(y, x), math.atan2(z, horizontal)
-        distance = math.hypot(horizontal, z)
+        azimuth, elevation = math.atan2(y, x), math.atan2(z, math.sqrt(x * x + y * y))
+        distance = math.sqrt(x * x + y * y + z * z)
         for w in range(windows.shape[0]):
             if (
                 azimuth >= windows[w, 0]
