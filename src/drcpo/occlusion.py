@@ -2587,8 +2587,8 @@ def _window_members(
 ):
     """Mark in ``out`` the sorted points of member set 0 inside any of ``windows`` (see
     :meth:`FrameGrid.in_windows`; distance: ``ranges``), visiting only the cells each window
-    overlaps, and one more on every side so that
-    rounding in the cell numbers cannot miss a point."""
+    overlaps, and one more on every side so that rounding in the cell numbers cannot miss a
+    point."""
     step = 2.0 * math.pi / columns
     for w in range(windows.shape[0]):
         az0, az1, el0, el1, near = windows[w]
