@@ -1552,7 +1552,7 @@ def _in_windows(
         return np.ones(len(points), dtype=bool)
     inside = np.zeros(len(points), dtype=bool)
     if len(points) and len(windows):
-        _window_scan(points, np.asarray(viewpoint, dtype=np.float64), windows, inside)
+        _window_scan(np.asarray(points), np.asarray(viewpoint, dtype=np.float64), windows, inside)
     return inside
 
 
