@@ -587,6 +587,23 @@ def test_drcpo_invariants_on_synthetic_world(synthetic_world, mode, scope):
     assert totals["added"] > 0
 
 
+def test_more_attempts_place_objects_again_whatever_rejected_them(synthetic_world):
+    # Occluded placements too get a fresh pose on each attempt.
+    db, index, frames = synthetic_world
+    totals = {}
+    for attempts in (1, 4):
+        transform = DRCPO(db, index, {"placement": {"attempts": attempts}})
+        added = occluded = 0
+        for i, frame in enumerate(frames):
+            out = transform(frame, np.random.default_rng(20 + i))
+            check_drcpo_frame(transform, frame, out)
+            counts = out.metadata["augment_stats"]["objects"]["drcpo"].values()
+            added += sum(c["added"] for c in counts)
+            occluded += sum(c["rejected"].get("occluded", 0) for c in counts)
+        totals[attempts] = added, occluded
+    assert totals[4][0] > totals[1][0] and totals[4][1] < totals[1][1]
+
+
 @pytest.mark.parametrize("scope", ["inserted", "frame"])
 def test_drcpo_invariants_on_kitti_sample(kitti_world, scope):
     db, index, frames = kitti_world

@@ -116,6 +116,32 @@ def test_clearance_keeps_room_around_each_placed_footprint(rng):
         PlacementConfig(clearance=-0.1)
 
 
+def test_occluded_placements_are_tried_again(rng):
+    frame = scene(rng, existing_boxes())
+    calls = []
+
+    def occluded(boxes, before):
+        calls.append((boxes.copy(), before.copy()))
+        return boxes[:, 0] < 35.0  # say the near half of the area is hidden
+
+    config = PlacementConfig(max_tries=6)
+    result = place_objects(frame, sizes(20), None, rng, config, occluded=occluded)
+    assert len(result.accepted) >= 10 and (result.boxes[:, 0] >= 35.0).all()
+    np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(20)[result.accepted])
+    assert result.rejected["occluded"] > 0 and len(calls) > 1
+    # Each call sees its candidates with their own sizes and every box placed before them.
+    placed_so_far: set[tuple] = set()
+    for boxes, before in calls:
+        assert {tuple(b) for b in before} == placed_so_far
+        placed_so_far |= {tuple(b) for b in boxes[boxes[:, 0] >= 35.0]}
+    assert placed_so_far == {tuple(b) for b in result.boxes}
+    left = result.reasons[result.reasons != ""]
+    assert set(left) <= set(REASONS)
+    # One try: those the test rejects stay rejected, for that reason.
+    once = place_objects(frame, sizes(20), None, np.random.default_rng(3), occluded=occluded)
+    assert (once.reasons == "occluded").sum() == once.rejected["occluded"] > 0
+
+
 def test_surface_samples_lie_on_the_faces_seen_from_the_viewpoint():
     boxes = np.array([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0], [0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.4]])
     # Level with the first box's centre, the viewpoint sees its back face (x = 8) only; it
@@ -170,7 +196,7 @@ def test_obstacle_counts_match_brute_force(rng):
 def test_every_rejection_reason(rng):
     frame = scene(rng)
     too_big = place_objects(frame, [[120.0, 2.0, 2.0], [2.0, 150.0, 2.0]], None, rng)
-    assert too_big.rejected == {"out_of_range": 2, "collision": 0, "obstacle": 0}
+    assert too_big.rejected == {"out_of_range": 2, "collision": 0, "obstacle": 0, "occluded": 0}
     assert too_big.reasons.tolist() == ["out_of_range", "out_of_range"]
     assert len(too_big.accepted) == 0 and too_big.boxes.shape == (0, 7)
 
@@ -187,6 +213,9 @@ def test_every_rejection_reason(rng):
     dense = place_objects(forest, sizes(6), None, rng, small)
     assert dense.rejected["obstacle"] == 6 and len(dense.accepted) == 0
     assert set(dense.rejected) == set(REASONS)
+
+    hidden = place_objects(frame, sizes(4), None, rng, occluded=lambda b, _: np.ones(len(b), bool))
+    assert hidden.reasons.tolist() == ["occluded"] * 4 and len(hidden.accepted) == 0
 
 
 def test_retries_place_more_objects_and_count_attempts(rng):

@@ -898,7 +898,8 @@ class DRCPO(Transform):
        ``range_image`` mode: a z-buffer at the sensor's resolution). e-HPR would almost
        always leave such an object too few points: on the KITTI sample and synthetic frames,
        3 of 1,676 objects e-HPR kept were that hidden, against 4,182 of 4,673 it dropped (a
-       z-buffer test at 95 % caught 2,655 of them). So it is not built and hides nothing. In
+       z-buffer test at 95 % caught 2,655 of them). So it is not built and hides nothing.
+       Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
        ``whole`` mode the box grows during construction, so objects are constructed first
        and placed with their final size.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
@@ -1176,22 +1177,33 @@ class DRCPO(Transform):
         camera = self.config.placement.camera_fov
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
+        check = limit is not None and self.config.external_occlusion.enabled
+        last: list[tuple[int, np.ndarray, np.ndarray]] = []  # the occlusion test's last call
+
+        def occluded(boxes: np.ndarray, before: np.ndarray) -> np.ndarray:
+            everything = np.concatenate([before, boxes])
+            owners = self._room_owners(frame, everything)
+            hidden = self._occluded(frame, boxes, everything, owners, frame_grid, limit, pool)
+            last[:] = [(len(before), owners, hidden)]
+            return hidden
+
         # No ground given: place_objects estimates it from the frame's points. (Estimating it
         # on a second thread meanwhile measured slower on the shared cores.)
-        result = placement.place_objects(frame, dims, source, rng, self._placement[fov])
+        result = placement.place_objects(
+            frame, dims, source, rng, self._placement[fov], occluded=occluded if check else None
+        )
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
         boxes, accepted = result.boxes, result.accepted
-        if limit is None or not self.config.external_occlusion.enabled or not len(boxes):
+        if not last or not len(boxes):
             return boxes, accepted, None
-        owners = self._room_owners(frame, boxes)
-        occluded = self._occluded(frame, boxes, owners, frame_grid, limit, pool)
-        for i in accepted[occluded]:
-            stats.rejected(self.name, names[i], "occluded")
-        renumber = np.full(len(boxes) + 1, -1, dtype=np.int64)  # (index -1: no room)
-        renumber[np.flatnonzero(~occluded)] = np.arange(int((~occluded).sum()))
-        return boxes[~occluded], accepted[~occluded], renumber[owners]
+        before, owners, hidden = last[0]
+        if before or len(boxes) != int((~hidden).sum()):  # placed over several tries
+            return boxes, accepted, self._room_owners(frame, boxes)
+        renumber = np.full(len(hidden) + 1, -1, dtype=np.int64)  # (index -1: no room)
+        renumber[np.flatnonzero(~hidden)] = np.arange(len(boxes))
+        return boxes, accepted, renumber[owners]
 
     def _room_owners(self, frame: Frame, boxes: np.ndarray) -> np.ndarray:
         """``int64 (N,)``: the placed box whose room (see :attr:`room`) holds each frame point
@@ -1202,17 +1214,19 @@ class DRCPO(Transform):
         self,
         frame: Frame,
         boxes: np.ndarray,
+        everything: np.ndarray,
         owners: np.ndarray,
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         limit: float,
         pool: ThreadPoolExecutor | None = None,
     ) -> np.ndarray:
-        """``bool (A,)``: placed boxes whose sensor-facing surface e-HPR would hide behind the
-        frame's points by at least ``limit`` (the points in the boxes' rooms make way for them
-        and hide nothing). Mode ``hpr``: surface samples decided exactly by HPR among the
-        frame's points (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden
-        where that test does not apply); ``range_image``: a z-buffer at the sensor's
-        resolution (:class:`~drcpo.placement.OcclusionMap`)."""
+        """``bool (B,)``: ``boxes`` whose sensor-facing surface e-HPR would hide behind the
+        frame's points by at least ``limit``; the points in the rooms of ``everything`` placed
+        (``owners``, see :meth:`_room_owners`) make way for them and hide nothing. Mode
+        ``hpr``: surface samples decided exactly by HPR among the frame's points
+        (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden where that test
+        does not apply); ``range_image``: a z-buffer at the sensor's resolution
+        (:class:`~drcpo.placement.OcclusionMap`)."""
         _, viewpoint = self.e_hpr_setting()
         if frame_grid is not None:
             samples, offsets = placement.surface_samples(boxes, viewpoint)
@@ -1220,7 +1234,7 @@ class DRCPO(Transform):
             hidden = frame_grid().hidden_groups(samples, offsets, owners >= 0, limit, helper)
             return hidden if hidden is not None else np.zeros(len(boxes), dtype=bool)
         z_buffer = OcclusionMap(frame.points, viewpoint)
-        return z_buffer.occluded(boxes, cleared=boxes) >= limit
+        return z_buffer.occluded(boxes, cleared=everything) >= limit
 
     def _construct(
         self,

@@ -13,12 +13,12 @@ A placement is rejected, for one reason counted per attempt, when
 * ``"collision"``: its BEV box overlaps (area > 0) an existing box of the frame, a box placed
   earlier in this call, or an earlier box of the same batch (first come, first placed);
 * ``"obstacle"``: its box holds more than ``max_nonground_points`` frame points that are more
-  than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects).
+  than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects);
+* ``"occluded"``: the caller's occlusion test rejects it (DR.CPO's: the box would be hidden
+  behind the frame's points, see :class:`drcpo.pipeline.DRCPO`; :class:`OcclusionMap` is a
+  z-buffer for such a test).
 
 Objects are tried up to ``max_tries`` times (a fresh pose each time); the paper tries once.
-
-:class:`OcclusionMap` is the z-buffer with which DR.CPO also rejects placed boxes hidden behind
-the frame's points (reason ``"occluded"``, see :class:`drcpo.pipeline.DRCPO`).
 
 The hot loops are numba kernels that reproduce the reference numpy arithmetic operation for
 operation (same boxes, same verdicts, bit for bit): collisions are a separating-axis test
@@ -30,6 +30,7 @@ z-buffer is filled only in the cells the boxes' samples fall in.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
@@ -39,7 +40,7 @@ from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.ground import GroundModel
 
-REASONS = ("out_of_range", "collision", "obstacle")
+REASONS = ("out_of_range", "collision", "obstacle", "occluded")
 HEIGHT_MODES = ("ground", "source")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
@@ -163,6 +164,7 @@ def place_objects(
     rng: np.random.Generator,
     config: PlacementConfig | None = None,
     ground: GroundModel | None = None,
+    occluded: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> PlacementResult:
     """Place objects of sizes ``dims`` ``(K, 3)`` at random, collision- and obstacle-free.
 
@@ -176,6 +178,9 @@ def place_objects(
         config: :class:`PlacementConfig` (defaults when ``None``).
         ground: the frame's :class:`GroundModel`; estimated from the frame's points (with its
             ``plane`` and ``calib`` metadata, when both are present) when ``None``.
+        occluded: an occlusion test of the boxes that pass the others, ``(B, 7)``, given the
+            boxes placed before them ``(P, 7)``: ``bool (B,)``, those to reject (reason
+            ``"occluded"``, tried again like the others).
     """
     config = config or PlacementConfig()
     frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
@@ -198,6 +203,12 @@ def place_objects(
         attempts += len(pending)
         boxes = sample_poses(room[pending], rng, config)
         verdict = _judge(boxes, pending, dims, source_z, occupied, obstacles, config)
+        passed = np.flatnonzero(verdict == 0)
+        if occluded is not None and len(passed):
+            own = boxes[passed]
+            own[:, 3:5] = dims[pending[passed], :2]
+            before = placed[np.isfinite(placed[:, 0])]
+            verdict[passed[np.asarray(occluded(own, before), dtype=bool)]] = _OCCLUDED
         counts += np.bincount(verdict, minlength=len(counts))
         verdicts[pending] = verdict
         ok = verdict == 0
@@ -215,7 +226,7 @@ def place_objects(
     )
 
 
-_OUT_OF_RANGE, _COLLISION, _OBSTACLE = 1, 2, 3  # verdicts: 1 + the index in REASONS
+_OUT_OF_RANGE, _COLLISION, _OBSTACLE, _OCCLUDED = 1, 2, 3, 4  # verdicts: 1 + index in REASONS
 _REASON_NAMES = np.array(["", *REASONS], dtype=object)  # by verdict
 
 
