@@ -52,9 +52,7 @@ from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import (
     bev_corners,
-    bev_overlap_area,
     box_holding,
-    from_canonical,
     rotate_points_z,
     wrap_angle,
 )
@@ -378,6 +376,22 @@ def _placed_object(canonical: np.ndarray, box: np.ndarray, dim: int) -> np.ndarr
     heading = np.float64(box[6])
     out = np.zeros((len(canonical), dim), dtype=np.float32)
     _place_rows(np.asarray(canonical, dtype=np.float32), np.cos(heading), np.sin(heading), box, out)
+    return out
+
+
+def _placed_objects(
+    database: GroundTruthDatabase, rows: np.ndarray, boxes: np.ndarray, dim: int
+) -> np.ndarray:
+    """The database objects ``rows`` placed in ``boxes`` ``(S, 7)``, one after the other, as
+    :func:`_placed_object` places each (``float32 (n, dim)``)."""
+    counts = np.array([len(database.object_points(int(row))) for row in rows], dtype=np.int64)
+    out = np.zeros((int(counts.sum()), dim), dtype=np.float32)
+    start = 0
+    for row, box, count in zip(rows, boxes, counts, strict=True):
+        heading = np.float64(box[6])
+        canonical = database.object_points(int(row))
+        _place_rows(canonical, np.cos(heading), np.sin(heading), box, out[start : start + count])
+        start += count
     return out
 
 
@@ -747,10 +761,11 @@ class GroundTruthSampling(Transform):
             boxes = self.database.boxes[rows]
             stats.tried(self.name, name, count)
             existing = np.concatenate(kept_boxes)
-            hits_existing = bev_overlap_area(boxes, existing).max(axis=1, initial=0.0) > 0
-            among = bev_overlap_area(boxes)
-            np.fill_diagonal(among, 0.0)
-            valid = ~hits_existing & ~(among.max(axis=1) > 0)
+            # Overlap area > 0, as OpenPCDet's BEV IoU test, by separating axes (same verdicts).
+            hits_existing = placement.bev_collisions(boxes, existing).any(axis=1)
+            among = placement.bev_collisions(boxes, boxes)
+            np.fill_diagonal(among, False)
+            valid = ~hits_existing & ~among.any(axis=1)
             stats.rejected(self.name, name, "collision", int(np.count_nonzero(~valid)))
             stats.added(self.name, name, int(np.count_nonzero(valid)))
             kept_boxes.append(boxes[valid])
@@ -766,13 +781,9 @@ class GroundTruthSampling(Transform):
         if self.config.use_road_plane and plane is not None and calib is not None:
             bottoms = boxes[:, 2] - boxes[:, 5] / 2.0
             boxes[:, 2] += road_plane_heights(plane, calib, boxes[:, :3]) - bottoms
-        dim = frame.points.shape[1]
-        objects = []
-        for row, box in zip(rows, boxes, strict=True):
-            placed = from_canonical(self.database.object_points(int(row)), box)
-            objects.append(match_features(placed, dim))
         keep = ~BoxQuery(frame.points).inside_any(boxes)
-        points = np.concatenate([_rows(frame.points, keep), *objects])
+        objects = _placed_objects(self.database, rows, boxes, frame.points.shape[1])
+        points = np.concatenate([_rows(frame.points, keep), objects])
         names = np.concatenate([frame.names, self.database.names[rows].astype(str)])
         db = self.database
         metadata = update_box_metadata(
