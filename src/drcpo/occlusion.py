@@ -1828,6 +1828,7 @@ def _gather(
     if reach >= math.pi:
         chord2 = 5.0
     masked = absent.shape[0] > 0
+    near = np.empty(64, dtype=np.int64)
     certify = members & _CERTIFY != 0
     quadrants = 0
     capacity = out_t.shape[0]
@@ -1842,15 +1843,25 @@ def _gather(
             lo0, hi0, lo1, hi1 = _row_runs(starts, member, row, col_lo, col_n, columns)
             for run in range(2):
                 lo, hi = (lo0, hi0) if run == 0 else (lo1, hi1)
+                if hi - lo > near.shape[0]:
+                    near = np.empty(2 * (hi - lo), dtype=np.int64)
+                # The points within the chord first, without branches (the cheaper scan), then
+                # only those.
+                found = 0
                 for j in range(lo, hi):
-                    if j == i:
+                    dx = rays[j, 0] - ux
+                    dy = rays[j, 1] - uy
+                    dz = rays[j, 2] - uz
+                    near[found] = j
+                    found += dx * dx + dy * dy + dz * dz <= chord2
+                for f in range(found):
+                    j = near[f]
+                    if j == i or (masked and absent[j]):
                         continue
                     dx = rays[j, 0] - ux
                     dy = rays[j, 1] - uy
                     dz = rays[j, 2] - uz
                     d2 = dx * dx + dy * dy + dz * dz
-                    if d2 > chord2 or (masked and absent[j]):
-                        continue
                     if (
                         d2 == 0.0
                         and rel[j, 0] == rel[i, 0]
