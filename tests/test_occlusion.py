@@ -721,6 +721,14 @@ def test_frame_grid_memory_is_reused_and_grown():
     grown = memory.floats
     FrameGrid.build(frame[:1000], memory=memory)
     assert memory.floats is grown  # and kept
+    # One memory per thread: a thread's grid never lands in another's.
+    from drcpo.occlusion import thread_grid_memory
+
+    other = []
+    worker = threading.Thread(target=lambda: other.append(thread_grid_memory()))
+    worker.start()
+    worker.join()
+    assert thread_grid_memory() is thread_grid_memory() is not other[0]
 
 
 def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
