@@ -699,6 +699,15 @@ def test_hidden_groups_count_samples_hidden_among_the_frame_points(seed):
     assert mixed
     # Not applicable where R is not above the ranges.
     assert FrameGrid.build(frame, radius=10.0).hidden_groups(samples, offsets, cleared, 1.0) is None
+    for bad, message in (
+        (offsets[:-1], "offsets must run"),
+        (offsets[::-1], "offsets must run"),
+        (np.array([0, 30, 20, len(samples)]), "must not decrease"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            grid.hidden_groups(samples, bad, cleared, 1.0)
+    with pytest.raises(ValueError, match="share"):
+        grid.hidden_groups(samples, offsets, cleared, 1.5)
 
 
 def test_frame_grid_memory_is_reused_and_grown():

@@ -216,6 +216,8 @@ def test_every_rejection_reason(rng):
 
     hidden = place_objects(frame, sizes(4), None, rng, occluded=lambda b, _: np.ones(len(b), bool))
     assert hidden.reasons.tolist() == ["occluded"] * 4 and len(hidden.accepted) == 0
+    with pytest.raises(ValueError, match="occluded returned 1 verdicts"):
+        place_objects(frame, sizes(4), None, rng, occluded=lambda b, _: np.ones(1, bool))
 
 
 def test_retries_place_more_objects_and_count_attempts(rng):

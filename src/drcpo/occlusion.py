@@ -1520,7 +1520,13 @@ class FrameGrid:
         n = self.size
         cleared = _check_query(cleared, n)
         xyz = _check_points(samples)
-        offsets = np.asarray(offsets, dtype=np.int64)
+        offsets = np.asarray(offsets, dtype=np.int64).reshape(-1)
+        if len(offsets) < 1 or offsets[0] != 0 or offsets[-1] != len(xyz):
+            raise ValueError(f"offsets must run from 0 to {len(xyz)} (the samples' number)")
+        if (np.diff(offsets) < 0).any():
+            raise ValueError("offsets must not decrease")
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"share must be in [0, 1], got {share}")
         hidden = np.zeros(len(offsets) - 1, dtype=bool)
         if not len(xyz) or not n:
             return hidden

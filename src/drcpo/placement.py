@@ -208,7 +208,12 @@ def place_objects(
             own = boxes[passed]
             own[:, 3:5] = dims[pending[passed], :2]
             before = placed[np.isfinite(placed[:, 0])]
-            verdict[passed[np.asarray(occluded(own, before), dtype=bool)]] = _OCCLUDED
+            hidden = np.asarray(occluded(own, before), dtype=bool).reshape(-1)
+            if len(hidden) != len(passed):
+                raise ValueError(
+                    f"occluded returned {len(hidden)} verdicts for {len(passed)} boxes"
+                )
+            verdict[passed[hidden]] = _OCCLUDED
         counts += np.bincount(verdict, minlength=len(counts))
         verdicts[pending] = verdict
         ok = verdict == 0
