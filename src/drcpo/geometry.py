@@ -52,11 +52,18 @@ def rotate_points_z(points: np.ndarray, angle: float) -> np.ndarray:
     """
     points = np.asarray(points)
     out = points.copy()
-    cos, sin = np.cos(angle), np.sin(angle)
-    x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
-    out[:, 0] = cos * x - sin * y
-    out[:, 1] = sin * x + cos * y
+    angle = np.float64(angle)
+    # One compiled pass: the float64 products, with numpy's cos and sin, stored as numpy would.
+    _rotate_rows(points, np.cos(angle), np.sin(angle), out)
     return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _rotate_rows(points, cos, sin, out):  # pragma: no cover - numba
+    for i in range(points.shape[0]):
+        x, y = np.float64(points[i, 0]), np.float64(points[i, 1])
+        out[i, 0] = cos * x - sin * y
+        out[i, 1] = sin * x + cos * y
 
 
 def _check_boxes(boxes: np.ndarray) -> np.ndarray:

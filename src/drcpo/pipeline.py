@@ -302,7 +302,7 @@ class GlobalRotation(Transform):
         with stats.stage(self.name, len(frame)):
             low, high = self.config.range
             angle = rng.uniform(low, high)
-            points = _rotated(frame.points, angle)
+            points = rotate_points_z(frame.points, angle)
             boxes = rotate_points_z(frame.boxes, angle)
             boxes[:, 6] = wrap_angle(boxes[:, 6] + angle)
             return frame.replace(points=points, boxes=boxes)
@@ -331,24 +331,6 @@ class GlobalScaling(Transform):
             boxes = frame.boxes.copy()
             boxes[:, :6] *= scale
             return frame.replace(points=points, boxes=boxes)
-
-
-def _rotated(points: np.ndarray, angle: float) -> np.ndarray:
-    """:func:`~drcpo.geometry.rotate_points_z` of ``(N, 2+)`` points in one compiled pass (the
-    same float64 operations, with numpy's cos and sin of the angle)."""
-    points = np.asarray(points)
-    out = points.copy()
-    angle = np.float64(angle)
-    _rotate_rows(points, np.cos(angle), np.sin(angle), out)
-    return out
-
-
-@nb.njit(cache=True, nogil=True)
-def _rotate_rows(points, cos, sin, out):  # pragma: no cover - numba
-    for i in range(points.shape[0]):
-        x, y = np.float64(points[i, 0]), np.float64(points[i, 1])
-        out[i, 0] = cos * x - sin * y
-        out[i, 1] = sin * x + cos * y
 
 
 @nb.njit(cache=True, nogil=True)
