@@ -505,32 +505,21 @@ class BoxQuery:
     def owners(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``int64 (N,)``: the last of the ``(M, 7)`` boxes holding each point (-1: none).
 
-        One pass over the points for all boxes (a per-box query scans every point again): a
-        coarse grid of the boxes' bounds (:func:`~drcpo.placement.box_members`) without a
-        margin, else each point against each box's bounds; same arithmetic and boundary rule
-        as :meth:`inside`.
+        One pass over the points for all boxes (a per-box query scans every point again), with
+        a coarse grid of the boxes' bounds (:func:`~drcpo.placement.box_members`); same
+        arithmetic and boundary rule as :meth:`inside`.
         """
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
         owner = np.full(len(self.points), -1, dtype=np.int64)
-        if len(boxes) and len(owner) and margin == 0.0:
-            point, box = placement.box_members(self.points, boxes)  # by point, then box
-            last = np.flatnonzero(np.diff(point, append=len(owner)))  # a point's last box
-            owner[point[last]] = box[last]
-        elif len(boxes) and len(owner):
-            unused = np.zeros(0, np.int64)
-            _box_scan(self.points, boxes, *self._terms(boxes, margin), owner, unused)
+        point, box = placement.box_members(self.points, boxes, margin)  # by point, then box
+        last = np.flatnonzero(np.diff(point, append=len(owner)))  # a point's last box
+        owner[point[last]] = box[last]
         return owner
 
     def counts(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``int64 (M,)``: points in each box."""
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        counts = np.zeros(len(boxes), dtype=np.int64)
-        if len(boxes) and len(self.points) and margin == 0.0:
-            counts = np.bincount(placement.box_members(self.points, boxes)[1], minlength=len(boxes))
-        elif len(boxes) and len(self.points):
-            unused = np.zeros(0, np.int64)
-            _box_scan(self.points, boxes, *self._terms(boxes, margin), unused, counts)
-        return counts
+        box = placement.box_members(self.points, boxes, margin)[1]
+        return np.bincount(box, minlength=len(boxes)).astype(np.int64)
 
     def own_counts(
         self, owner: np.ndarray, boxes: np.ndarray | Sequence[np.ndarray], where: np.ndarray
@@ -539,63 +528,9 @@ class BoxQuery:
         ``where`` (``bool (N,)``) that lie in it, in one pass."""
         owner, where = np.asarray(owner), np.asarray(where, dtype=bool)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        if not len(boxes) or not len(self.points):
-            return np.zeros(len(boxes), dtype=np.int64)
         point, box = placement.box_members(self.points, boxes)
         own = (owner[point] == box) & where[point]
         return np.bincount(box[own], minlength=len(boxes)).astype(np.int64)
-
-    def _terms(self, boxes: np.ndarray, margin: float) -> tuple[np.ndarray, ...]:
-        """Per box: cos, sin of the heading (numpy's, as :meth:`inside`), the BEV reach of the
-        rotated box ``(M, 2)`` (a conservative pre-filter) and the half sizes ``(M, 3)``."""
-        heading = np.ascontiguousarray(boxes[:, 6])
-        cos, sin = np.cos(heading), np.sin(heading)
-        length, width = boxes[:, 3] + 2.0 * margin, boxes[:, 4] + 2.0 * margin
-        reach = np.column_stack(
-            [
-                (length * np.abs(cos) + width * np.abs(sin)) / 2.0 + self._SLACK,
-                (length * np.abs(sin) + width * np.abs(cos)) / 2.0 + self._SLACK,
-            ]
-        )
-        return cos, sin, reach, boxes[:, 3:6] / 2.0 + margin
-
-
-@nb.njit(cache=True, nogil=True)
-def _box_scan(points, boxes, cos, sin, reach, half, owner, counts):  # pragma: no cover - numba
-    # Per point, the boxes in order. Fills ``owner`` (the last box holding each point) and/or
-    # ``counts`` (points per box), whichever is not empty.
-    with_owner, with_counts = owner.shape[0] > 0, counts.shape[0] > 0
-    for i in range(points.shape[0]):
-        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
-        for m in range(boxes.shape[0]):
-            if _in_box(
-                px - boxes[m, 0],
-                py - boxes[m, 1],
-                pz - boxes[m, 2],
-                cos[m],
-                sin[m],
-                reach[m, 0],
-                reach[m, 1],
-                half[m, 0],
-                half[m, 1],
-                half[m, 2],
-            ):
-                if with_owner:
-                    owner[i] = m
-                if with_counts:
-                    counts[m] += 1
-
-
-@nb.njit(cache=True, nogil=True)
-def _in_box(dx, dy, dz, cos, sin, reach_x, reach_y, half_x, half_y, half_z):  # pragma: no cover
-    # Whether the offset (dx, dy, dz) from a box centre lies in the box: the float64
-    # arithmetic of BoxQuery.inside, operation for operation, so that a point on a face gets
-    # the same verdict. (Scalars only: a call with arrays costs more than the test.)
-    if abs(dx) > reach_x or abs(dy) > reach_y:
-        return False
-    local_x = dx * cos + dy * sin
-    local_y = -dx * sin + dy * cos
-    return abs(local_x) <= half_x and abs(local_y) <= half_y and abs(dz) <= half_z
 
 
 #: Metadata arrays holding one row per box, kept in step when boxes are added or removed, with

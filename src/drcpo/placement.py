@@ -296,9 +296,12 @@ class _Obstacles:
         return np.bincount(box[above], minlength=len(boxes)).astype(np.int64)
 
 
-def box_members(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Every (point, box) pair with the point inside the box: ``int64 (P,)`` point indices
-    (ascending) and ``int64 (P,)`` box indices.
+def box_members(
+    points: np.ndarray, boxes: np.ndarray, margin: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, box) pair with the point inside the box grown by ``margin`` metres:
+    ``int64 (P,)`` point indices (ascending; a point's boxes in ascending order) and ``int64
+    (P,)`` box indices.
 
     Same arithmetic and boundary rule (closed boxes) as
     :func:`drcpo.geometry.points_in_boxes`, in one pass over the ``(N, 3+)`` points: each
@@ -307,7 +310,7 @@ def box_members(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.n
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     if len(boxes) == 0 or len(points) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return _members(points, boxes, *_heading_terms(boxes), _MEMBER_CELLS)
+    return _members(points, boxes, *_heading_terms(boxes), float(margin), _MEMBER_CELLS)
 
 
 def _heading_terms(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -320,24 +323,31 @@ def _heading_terms(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # The numba helpers below take scalars only: arrays passed to an inlined helper are
 # reference-counted on every call, which costs more than the arithmetic in hot loops.
 @numba.njit(cache=True, nogil=True, inline="always")
-def _inside(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin):  # pragma: no cover - numba
-    # points_in_boxes' test, operation for operation (float64, closed box).
+def _inside(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma: no cover - numba
+    # points_in_boxes' test, operation for operation (float64, closed box, half sizes grown by
+    # ``margin``).
     ox, oy, oz = px - cx, py - cy, pz - cz
     local_x = ox * cos + oy * sin
     local_y = -ox * sin + oy * cos
-    return abs(local_x) <= dx / 2.0 and abs(local_y) <= dy / 2.0 and abs(oz) <= dz / 2.0
+    return (
+        abs(local_x) <= dx / 2.0 + margin
+        and abs(local_y) <= dy / 2.0 + margin
+        and abs(oz) <= dz / 2.0 + margin
+    )
 
 
 @numba.njit(cache=True, nogil=True)
-def _members(points, boxes, cos, sin, max_cells):  # pragma: no cover - numba
-    # A grid over the boxes' axis-aligned BEV bounds lists, per cell, the boxes covering it.
-    # The bounds have some slack: float rounding must not push a point inside a box out.
+def _members(points, boxes, cos, sin, margin, max_cells):  # pragma: no cover - numba
+    # A grid over the boxes' axis-aligned BEV bounds (grown by ``margin``) lists, per cell,
+    # the boxes covering it. The bounds have some slack: float rounding must not push a point
+    # inside a box out.
     count = boxes.shape[0]
     reach = np.empty((count, 2))
     for m in range(count):
         c, s = abs(cos[m]), abs(sin[m])
-        reach[m, 0] = (boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 * (1.0 + 1e-9) + 1e-6
-        reach[m, 1] = (boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 * (1.0 + 1e-9) + 1e-6
+        grow = margin * (c + s)
+        reach[m, 0] = ((boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 + grow) * (1.0 + 1e-9) + 1e-6
+        reach[m, 1] = ((boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 + grow) * (1.0 + 1e-9) + 1e-6
     x0, x1 = np.min(boxes[:, 0] - reach[:, 0]), np.max(boxes[:, 0] + reach[:, 0])
     y0, y1 = np.min(boxes[:, 1] - reach[:, 1]), np.max(boxes[:, 1] + reach[:, 1])
     # Cells are found by multiplying with the inverse size (monotone, like division, so a
@@ -388,6 +398,7 @@ def _members(points, boxes, cos, sin, max_cells):  # pragma: no cover - numba
                 boxes[m, 5],
                 cos[m],
                 sin[m],
+                margin,
             ):
                 if found == found_point.shape[0]:
                     found_point = np.concatenate((found_point, np.empty_like(found_point)))
@@ -992,6 +1003,7 @@ def _occluded_share(
                 cleared[k, 5],
                 cleared_cos[k],
                 cleared_sin[k],
+                0.0,
             ):
                 gone = True
                 break
