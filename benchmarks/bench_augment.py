@@ -13,14 +13,20 @@ the medians of the per-frame milliseconds are reported. The last stdout line is 
 
     {"cda_ms": a, "drcpo_ms": b, "ratio": b / a, "stages_ms": {stage: median ms}, ...}
 
-Usage: ``python benchmarks/bench_augment.py [--quick] [--work DIR]`` (``--work`` keeps the
-database and its index between runs).
+With ``--processes N``, it also measures throughput the way a data loader's worker processes
+see it: N forked processes each augment every frame 4 x ``--repeats`` times (after one untimed
+pass), first with the baseline, then with DR.CPO; the JSON gains ``processes``,
+``cda_frames_per_s`` and ``drcpo_frames_per_s`` (all processes together).
+
+Usage: ``python benchmarks/bench_augment.py [--quick] [--work DIR] [--processes N]``
+(``--work`` keeps the database and its index between runs).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import statistics
 import sys
@@ -139,6 +145,50 @@ def time_call(transform, frame: Frame, seed: int) -> tuple[float, float, dict]:
     return wall, (time.process_time() - cpu) * 1000.0, out.metadata["augment_stats"]
 
 
+def _throughput_worker(transform, frames, worker, repeats, ready, done) -> None:
+    """One forked process of :func:`frames_per_second`: an untimed pass (first touches of
+    memory in a new process), then, once every process is ready, the timed ones."""
+    for f, frame in enumerate(frames):
+        transform(frame, np.random.default_rng([worker, repeats, f]))
+    ready.wait()
+    for r in range(repeats):
+        for f, frame in enumerate(frames):
+            transform(frame, np.random.default_rng([worker, r, f]))
+    done.put(repeats * len(frames))
+
+
+def frames_per_second(transform, frames: list[Frame], repeats: int, processes: int) -> float:
+    """Frames per second of ``processes`` forked processes that each augment every frame
+    ``repeats`` times, all started together."""
+    if "fork" not in multiprocessing.get_all_start_methods():
+        raise SystemExit("--processes needs the fork start method (Linux or macOS)")
+    context = multiprocessing.get_context("fork")
+    ready, done = context.Barrier(processes + 1, timeout=600), context.Queue()
+    workers = [
+        context.Process(
+            target=_throughput_worker, args=(transform, frames, w, repeats, ready, done)
+        )
+        for w in range(processes)
+    ]
+    for worker in workers:
+        worker.start()
+    try:
+        ready.wait()
+        start = time.perf_counter()
+        count = sum(done.get(timeout=3600) for _ in workers)
+        elapsed = time.perf_counter() - start
+    finally:
+        for worker in workers:
+            worker.join(timeout=10)
+            if worker.is_alive():
+                worker.terminate()
+    if any(worker.exitcode for worker in workers):
+        raise SystemExit(
+            f"a throughput process failed (exit codes {[w.exitcode for w in workers]})"
+        )
+    return count / elapsed
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small database, 2 frames")
@@ -146,7 +196,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--frames", type=int, help="frames to use (default 6, quick 2)")
     parser.add_argument("--repeats", type=int, help="runs per frame and pipeline (default 5)")
     parser.add_argument("--source", choices=("auto", "kitti", "synth"), default="auto")
+    parser.add_argument(
+        "--processes", type=int, default=0, help="also measure throughput of N forked processes"
+    )
     args = parser.parse_args(argv)
+    if args.processes < 0:
+        parser.error("--processes must be 0 (no throughput run) or more")
     counts = QUICK_COUNTS if args.quick else KITTI_COUNTS
     k = 100 if args.quick else 400
     n_frames = args.frames or (2 if args.quick else 6)
@@ -180,6 +235,13 @@ def main(argv: list[str] | None = None) -> dict:
                 for name, stage in stats["stages"].items():
                     stages.setdefault(name, []).append(stage["ms"])
                 added.append(sum(c["added"] for c in stats["objects"].get("drcpo", {}).values()))
+        throughput = {}
+        if args.processes:
+            throughput = {
+                "processes": args.processes,
+                "cda_frames_per_s": frames_per_second(cda, frames, 4 * repeats, args.processes),
+                "drcpo_frames_per_s": frames_per_second(drcpo, frames, 4 * repeats, args.processes),
+            }
     result = {
         "cda_ms": statistics.median(cda_ms),
         "drcpo_ms": statistics.median(drcpo_ms),
@@ -199,6 +261,7 @@ def main(argv: list[str] | None = None) -> dict:
         k=k,
         index_build_s=round(index_s, 1),
         drcpo_objects_added_mean=float(np.mean(added)),
+        **throughput,
     )
     print(
         f"{result['frames']} frames ({result['source']}, ~{result['points_per_frame']} points), "
@@ -207,6 +270,12 @@ def main(argv: list[str] | None = None) -> dict:
     )
     for name, ms in result["stages_ms"].items():
         print(f"  {name:28s} {ms:8.2f} ms", file=sys.stderr)
+    if throughput:
+        print(
+            f"{args.processes} processes: baseline {throughput['cda_frames_per_s']:.0f} frames/s, "
+            f"DR.CPO pipeline {throughput['drcpo_frames_per_s']:.0f} frames/s",
+            file=sys.stderr,
+        )
     sys.stderr.flush()
     print(json.dumps(result), flush=True)
     return result

@@ -937,12 +937,18 @@ def test_bench_augment_quick_mode(tmp_path, capsys):
     spec = importlib.util.spec_from_file_location("bench_augment", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    bench.main(["--quick", "--frames", "1", "--repeats", "1", "--work", str(tmp_path)])
+    args = ["--quick", "--frames", "1", "--repeats", "1", "--work", str(tmp_path)]
+    bench.main([*args, "--processes", "1"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
     result = json.loads(last)
     assert {"cda_ms", "drcpo_ms", "ratio", "stages_ms"} <= set(result)
     assert result["ratio"] == pytest.approx(result["drcpo_ms"] / result["cda_ms"])
     assert "drcpo.external_occlusion" in result["stages_ms"]
+    # the throughput run (forked processes) reports frames per second of both pipelines
+    assert result["processes"] == 1
+    assert result["cda_frames_per_s"] > 0 and result["drcpo_frames_per_s"] > 0
+    with pytest.raises(SystemExit):
+        bench.main([*args, "--processes", "-1"])
 
 
 @pytest.mark.parametrize("scope", ["inserted", "frame"])
