@@ -242,6 +242,11 @@ def _apply(
     run: _Run, name: str, transform: Callable, frames: list[Frame], seed: int, stream: int
 ) -> list[Frame]:
     augmented = []
+    if frames:  # loads (or compiles) the kernels and touches the database: timed on its own
+        with run.stage(f"{name} first call", f"warming up {name} (its compiled kernels)"):
+            transform(
+                frames[0], np.random.default_rng(np.random.SeedSequence([seed, stream, 1, 0]))
+            )
     with run.stage(name, f"augmenting {len(frames)} frames with {name}"):
         with run.progress() as bar:
             task = bar.add_task("frames", total=len(frames))
