@@ -31,6 +31,7 @@ import os
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -148,8 +149,12 @@ def time_call(transform, frame: Frame, seed: int) -> tuple[float, float, dict]:
 def _throughput_worker(transform, frames, worker, repeats, ready, done) -> None:
     """One forked process of :func:`frames_per_second`: an untimed pass (first touches of
     memory in a new process), then, once every process is ready, the timed ones."""
-    for f, frame in enumerate(frames):
-        transform(frame, np.random.default_rng([worker, repeats, f]))
+    try:
+        for f, frame in enumerate(frames):
+            transform(frame, np.random.default_rng([worker, repeats, f]))
+    except BaseException:
+        ready.abort()  # the parent stops waiting at once
+        raise
     ready.wait()
     for r in range(repeats):
         for f, frame in enumerate(frames):
@@ -173,7 +178,10 @@ def frames_per_second(transform, frames: list[Frame], repeats: int, processes: i
     for worker in workers:
         worker.start()
     try:
-        ready.wait()
+        try:
+            ready.wait()
+        except threading.BrokenBarrierError:
+            raise SystemExit("a throughput process failed before starting") from None
         start = time.perf_counter()
         count = sum(done.get(timeout=3600) for _ in workers)
         elapsed = time.perf_counter() - start

@@ -950,6 +950,12 @@ def test_bench_augment_quick_mode(tmp_path, capsys):
     with pytest.raises(SystemExit):
         bench.main([*args, "--processes", "-1"])
 
+    def failing(frame, rng):
+        raise RuntimeError("a transform that fails")
+
+    with pytest.raises(SystemExit, match="failed"):  # at once, not after the barrier's timeout
+        bench.frames_per_second(failing, [Frame(np.zeros((1, 4), np.float32))], 1, 2)
+
 
 @pytest.mark.parametrize("scope", ["inserted", "frame"])
 def test_drcpo_range_image_mode(synthetic_world, scope):
