@@ -392,14 +392,14 @@ def _placed_objects(
 ) -> np.ndarray:
     """The database objects ``rows`` placed in ``boxes`` ``(S, 7)``, one after the other, as
     :func:`_placed_object` places each (``float32 (n, dim)``)."""
-    counts = np.array([len(database.object_points(int(row))) for row in rows], dtype=np.int64)
-    out = np.zeros((int(counts.sum()), dim), dtype=np.float32)
+    objects = [database.object_points(int(row)) for row in rows]
+    out = np.zeros((sum(len(canonical) for canonical in objects), dim), dtype=np.float32)
     start = 0
-    for row, box, count in zip(rows, boxes, counts, strict=True):
+    for canonical, box in zip(objects, boxes, strict=True):
         heading = np.float64(box[6])
-        canonical = database.object_points(int(row))
-        _place_rows(canonical, np.cos(heading), np.sin(heading), box, out[start : start + count])
-        start += count
+        stop = start + len(canonical)
+        _place_rows(canonical, np.cos(heading), np.sin(heading), box, out[start:stop])
+        start = stop
     return out
 
 

@@ -203,12 +203,12 @@ def place_objects(
         attempts += len(pending)
         boxes = sample_poses(room[pending], rng, config)
         verdict = _judge(boxes, pending, dims, source_z, occupied, obstacles, config)
+        own = boxes.copy()  # the objects' own footprints, without the clearance
+        own[:, 3:5] = dims[pending, :2]
         passed = np.flatnonzero(verdict == 0)
         if occluded is not None and len(passed):
-            own = boxes[passed]
-            own[:, 3:5] = dims[pending[passed], :2]
             before = placed[np.isfinite(placed[:, 0])]
-            hidden = np.asarray(occluded(own, before), dtype=bool).reshape(-1)
+            hidden = np.asarray(occluded(own[passed], before), dtype=bool).reshape(-1)
             if len(hidden) != len(passed):
                 raise ValueError(
                     f"occluded returned {len(hidden)} verdicts for {len(passed)} boxes"
@@ -218,8 +218,7 @@ def place_objects(
         verdicts[pending] = verdict
         ok = verdict == 0
         occupied = np.concatenate([occupied, boxes[ok]])
-        boxes[:, 3:5] = dims[pending, :2]
-        placed[pending[ok]] = boxes[ok]
+        placed[pending[ok]] = own[ok]
         pending = pending[~ok]
     accepted = np.flatnonzero(verdicts == 0)
     return PlacementResult(
