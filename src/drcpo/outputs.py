@@ -207,19 +207,25 @@ def _write_and_commit(
             raise RuntimeError(f"drcpo bug: a {kind.description} was written without its marker")
         with _signals_deferred():
             _check_replaceable(target, kind, overwrite, shown)
-            _commit(tmp, target)
+            _commit(tmp, target, kind, overwrite, shown)
             committed[0] = True
     finally:
         _remove(tmp)  # after a commit it holds the old output, or nothing at all
 
 
-def _commit(tmp: Path, target: Path) -> None:
-    """Move ``tmp`` to ``target``; an existing ``target`` ends up at ``tmp``'s name."""
-    if not os.path.lexists(target):
-        if not _rename2(tmp, target, _RENAME_NOREPLACE):
-            os.rename(tmp, target)  # no renameat2: only our lock excludes other writers
+def _commit(tmp: Path, target: Path, kind: OutputKind, overwrite: bool, shown: Path) -> None:
+    """Move ``tmp`` to ``target``; a replaced ``target`` ends up at ``tmp``'s name."""
+    if not overwrite or not os.path.lexists(target):
+        if _rename2(tmp, target, _RENAME_NOREPLACE):
+            return
+        if os.path.lexists(target):  # no renameat2: only our lock excludes other writers
+            raise OutputExistsError(f"{shown} appeared while this run wrote it; it was left as is")
+        os.rename(tmp, target)
         return
     if _rename2(tmp, target, _RENAME_EXCHANGE):
+        if _not_owned(tmp, kind) is not None:  # another program put something else there
+            _rename2(tmp, target, _RENAME_EXCHANGE)
+            raise OutputError(f"{shown} changed while this run wrote it; it was left as is")
         return
     old = target.with_name(tmp.name.replace(".tmp-", ".old-", 1))
     os.rename(target, old)
@@ -403,7 +409,7 @@ def _rename2(source: Path, target: Path, flags: int) -> bool:
     if code in _UNSUPPORTED:
         return False
     if code == errno.EEXIST:
-        raise OutputExistsError(f"{target} appeared while this run wrote it; it was left as it is")
+        raise OutputExistsError(f"{target} appeared while this run wrote it; it was left as is")
     raise OSError(code, os.strerror(code), os.fspath(source), None, os.fspath(target))
 
 
