@@ -19,9 +19,12 @@ class ConfigError(DrcpoError, ValueError):
     """A configuration value is missing, unknown or out of range."""
 
 
-class OutputError(DrcpoError):
+class OutputError(DrcpoError, OSError):
     """An output cannot be written: it exists, it is not drcpo's to replace, it overlaps an
-    input, another run is writing it, or the operating system refused (permission, disk full)."""
+    input, another run is writing it, or the operating system refused (permission, disk full).
+
+    An ``OSError`` too, so code that caught the system's errors of a failed write still does.
+    """
 
 
 class OutputExistsError(OutputError, FileExistsError):
