@@ -324,6 +324,25 @@ def test_replace_killed_between_its_steps_keeps_a_complete_output(tmp_path, mode
     assert hidden(tmp_path) == []
 
 
+@pytest.mark.parametrize("renameat2", [True, False], ids=["renameat2", "fallback"])
+def test_a_signal_during_the_replace_waits_for_it(tmp_path, monkeypatch, renameat2):
+    write_directory(tmp_path / "out", fill("old"), KIND)
+    if not renameat2:
+        monkeypatch.setattr(outputs, "_renameat2", lambda: None)
+    real = outputs._commit
+
+    def commit(*args):
+        signal.raise_signal(signal.SIGINT)  # Ctrl-C just as the output is moved into place
+        real(*args)
+
+    monkeypatch.setattr(outputs, "_commit", commit)
+    with pytest.raises(Interrupted, match="after the output was complete") as caught:
+        write_directory(tmp_path / "out", fill("new"), KIND, overwrite=True)
+    assert caught.value.complete and caught.value.exit_status == 130
+    assert payload(tmp_path / "out") == "new"
+    assert hidden(tmp_path) == []
+
+
 # Defect 8: temporaries of dead runs, SIGTERM --------------------------------------------------
 def test_stale_temporaries_of_dead_runs_are_removed(tmp_path):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])

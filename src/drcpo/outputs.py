@@ -356,15 +356,26 @@ def _sigterm_unwinds() -> Iterator[None]:
 
 @contextmanager
 def _signals_deferred() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM back while the output is moved into place."""
+    """Hold SIGINT and SIGTERM back while the output is moved into place, then deliver them.
+
+    Done with Python handlers rather than a signal mask: the kernel may hand a signal to any
+    thread (a progress bar's, numba's), but Python runs handlers in the main thread only.
+    """
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield  # signals interrupt only the main thread, never this one
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    pending: list[int] = []
+    previous = {
+        number: signal.signal(number, lambda signum, frame: pending.append(signum))
+        for number in (signal.SIGINT, signal.SIGTERM)
+    }
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    for number in pending:
+        signal.raise_signal(number)  # now handled as it would have been
 
 
 @contextmanager
