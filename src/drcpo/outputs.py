@@ -252,7 +252,7 @@ def _remove(path: Path) -> None:
 
 
 # Stale temporaries ----------------------------------------------------------------------------
-def temporary_pattern(name: str) -> re.Pattern[str]:
+def _temporary_pattern(name: str) -> re.Pattern[str]:
     """Names of the temporaries (``tmp``) and moved-away old outputs (``old``) of ``name``."""
     return re.compile(rf"\.{re.escape(name)}\.(tmp|old)-(\d+)-[0-9a-f]{{8}}")
 
@@ -263,7 +263,7 @@ def _remove_stale(target: Path) -> None:
     An old output whose run died between its two renames goes back to ``target`` when
     ``target`` is missing.
     """
-    pattern = temporary_pattern(target.name)
+    pattern = _temporary_pattern(target.name)
     found = [(pattern.fullmatch(entry.name), entry) for entry in target.parent.iterdir()]
     ours = [(match, entry) for match, entry in found if match is not None]
     for match, entry in sorted(ours, key=lambda item: item[0][1] != "old"):
