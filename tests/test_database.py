@@ -3,8 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from drcpo.database import GroundTruthDatabase, ObjectRecord, atomic_directory
+from drcpo.database import DATABASE_OUTPUT, GroundTruthDatabase, ObjectRecord
 from drcpo.errors import DataError
+from drcpo.outputs import write_directory
 
 
 def _records(rng, n=6):
@@ -78,7 +79,7 @@ def test_interrupted_write_leaves_nothing(tmp_path):
         raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        atomic_directory(tmp_path / "db", write)
+        write_directory(tmp_path / "db", write, DATABASE_OUTPUT)
     assert list(tmp_path.iterdir()) == []
 
 

@@ -18,6 +18,7 @@ from rich.table import Table
 from rich.text import Text
 
 from drcpo.errors import DrcpoError
+from drcpo.outputs import Interrupted
 
 app = typer.Typer(
     add_completion=False,
@@ -32,6 +33,12 @@ def fail(message: str) -> None:
     # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
     console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
     raise typer.Exit(1)
+
+
+def interrupted(exc: Interrupted) -> None:
+    """Report an output write stopped by SIGINT / SIGTERM; exit with 128 + the signal number."""
+    console.print(Text.assemble(("interrupted:", "bold red"), " ", str(exc)), soft_wrap=True)
+    raise typer.Exit(exc.exit_status)
 
 
 def class_table(summary: dict[str, dict[str, int]], title: str) -> Table:
@@ -99,6 +106,8 @@ def build_db(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
+    except Interrupted as exc:
+        interrupted(exc)
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -122,6 +131,8 @@ def import_openpcdet_command(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
+    except Interrupted as exc:
+        interrupted(exc)
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -178,12 +189,12 @@ def index(
     import time
 
     from drcpo.database import GroundTruthDatabase
-    from drcpo.index import INDEX_DIRNAME, IndexConfig, build_index, indexed_mask
+    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT, IndexConfig, build_index, indexed_mask
+    from drcpo.outputs import check_output
 
     try:
         database = GroundTruthDatabase.open(db)
-        if (db / INDEX_DIRNAME).exists() and not overwrite:
-            fail(f"{db / INDEX_DIRNAME} already exists (pass --overwrite to rebuild it)")
+        check_output(db / INDEX_DIRNAME, INDEX_OUTPUT, overwrite)  # before the long build
         config = IndexConfig(
             k=k,
             alpha=alpha,
@@ -206,6 +217,8 @@ def index(
         seconds = time.perf_counter() - start
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
+    except Interrupted as exc:
+        interrupted(exc)
     table = Table(title=f"{path} (K = {k}, {seconds:.1f} s)")
     for column in ("class", "objects", "indexed", "mean candidates", "first stage"):
         table.add_column(column, justify="left" if column == "class" else "right")
@@ -251,10 +264,12 @@ def augment(
         transform = build_pipeline(settings, database, kind=pipeline)
         with progress_bar(f"frames of {split}") as progress:
             summary = augment_kitti(
-                kitti, split, transform, out, frames, seed, fov, overwrite, progress
+                kitti, split, transform, out, frames, seed, fov, overwrite, progress, inputs=[db]
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
+    except Interrupted as exc:
+        interrupted(exc)
     table = Table(title=f"{out}: {summary['frames']} frames, {summary['points']} points")
     table.add_column("class")
     table.add_column("boxes", justify="right")
@@ -288,6 +303,8 @@ def synth(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
+    except Interrupted as exc:
+        interrupted(exc)
     points = summary["points"]
     table = Table(title=f"{out}: {frames} frames")
     table.add_column("")
@@ -318,6 +335,8 @@ def demo(
         run_demo(out, frames=frames, seed=seed, augment_frames=augment_frames)
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
+    except Interrupted as exc:
+        interrupted(exc)
 
 
 def main() -> None:

@@ -16,8 +16,9 @@ On-disk layout (a directory; no pickle anywhere)::
       truncation.npy       float32 (N,)    KITTI truncation (NaN when unknown)
 
 ``points.npy`` and ``offsets.npy`` are memory-mapped, so reading one object's points costs O(1)
-and opens no per-object file. Databases are written to a temporary sibling directory and renamed
-into place at the end, so an interrupted build never leaves a database that loads.
+and opens no per-object file. Databases are written through :func:`drcpo.outputs.write_directory`
+(a temporary sibling directory renamed into place at the end), so an interrupted build never
+leaves a database that loads.
 """
 
 from __future__ import annotations
@@ -25,8 +26,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,10 +34,12 @@ from typing import Any
 import numpy as np
 
 from drcpo.errors import DataError
+from drcpo.outputs import OutputKind, write_directory
 
 FORMAT_NAME = "drcpo-gt-database"
 FORMAT_VERSION = 1
 DIFFICULTY_NAMES = ("easy", "moderate", "hard")  # codes 0, 1, 2; -1 is "unknown"
+DATABASE_OUTPUT = OutputKind("drcpo database", "manifest.json", FORMAT_NAME)
 
 _COLUMNS: dict[str, Any] = {
     "boxes": np.float64,
@@ -266,7 +267,11 @@ class GroundTruthDatabase:
         parameters: dict[str, Any] | None = None,
         overwrite: bool = False,
     ) -> Path:
-        """Write the database to ``path`` atomically (temporary directory, then rename)."""
+        """Write the database to ``path`` atomically (temporary directory, then rename).
+
+        ``overwrite`` replaces only a drcpo database (see :mod:`drcpo.outputs`); raises
+        :class:`~drcpo.errors.OutputError` when ``path`` cannot be written.
+        """
         arrays = {"points": self._points, "offsets": self._offsets, **self._columns}
         manifest = {
             "format": FORMAT_NAME,
@@ -286,37 +291,7 @@ class GroundTruthDatabase:
                 np.save(tmp / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
             (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
-        return atomic_directory(path, write, overwrite=overwrite)
-
-
-def atomic_directory(path: str | os.PathLike, write, overwrite: bool = False) -> Path:
-    """Create directory ``path`` by calling ``write(tmp_dir)`` and renaming ``tmp_dir`` at the end.
-
-    If ``write`` raises, nothing is left at ``path`` (an existing directory is kept unless
-    ``overwrite`` and the new one is complete).
-    """
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} already exists (pass overwrite=True / --overwrite)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-    try:
-        # mkdtemp makes the directory private (0700); a finished one gets the usual umask mode.
-        umask = os.umask(0)
-        os.umask(umask)
-        tmp.chmod(0o777 & ~umask)
-        write(tmp)
-        if path.exists():
-            old = path.with_name(f".{path.name}.old-{os.getpid()}")
-            path.rename(old)
-            tmp.rename(path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return path
+        return write_directory(path, write, DATABASE_OUTPUT, overwrite=overwrite)
 
 
 def read_manifest(path: Path, format_name: str, format_version: int, missing: str) -> dict:
@@ -332,6 +307,8 @@ def read_manifest(path: Path, format_name: str, format_version: int, missing: st
         manifest = json.loads(manifest_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
+    except OSError as exc:
+        raise DataError(f"{manifest_path}: cannot read the manifest ({exc.strerror})") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != format_name:
         found = manifest.get("format") if isinstance(manifest, dict) else manifest
         raise DataError(f"{manifest_path}: format is {found!r}, expected {format_name!r}")

@@ -18,11 +18,12 @@ from typing import Any
 import numpy as np
 
 from drcpo import safe_pickle
-from drcpo.database import GroundTruthDatabase, ObjectRecord
+from drcpo.database import DATABASE_OUTPUT, GroundTruthDatabase, ObjectRecord
 from drcpo.datasets.kitti import DONT_CARE, KittiDataset, KittiLabels, read_labels, read_points
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import rotate_points_z, to_canonical
+from drcpo.outputs import check_output
 
 DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")
 
@@ -128,19 +129,20 @@ def build_database(
         out: database directory to create.
         classes: class names to keep, or ``"all"`` for every non-``DontCare`` class.
         workers: processes reading frames in parallel; the result does not depend on it.
-        overwrite: replace an existing ``out`` (only once the new database is complete).
+        overwrite: replace an existing ``out`` (only a drcpo database; only once the new
+            database is complete).
         progress: optional ``progress(frames_done, frames_total)`` callback.
 
     Returns the database opened from ``out``. Raises :class:`DataError` on bad input (naming the
     file) or when the split holds no object of the chosen classes, :class:`ConfigError` on bad
-    arguments, :class:`FileExistsError` when ``out`` exists and ``overwrite`` is false.
+    arguments, :class:`~drcpo.errors.OutputError` when ``out`` cannot be written (it exists
+    and ``overwrite`` is false, it is not a drcpo database, it overlaps ``root``).
     """
     chosen = _check_classes(classes)
     if workers < 1:
         raise ConfigError(f"workers must be >= 1, got {workers}")
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} already exists (pass overwrite=True / --overwrite)")
+    check_output(out, DATABASE_OUTPUT, overwrite, inputs=[root])  # before reading any frame
     dataset = KittiDataset(root, split)
     records = [
         record
@@ -252,9 +254,8 @@ def import_openpcdet(
     """
     dbinfos_pkl = Path(dbinfos_pkl)
     out = Path(out)
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} already exists (pass overwrite=True / --overwrite)")
     root = Path(root) if root is not None else dbinfos_pkl.parent
+    check_output(out, DATABASE_OUTPUT, overwrite, inputs=[dbinfos_pkl, root])
     entries = sorted(_dbinfo_entries(dbinfos_pkl), key=lambda e: (e["image_idx"], e["gt_idx"]))
     if not entries:
         raise DataError(f"{dbinfos_pkl}: holds no objects")

@@ -29,6 +29,7 @@ from drcpo.database import GroundTruthDatabase, ObjectRecord
 from drcpo.datasets.kitti import KittiDataset, fov_mask
 from drcpo.frame import Frame
 from drcpo.geometry import points_in_boxes, to_canonical
+from drcpo.outputs import atomic_write_bytes
 from drcpo.partitions import partition_counts
 from drcpo.synth.dataset import matches, synth_parameters, write_synthetic_kitti
 from drcpo.synth.sensor import LidarConfig
@@ -127,7 +128,7 @@ def run_demo(
         },
     }
     summary["total_s"] = time.perf_counter() - start
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
     _print_summary(run.console, summary, results)
     return summary
 

@@ -1,4 +1,4 @@
-"""Exceptions raised on bad input.
+"""Exceptions raised on bad input or an output that cannot be written.
 
 Every error raised for a user's data or configuration derives from :class:`DrcpoError`, so a
 training loop can catch one type, and its message names the culprit (file, line, field).
@@ -17,3 +17,15 @@ class DataError(DrcpoError, ValueError):
 
 class ConfigError(DrcpoError, ValueError):
     """A configuration value is missing, unknown or out of range."""
+
+
+class OutputError(DrcpoError, OSError):
+    """An output cannot be written: it exists, it is not drcpo's to replace, it overlaps an
+    input, another run is writing it, or the operating system refused (permission, disk full).
+
+    An ``OSError`` too, so code that caught the system's errors of a failed write still does.
+    """
+
+
+class OutputExistsError(OutputError, FileExistsError):
+    """The output path already exists and ``overwrite`` was not asked for."""

@@ -65,13 +65,15 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from drcpo.database import GroundTruthDatabase, atomic_directory, read_manifest
+from drcpo.database import GroundTruthDatabase, read_manifest
 from drcpo.errors import ConfigError, DataError
+from drcpo.outputs import OutputKind, write_directory
 from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for, num_partitions
 
 FORMAT_NAME = "drcpo-candidate-index"
 FORMAT_VERSION = 1
 INDEX_DIRNAME = "index"
+INDEX_OUTPUT = OutputKind("drcpo candidate index", "manifest.json", FORMAT_NAME)
 
 #: ``progress(class_name, objects_done, objects_total)``, called from the calling thread.
 Progress = Callable[[str, int, int], None]
@@ -243,7 +245,10 @@ class CandidateIndex:
         }
 
     def save(self, db_dir: str | os.PathLike, overwrite: bool = False) -> Path:
-        """Write ``db_dir/index/`` atomically (temporary directory, then rename)."""
+        """Write ``db_dir/index/`` atomically (temporary directory, then rename).
+
+        ``overwrite`` replaces only a drcpo index (see :mod:`drcpo.outputs`).
+        """
         manifest = self.manifest()
 
         def write(tmp: Path) -> None:
@@ -251,7 +256,7 @@ class CandidateIndex:
             np.save(tmp / "densities.npy", np.ascontiguousarray(self.densities, np.float32))
             (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
-        return atomic_directory(Path(db_dir) / INDEX_DIRNAME, write, overwrite=overwrite)
+        return write_directory(Path(db_dir) / INDEX_DIRNAME, write, INDEX_OUTPUT, overwrite)
 
     @classmethod
     def load(

@@ -57,10 +57,13 @@ from drcpo.geometry import (
     wrap_angle,
 )
 from drcpo.index import indexed_mask
+from drcpo.outputs import OutputKind, write_directory
 from drcpo.placement import OcclusionMap, _facing_samples, frame_ground  # noqa: F401
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
+#: What :func:`augment_kitti` writes; ``augment.json`` (written last) marks it as drcpo's.
+AUGMENT_OUTPUT = OutputKind("drcpo augment output", "augment.json", "drcpo-augmented-kitti")
 
 
 # --------------------------------------------------------------------------------------------
@@ -1622,6 +1625,7 @@ def augment_kitti(
     fov_only: bool = True,
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    inputs: Sequence[str | os.PathLike] = (),
 ) -> dict[str, Any]:
     """Augment frames of a KITTI split and write them in KITTI layout under ``out``.
 
@@ -1631,8 +1635,10 @@ def augment_kitti(
     occlusion levels of original boxes kept, 3 "unknown" for inserted ones),
     ``training/calib/*.txt`` (copied),
     ``ImageSets/<split>.txt`` and ``stats.jsonl`` (one JSON object per frame: ``frame_id``,
-    ``points``, ``boxes`` per class and the transform's statistics). Everything is written to a
-    temporary directory renamed to ``out`` at the end, so an interrupted run leaves nothing.
+    ``points``, ``boxes`` per class and the transform's statistics), and last ``augment.json``
+    (:data:`AUGMENT_OUTPUT`'s marker: the source, split, frames, seed). Everything is written to
+    a temporary directory renamed to ``out`` at the end (:func:`drcpo.outputs.write_directory`),
+    so an interrupted run leaves nothing; ``overwrite`` replaces only an earlier augment output.
 
     Args:
         root: KITTI root; split: split name; transform: the augmentation.
@@ -1641,10 +1647,11 @@ def augment_kitti(
         fov_only: cut frames to the camera's field of view first (as OpenPCDet trains KITTI);
             frames then carry ``metadata["fov_only"] = True``.
         progress: ``progress(done, total)`` after each frame.
+        inputs: other paths the transform reads (the database): ``out`` may not be or contain
+            them, nor ``root``.
 
     Returns a summary: frames written, points and boxes per class over all frames, mean ms.
     """
-    from drcpo.database import atomic_directory
     from drcpo.datasets import kitti_writer
     from drcpo.datasets.kitti import KittiDataset, fov_mask
 
@@ -1699,8 +1706,18 @@ def augment_kitti(
                 summary["ms"].append(elapsed)
                 if progress is not None:
                     progress(number + 1, len(ids))
+        marker = {
+            "format": AUGMENT_OUTPUT.format,
+            "format_version": 1,
+            "source": str(Path(root).resolve()),
+            "split": split,
+            "frames": len(ids),
+            "seed": int(seed),
+            "fov_only": bool(fov_only),
+        }
+        (tmp / AUGMENT_OUTPUT.marker).write_text(json.dumps(marker, indent=2) + "\n")
 
-    atomic_directory(out, write, overwrite=overwrite)
+    write_directory(out, write, AUGMENT_OUTPUT, overwrite, [root, *inputs])
     summary["mean_ms"] = float(np.mean(summary["ms"])) if summary["ms"] else 0.0
     summary["median_ms"] = float(np.median(summary["ms"])) if summary["ms"] else 0.0
     del summary["ms"]

@@ -22,8 +22,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon, Rectangle
 
-from drcpo.datasets.kitti_writer import atomic_write_bytes
 from drcpo.geometry import bev_corners
+from drcpo.outputs import atomic_write_bytes
 
 CLASS_COLOURS: dict[str, str] = {
     "Car": "#1f77b4",

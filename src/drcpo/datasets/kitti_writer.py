@@ -1,8 +1,9 @@
 """Write frames in the KITTI object detection layout (the inverse of :mod:`drcpo.datasets.kitti`).
 
-Every file is written to a temporary sibling and renamed into place, so a reader never sees a
-half-written file. Labels carry more decimals than KITTI's (2) for the 3D box, so a frame read
-back gives the boxes written to well under 1e-4 m.
+Every file is written to a temporary sibling and renamed into place
+(:func:`drcpo.outputs.atomic_write_bytes`), so a reader never sees a half-written file. Labels
+carry more decimals than KITTI's (2) for the 3D box, so a frame read back gives the boxes written
+to well under 1e-4 m.
 
 Layout written (``ROOT`` as OpenPCDet's ``data/kitti``)::
 
@@ -15,7 +16,6 @@ Layout written (``ROOT`` as OpenPCDet's ``data/kitti``)::
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -24,6 +24,7 @@ import numpy as np
 from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, Calibration, lidar_boxes_to_camera
 from drcpo.errors import DataError
 from drcpo.geometry import rotation_matrix_z, wrap_angle
+from drcpo.outputs import atomic_write_bytes
 
 #: Calibration of KITTI training frame 000001 (a real HDL-64E + camera rig), all seven matrices.
 REFERENCE_CALIB: dict[str, np.ndarray] = {
@@ -99,33 +100,6 @@ def calibration_matrices(
         if known.shape != ours.shape or not np.array_equal(known.astype(np.float32), ours):
             matrices[key] = ours
     return matrices
-
-
-def default_mode(mode: int = 0o666) -> int:
-    """``mode`` filtered by the process umask: the mode ``open`` would give a new file.
-
-    ``tempfile`` creates private (0600 / 0700) files and directories; renamed into place they
-    would otherwise keep those modes.
-    """
-    umask = os.umask(0)
-    os.umask(umask)
-    return mode & ~umask
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same directory, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            file.write(data)
-        os.chmod(tmp, default_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def write_points(path: str | os.PathLike, points: np.ndarray) -> Path:

@@ -18,23 +18,24 @@ from typing import Any
 
 import numpy as np
 
-from drcpo.database import atomic_directory
 from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, Calibration
 from drcpo.datasets.kitti_writer import (
     REFERENCE_CALIB,
-    default_mode,
     project_boxes,
     reference_calibration,
     write_frame,
     write_image_sets,
 )
 from drcpo.errors import ConfigError
+from drcpo.outputs import OutputKind, write_directory
 from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
 from drcpo.synth.sensor import LidarConfig
 from drcpo.synth.world import World, WorldConfig, generate_world
 
 SYNTH_MANIFEST = "synth.json"
 SYNTH_FORMAT_VERSION = 1
+SYNTH_FORMAT = "drcpo-synthetic-kitti"
+SYNTH_OUTPUT = OutputKind("drcpo synthetic KITTI data set", SYNTH_MANIFEST, SYNTH_FORMAT)
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,7 +134,6 @@ def write_synthetic_kitti(
     timings: list[float] = []
 
     def write(tmp: Path) -> None:
-        tmp.chmod(default_mode(0o777))
         for number, frame_id in enumerate(ids):
             start = time.perf_counter()
             frame = synthesize_frame(frame_rng(seed, number), world_config, lidar_config)
@@ -160,7 +160,7 @@ def write_synthetic_kitti(
         manifest = synth_parameters(frames, seed, world_config, lidar_config, val_fraction)
         (tmp / SYNTH_MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
 
-    atomic_directory(root, write, overwrite=overwrite)
+    write_directory(root, write, SYNTH_OUTPUT, overwrite)
     summary["ms_per_frame"] = float(np.mean(timings))
     return summary
 
@@ -174,7 +174,7 @@ def synth_parameters(
 ) -> dict[str, Any]:
     """The parameters that determine a synthetic data set (what ``synth.json`` records)."""
     return {
-        "format": "drcpo-synthetic-kitti",
+        "format": SYNTH_FORMAT,
         "format_version": SYNTH_FORMAT_VERSION,
         "frames": int(frames),
         "seed": int(seed),

@@ -1,0 +1,446 @@
+"""Writing drcpo's outputs safely: directories (a database, an index, an augmented or synthetic
+KITTI root) through :func:`write_directory`, single files through :func:`atomic_write_bytes`.
+
+Rules every output directory ``NAME`` follows:
+
+* It is built in a hidden sibling ``.NAME.tmp-PID-XXXXXXXX`` and moved into place only once
+  complete, so ``NAME`` never holds a half-written output.
+* ``overwrite`` replaces only an output drcpo wrote: a directory holding the JSON marker of its
+  :class:`OutputKind` (``manifest.json`` of a database or an index, ``synth.json``,
+  ``augment.json``; written last) or an empty directory. ``NAME`` may never be or contain one
+  of the command's inputs.
+* One writer at a time: a run holds an ``flock`` on ``.NAME.lock`` while its temporary exists, so
+  a second run fails at once. Without ``overwrite`` the final rename cannot replace a directory
+  that appeared meanwhile (``renameat2(RENAME_NOREPLACE)``).
+* A replace swaps the two directories in one step (``renameat2(RENAME_EXCHANGE)``), so ``NAME``
+  holds the old or the new output at every instant. Where the system lacks ``renameat2`` (not
+  Linux, or a file system refusing the flag) the old output is first renamed to
+  ``.NAME.old-PID-XXXXXXXX``; a run killed between the two renames leaves ``NAME`` missing until
+  the next write of ``NAME`` renames the old output back.
+* The next run writing ``NAME`` removes the temporaries of runs that died (their PID names no
+  live process). While a temporary exists SIGTERM unwinds like Ctrl-C, removing it; the caller
+  gets :class:`Interrupted`.
+* An ``OSError`` while writing (permission denied, disk full) becomes an
+  :class:`~drcpo.errors.OutputError` naming the path and the system's reason.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import fcntl
+import json
+import os
+import re
+import secrets
+import shutil
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+from drcpo.errors import OutputError, OutputExistsError
+
+_AT_FDCWD = -100  # <fcntl.h>: paths relative to the working directory
+_RENAME_NOREPLACE = 1  # <linux/fs.h>
+_RENAME_EXCHANGE = 2
+_UNSUPPORTED = (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP)  # flag or call not available
+
+
+@dataclass(frozen=True)
+class OutputKind:
+    """A kind of directory drcpo writes, recognised by a JSON marker file naming its format.
+
+    Writers write the marker last, so a directory holding it is a complete output of the kind.
+    """
+
+    description: str  # for messages, e.g. "drcpo database"
+    marker: str  # file name inside the output, e.g. "manifest.json"
+    format: str  # the marker's "format" value
+
+    def owns(self, path: str | os.PathLike) -> bool:
+        """Whether directory ``path`` holds this kind's marker."""
+        return _not_owned(Path(path), self) is None
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived while an output was written; its temporary was removed.
+
+    A :class:`KeyboardInterrupt`, so code that lets Ctrl-C through lets this through too.
+    ``complete`` tells whether the output had already been moved into place.
+    """
+
+    def __init__(self, path: str | os.PathLike, signum: int, complete: bool = False) -> None:
+        self.path = Path(path)
+        self.signum = int(signum)
+        self.complete = complete
+        name = signal.Signals(self.signum).name
+        if complete:
+            message = f"{path}: interrupted by {name} after the output was complete"
+        else:
+            message = f"{path}: interrupted by {name}; nothing was written there"
+        super().__init__(message)
+
+    @property
+    def exit_status(self) -> int:
+        """The shell's status for a process ended by the signal: 128 + its number."""
+        return 128 + self.signum
+
+
+class _Terminated(KeyboardInterrupt):
+    """Raised by the SIGTERM handler installed while a temporary exists."""
+
+    signum = signal.SIGTERM
+
+
+# Checks ---------------------------------------------------------------------------------------
+def check_output(
+    path: str | os.PathLike,
+    kind: OutputKind,
+    overwrite: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
+    """Raise :class:`OutputError` unless ``path`` may be written as a ``kind`` output.
+
+    Refused: ``path`` is or contains one of ``inputs`` (an output beside its inputs, or in a
+    directory of them, is fine: it never replaces them); ``path`` exists and
+    ``overwrite`` is false (:class:`OutputExistsError`); ``path`` exists and is neither an empty
+    directory nor a ``kind`` output. Cheap, so commands call it before their work. Returns
+    ``path`` resolved (symbolic links followed).
+    """
+    target = Path(path).resolve()
+    for item in inputs:
+        source = Path(item).resolve()
+        if target == source:
+            relation = "is"
+        elif source.is_relative_to(target):
+            relation = "contains"
+        else:
+            continue
+        raise OutputError(
+            f"{path}: the output {relation} the input {item}; write it somewhere else"
+        )
+    _check_replaceable(target, kind, overwrite, Path(path))
+    return target
+
+
+def _check_replaceable(target: Path, kind: OutputKind, overwrite: bool, shown: Path) -> None:
+    if not os.path.lexists(target):
+        return
+    if not overwrite:
+        raise OutputExistsError(f"{shown} already exists (pass --overwrite to replace it)")
+    reason = "is not a directory" if not target.is_dir() else _not_owned(target, kind)
+    if reason is not None:
+        raise OutputError(
+            f"{shown} {reason}; --overwrite only replaces a {kind.description} that drcpo "
+            "wrote (or an empty directory): remove it yourself or choose another path"
+        )
+
+
+def _not_owned(path: Path, kind: OutputKind) -> str | None:
+    """Why directory ``path`` is not an empty directory or a ``kind`` output, or ``None``."""
+    marker = path / kind.marker
+    try:
+        if not any(path.iterdir()):
+            return None
+        found = json.loads(marker.read_text())
+    except FileNotFoundError:
+        return f"is not a {kind.description} (it has no {kind.marker})"
+    except OSError as exc:
+        return f"cannot be checked ({_describe(exc)})"
+    except ValueError:
+        return f"is not a {kind.description} ({marker} is not drcpo's JSON)"
+    if not isinstance(found, dict) or found.get("format") != kind.format:
+        shown = found.get("format") if isinstance(found, dict) else found
+        return f"is not a {kind.description} ({marker} has format {shown!r}, not {kind.format!r})"
+    return None
+
+
+# Writing a directory --------------------------------------------------------------------------
+def write_directory(
+    path: str | os.PathLike,
+    write: Callable[[Path], None],
+    kind: OutputKind,
+    overwrite: bool = False,
+    inputs: Iterable[str | os.PathLike] = (),
+) -> Path:
+    """Create directory ``path`` as a ``kind`` output: ``write(tmp)`` fills an empty temporary
+    directory (and must write ``kind.marker`` last), which then replaces ``path`` in one step.
+
+    Returns ``Path(path)``. Raises :class:`OutputError` (or :class:`OutputExistsError`) as
+    :func:`check_output` does, when another run is writing ``path``, or when the system refuses
+    a write; :class:`Interrupted` on SIGINT / SIGTERM. In every case but a completed one the
+    temporary is removed and ``path`` is as it was.
+    """
+    shown = Path(path)
+    inputs = list(inputs)
+    committed = [False]
+    try:
+        with _os_errors(shown):
+            target = check_output(path, kind, overwrite, inputs)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            with _locked(target, shown), _sigterm_unwinds():
+                _remove_stale(target)
+                check_output(path, kind, overwrite, inputs)  # a run may have finished meanwhile
+                _write_and_commit(target, write, kind, overwrite, shown, committed)
+    except KeyboardInterrupt as exc:
+        raise Interrupted(shown, getattr(exc, "signum", signal.SIGINT), committed[0]) from exc
+    return shown
+
+
+def _write_and_commit(
+    target: Path,
+    write: Callable[[Path], None],
+    kind: OutputKind,
+    overwrite: bool,
+    shown: Path,
+    committed: list[bool],
+) -> None:
+    tmp = _make_temporary(target)
+    try:
+        write(tmp)
+        if _not_owned(tmp, kind) is not None:
+            raise RuntimeError(f"drcpo bug: a {kind.description} was written without its marker")
+        with _signals_deferred():
+            _check_replaceable(target, kind, overwrite, shown)
+            _commit(tmp, target, kind, overwrite, shown)
+            committed[0] = True
+    finally:
+        _remove(tmp)  # after a commit it holds the old output, or nothing at all
+
+
+def _commit(tmp: Path, target: Path, kind: OutputKind, overwrite: bool, shown: Path) -> None:
+    """Move ``tmp`` to ``target``; a replaced ``target`` ends up at ``tmp``'s name."""
+    if not overwrite or not os.path.lexists(target):
+        if _rename2(tmp, target, _RENAME_NOREPLACE):
+            return
+        if os.path.lexists(target):  # no renameat2: only our lock excludes other writers
+            raise OutputExistsError(f"{shown} appeared while this run wrote it; it was left as is")
+        os.rename(tmp, target)
+        return
+    if _rename2(tmp, target, _RENAME_EXCHANGE):
+        if _not_owned(tmp, kind) is not None:  # another program put something else there
+            _rename2(tmp, target, _RENAME_EXCHANGE)
+            raise OutputError(f"{shown} changed while this run wrote it; it was left as is")
+        return
+    old = target.with_name(tmp.name.replace(".tmp-", ".old-", 1))
+    os.rename(target, old)
+    try:
+        os.rename(tmp, target)
+    except BaseException:
+        os.rename(old, target)
+        raise
+    os.rename(old, tmp)  # the old output goes where the caller removes it
+
+
+def _make_temporary(target: Path) -> Path:
+    while True:
+        tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+        try:
+            tmp.mkdir(0o777)  # the umask applies, as for any new directory
+            return tmp
+        except FileExistsError:
+            continue
+
+
+def _remove(path: Path) -> None:
+    shutil.rmtree(path, ignore_errors=True)
+
+
+# Stale temporaries ----------------------------------------------------------------------------
+def _temporary_pattern(name: str) -> re.Pattern[str]:
+    """Names of the temporaries (``tmp``) and moved-away old outputs (``old``) of ``name``."""
+    return re.compile(rf"\.{re.escape(name)}\.(tmp|old)-(\d+)-[0-9a-f]{{8}}")
+
+
+def _remove_stale(target: Path) -> None:
+    """Remove the temporaries of dead runs next to ``target`` (called holding its lock).
+
+    An old output whose run died between its two renames goes back to ``target`` when
+    ``target`` is missing.
+    """
+    pattern = _temporary_pattern(target.name)
+    found = [(pattern.fullmatch(entry.name), entry) for entry in target.parent.iterdir()]
+    ours = [(match, entry) for match, entry in found if match is not None]
+    for match, entry in sorted(ours, key=lambda item: item[0][1] != "old"):
+        if _alive(int(match[2])):
+            continue
+        if match[1] == "old" and not os.path.lexists(target):
+            os.rename(entry, target)
+        else:
+            _remove(entry)
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` names a live process other than this one (ours are stale under the lock)."""
+    if pid <= 0 or pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, owned by another user
+        return True
+    return True
+
+
+# Locking, signals, errors ---------------------------------------------------------------------
+@contextmanager
+def _locked(target: Path, shown: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``.NAME.lock`` beside ``target``; fail if another has it.
+
+    The kernel drops the lock when its holder dies, so a killed run never blocks the next one.
+    """
+    lock = target.with_name(f".{target.name}.lock")
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise OutputError(
+                f"{shown}: another drcpo run is writing it (it holds {lock}); "
+                "wait for it to finish or choose another path"
+            ) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        if _same_file(fd, lock):
+            break
+        os.close(fd)  # its holder removed that file after we opened it; lock the new one
+    try:
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # still holding it, so no one else holds the removed file
+        os.close(fd)
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        on_disk = os.stat(path)
+    except FileNotFoundError:
+        return False
+    held = os.fstat(fd)
+    return (held.st_dev, held.st_ino) == (on_disk.st_dev, on_disk.st_ino)
+
+
+@contextmanager
+def _sigterm_unwinds() -> Iterator[None]:
+    """SIGTERM raises like Ctrl-C while a temporary exists, so it is removed.
+
+    Only in the main thread, and only where SIGTERM has its default action (a program with its
+    own handler keeps it).
+    """
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL
+    ):
+        yield
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not stop the clean-up
+        raise _Terminated
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM back while the output is moved into place, then deliver them.
+
+    Done with Python handlers rather than a signal mask: the kernel may hand a signal to any
+    thread (a progress bar's, numba's), but Python runs handlers in the main thread only.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signals interrupt only the main thread, never this one
+        return
+    pending: list[int] = []
+    previous = {
+        number: signal.signal(number, lambda signum, frame: pending.append(signum))
+        for number in (signal.SIGINT, signal.SIGTERM)
+    }
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+    for number in pending:
+        signal.raise_signal(number)  # now handled as it would have been
+
+
+@contextmanager
+def _os_errors(shown: Path) -> Iterator[None]:
+    try:
+        yield
+    except OutputError:
+        raise
+    except OSError as exc:
+        raise OutputError(f"cannot write {shown}: {_describe(exc)}") from exc
+
+
+def _describe(exc: OSError) -> str:
+    """``file: reason`` of an ``OSError``, a temporary's name replaced by its output's."""
+    reason = exc.strerror or str(exc)
+    if exc.filename is None:
+        return reason
+    name = re.sub(r"\.([^/]+)\.(?:tmp|old)-\d+-[0-9a-f]{8}", r"\1", os.fsdecode(exc.filename))
+    return f"{name}: {reason}"
+
+
+@cache
+def _renameat2() -> Callable[..., int] | None:
+    if not sys.platform.startswith("linux"):
+        return None
+    function = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)  # glibc >= 2.28
+    if function is not None:
+        function.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p]
+        function.argtypes += [ctypes.c_uint]
+        function.restype = ctypes.c_int
+    return function
+
+
+def _rename2(source: Path, target: Path, flags: int) -> bool:
+    """``renameat2(source, target, flags)``; ``False`` where the system does not offer it."""
+    function = _renameat2()
+    if function is None:
+        return False
+    if function(_AT_FDCWD, os.fsencode(source), _AT_FDCWD, os.fsencode(target), flags) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in _UNSUPPORTED:
+        return False
+    if code == errno.EEXIST:
+        raise OutputExistsError(f"{target} appeared while this run wrote it; it was left as is")
+    raise OSError(code, os.strerror(code), os.fspath(source), None, os.fspath(target))
+
+
+# Single files ---------------------------------------------------------------------------------
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same directory, then rename.
+
+    Raises :class:`OutputError` naming the file when the system refuses the write.
+    """
+    path = Path(path)
+    with _os_errors(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+        # O_EXCL: never write through a file or link someone else put there; 0o666: umask applies.
+        handle = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666)
+        try:
+            with os.fdopen(handle, "wb") as file:
+                file.write(data)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    return path
