@@ -73,14 +73,16 @@ def make_detections(rows: list[tuple], rng: np.random.Generator) -> list[tuple]:
         copies = 2 if rng.random() < 0.08 else 1
         for _ in range(copies):
             shown = CONFUSED.get(name, name) if rng.random() < 0.12 else name
-            spread = 0.05 + 0.006 * location[2]
+            spread = 0.03 + 0.003 * location[2]
             loc = location + rng.normal(0, spread, 3) * (1, 0.5, 1.5)
             dims = np.asarray(size) * rng.normal(1, 0.06, 3)
-            yaw = ry + rng.normal(0, 0.12)
+            yaw = ry + rng.normal(0, 0.06)
             if rng.random() < 0.1:
                 yaw = -yaw  # heading sign error: the footprint mirrors
-            bbox = np.asarray(box) + rng.normal(0, 2 + 80 / location[2], 4)
-            score = float(np.clip(rng.beta(4, 2) - 0.3 * rng.random() * np.abs(loc - location)[0], 0, 1))
+            bbox = np.asarray(box) + rng.normal(0, 1 + 25 / location[2], 4)
+            score = float(
+                np.clip(rng.beta(4, 2) - 0.3 * rng.random() * np.abs(loc - location)[0], 0, 1)
+            )
             out.append((shown, -1, -1, alpha + rng.normal(0, 0.2), bbox, dims, loc, yaw, score))
     for _ in range(int(rng.poisson(2.5))):
         name = str(rng.choice(["Car", "Car", "Pedestrian", "Cyclist"]))

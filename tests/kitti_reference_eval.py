@@ -25,7 +25,9 @@ def load_reference(directory: Path) -> types.ModuleType:
     sys.modules.setdefault("skimage", types.ModuleType("skimage"))
     sys.modules["skimage"].io = types.ModuleType("skimage.io")
     spec = importlib.util.spec_from_file_location(
-        "kitti_eval_reference", directory / "__init__.py", submodule_search_locations=[str(directory)]
+        "kitti_eval_reference",
+        directory / "__init__.py",
+        submodule_search_locations=[str(directory)],
     )
     package = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = package

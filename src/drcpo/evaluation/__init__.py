@@ -39,7 +39,9 @@ def evaluate_kitti_split(
     frame_ids = read_split(root, split)
     labels = split_directory(root, split) / "label_2"
     ground_truth = read_frames(labels, frame_ids)
-    detections = read_frames(predictions, frame_ids, results=True, missing_as_empty=missing_as_empty)
+    detections = read_frames(
+        predictions, frame_ids, results=True, missing_as_empty=missing_as_empty
+    )
     return evaluate_kitti(ground_truth, detections, classes, overlaps)
 
 

@@ -229,7 +229,9 @@ def _overlap_table(
             raise ConfigError(f"unknown class {name!r} (known: {', '.join(overlaps)})")
         values = tuple(float(v) for v in overlaps[name])
         if len(values) != 3 or not all(0 <= v < 1 for v in values):
-            raise ConfigError(f"{name}: overlap thresholds must be 3 values in [0, 1), got {values}")
+            raise ConfigError(
+                f"{name}: overlap thresholds must be 3 values in [0, 1), got {values}"
+            )
         table[name] = values
     return table
 
@@ -362,8 +364,16 @@ def _recall_thresholds(scores, valid):  # pragma: no cover - numba
 
 @nb.njit(cache=True, nogil=True)
 def _counts_at(
-    thresholds, gt_ignored, gt_alpha, start, cand_det, cand_overlap, dt_ignored, dt_score,
-    dt_alpha, excused,
+    thresholds,
+    gt_ignored,
+    gt_alpha,
+    start,
+    cand_det,
+    cand_overlap,
+    dt_ignored,
+    dt_score,
+    dt_alpha,
+    excused,
 ):  # pragma: no cover - numba
     """``(T, 4)`` true positives, false positives, misses and orientation similarity sum per
     score threshold: each object, in order, takes the free counted candidate with the largest
