@@ -169,7 +169,7 @@ def evaluate_kitti(
             or a mapping class -> (2D, BEV, 3D) IoU thresholds.
 
     Raises:
-        DataError: the two sequences differ in length.
+        DataError: the two sequences differ in length, or no detection has a 2D box.
         ConfigError: an unknown class or overlap set.
     """
     if len(ground_truth) != len(detections):
@@ -180,6 +180,12 @@ def evaluate_kitti(
     gt = _Stack.of(ground_truth, "objects")
     dc = _Stack.of(ground_truth, "dontcare")
     dt = _Stack.of(detections, "objects")
+    if len(dt.score) and not (dt.bbox[:, 3] != dt.bbox[:, 1]).any():
+        raise DataError(
+            f"none of the {len(dt.score)} detections has a 2D box (all heights 0): KITTI's rules "
+            "ignore detections lower than 25 px in every metric, so every AP would be 0; "
+            "write each box's projection into the image as its bbox"
+        )
     gi, di = _frame_pairs(gt.frame, dt.frame, len(ground_truth))
     pair_overlaps = (
         image_iou(dt.bbox[di], gt.bbox[gi]),
