@@ -1,37 +1,97 @@
 """Command-line interface: build-db, import-openpcdet, info, index, augment, synth, demo.
 
-Every command prints a summary at the end and exits with status 1 and a one-line message naming
-the culprit on bad input (any :class:`drcpo.errors.DrcpoError`).
+Every command prints a summary at the end. On bad input it prints one line naming the culprit
+and exits with status 1: any :class:`drcpo.errors.DrcpoError`, out of memory, or an operating
+system error (the path and the reason: permission denied, disk full, ...); Ctrl-C prints
+"interrupted" and exits with 130. Usage errors (an option out of range) exit with 2. Set
+``DRCPO_DEBUG=1`` to get the traceback instead.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
+from typer.core import TyperGroup
 
 from drcpo.errors import DrcpoError
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    help="DR.CPO LiDAR augmentation: ground-truth database, candidate index, augmentation.",
-)
 console = Console(stderr=True)
+
+
+def say_error(message: str) -> None:
+    """Print ``error: message`` on stderr as one line."""
+    # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
+    console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
 
 
 def fail(message: str) -> None:
     """Print an error message and exit with status 1."""
-    # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
-    console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
+    say_error(message)
     raise typer.Exit(1)
+
+
+@contextmanager
+def safety_net() -> Iterator[None]:
+    """Turn the errors a user can meet into one line on stderr and an exit status (no traceback).
+
+    :class:`DrcpoError`, :class:`MemoryError` and :class:`OSError` exit with 1,
+    :class:`KeyboardInterrupt` with 130. Anything else is a bug in drcpo and keeps its traceback;
+    with ``DRCPO_DEBUG=1`` every exception does.
+    """
+    if os.environ.get("DRCPO_DEBUG") == "1":
+        yield
+        return
+    try:
+        yield
+    except DrcpoError as exc:
+        _exit(str(exc))
+    except KeyboardInterrupt:
+        console.print("interrupted", soft_wrap=True, markup=False)
+        raise SystemExit(130) from None
+    except MemoryError as exc:
+        _exit(f"out of memory ({exc})" if str(exc) else "out of memory")
+    except BrokenPipeError:
+        raise  # stdout closed early (`drcpo info --json | head`): typer exits quietly
+    except OSError as exc:
+        _exit(os_error_message(exc))
+
+
+def _exit(message: str) -> NoReturn:
+    say_error(message)
+    raise SystemExit(1) from None
+
+
+def os_error_message(exc: OSError) -> str:
+    """``path: reason`` (``source -> target: reason`` for a rename or link) of an OS error."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(path) for path in (exc.filename, exc.filename2) if path is not None]
+    return f"{' -> '.join(paths)}: {reason}" if paths else reason
+
+
+class _SafeGroup(TyperGroup):
+    """The command group, every command run inside :func:`safety_net`. (The net sits here and
+    not only in :func:`main`: typer itself turns Ctrl-C into a silent exit status.)"""
+
+    def invoke(self, ctx: Any) -> Any:
+        with safety_net():
+            return super().invoke(ctx)
+
+
+app = typer.Typer(
+    cls=_SafeGroup,
+    add_completion=False,
+    no_args_is_help=True,
+    help="DR.CPO LiDAR augmentation: ground-truth database, candidate index, augmentation.",
+)
 
 
 def class_table(summary: dict[str, dict[str, int]], title: str) -> Table:
@@ -236,7 +296,9 @@ def augment(
     frames: Annotated[
         int | None, typer.Option(min=0, help="Augment the first N frames (default: all).")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Random seed (frame i uses (seed, i)).")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Random seed, >= 0 (frame i uses (seed, i)).")
+    ] = 0,
     fov: Annotated[bool, typer.Option(help="Cut frames to the camera field of view first.")] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
 ) -> None:
@@ -268,7 +330,9 @@ def augment(
 def synth(
     out: Annotated[Path, typer.Option("--out", help="KITTI root to create.")],
     frames: Annotated[int, typer.Option(min=1, help="Frames to generate.")] = 10,
-    seed: Annotated[int, typer.Option(help="Random seed (frame i uses (seed, i)).")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Random seed, >= 0 (frame i uses (seed, i)).")
+    ] = 0,
     val_fraction: Annotated[
         float, typer.Option(min=0.0, max=0.99, help="Share of frames listed in val.txt.")
     ] = 0.5,
@@ -308,7 +372,7 @@ def demo(
     frames: Annotated[
         int, typer.Option(min=1, help="Synthetic frames (cached in OUT/kitti).")
     ] = 16,
-    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Random seed, >= 0.")] = 0,
     augment_frames: Annotated[int, typer.Option(min=1, help="Frames to augment.")] = 4,
 ) -> None:
     """Run every available stage on the built-in synthetic world; writes figures and a summary."""
@@ -321,7 +385,9 @@ def demo(
 
 
 def main() -> None:
-    app()
+    """The ``drcpo`` console script: the app, inside :func:`safety_net`."""
+    with safety_net():
+        app()
 
 
 if __name__ == "__main__":

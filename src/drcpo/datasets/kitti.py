@@ -186,9 +186,8 @@ def read_calib(path: str | os.PathLike) -> Calibration:
         condition = _condition_number(values[key][:, :3])
         if condition > _MAX_CONDITION:
             raise DataError(
-                f"{path}:{line_of[key]}: {key} is singular (its 3 x 3 part has condition number "
-                f"{condition:.3g}; a KITTI calibration holds a rotation there), so LiDAR and "
-                "camera coordinates cannot be converted"
+                f"{path}:{line_of[key]}: {key} is singular (condition number {condition:.3g}): "
+                "its 3 x 3 part must be a rotation for LiDAR <-> camera conversions"
             )
     return Calibration(values["P2"], values["R0_rect"], values["Tr_velo_to_cam"])
 
