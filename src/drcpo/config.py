@@ -560,15 +560,15 @@ def _names(value: Any, spec: _Spec, where: str) -> list[str]:
     for i, name in enumerate(value):
         if not isinstance(name, str) or not name:
             raise ConfigError(
-                f"config key {where}[{i}] must be a non-empty string, got {_show(name)}"
+                f"config key {f'{where}[{i}]'!r} must be a non-empty string, got {_show(name)}"
             )
         if spec.choices and name not in spec.choices:
             raise ConfigError(
-                f"config key {where}[{i}] = {name!r} is not allowed; "
+                f"config key {f'{where}[{i}]'!r} = {name!r} is not allowed; "
                 f"choose from: {', '.join(spec.choices)}"
             )
         if name in seen:
-            raise ConfigError(f"config key {where}[{i}] = {name!r} is listed twice")
+            raise ConfigError(f"config key {f'{where}[{i}]'!r} = {name!r} is listed twice")
         seen.add(name)
     return list(value)
 
@@ -582,7 +582,9 @@ def _grids(value: Any, where: str) -> dict[str, list[int]]:
         if not isinstance(name, str) or not name:
             raise ConfigError(f"config key {where!r}: class names must be strings, got {name!r}")
         if not isinstance(grid, list | tuple) or len(grid) != 3:
-            raise ConfigError(f"config key {where}.{name} must be [nx, ny, nz], got {_show(grid)}")
+            raise ConfigError(
+                f"config key {f'{where}.{name}'!r} must be [nx, ny, nz], got {_show(grid)}"
+            )
         out[name] = [
             _number(n, cell_spec, f"{where}.{name}[{i}]", integer=True) for i, n in enumerate(grid)
         ]
