@@ -112,7 +112,7 @@ def test_unknown_key_names_its_path_and_the_allowed_keys(data, path, allowed):
         ({"gt_sampling": {"targets": {"Car": -2}}}, "gt_sampling.targets.Car", "[0, 1000]"),
         ({"drcpo": {"self_occlusion": {"radius_factor": 0}}}, "radius_factor", "(0, "),
         ({"global_augmentation": {"flip": {"probability": 2}}}, "flip.probability", "[0, 1]"),
-        ({"global_augmentation": {"scaling": {"range": [0, 1]}}}, "scaling.range[0]", "(0, inf]"),
+        ({"global_augmentation": {"scaling": {"range": [0, 1]}}}, "scaling.range[0]", "(0, 10]"),
         ({"drcpo": {"placement": {"x_range": [0, 500]}}}, "x_range[1]", "[-200, 200]"),
     ],
 )
@@ -183,3 +183,264 @@ def test_per_class_lookup():
     assert per_class({"Car": 3, "default": 7}, "Car") == 3
     assert per_class({"Car": 3, "default": 7}, "Van") == 7
     assert per_class({"Car": 3}, "Van", fallback=0) == 0
+
+
+# Misspelt class names ------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("data", "path"),
+    [
+        ({"drcpo": {"sample": {"Pedestrain": 10}}}, "drcpo.sample.Pedestrain"),
+        ({"gt_sampling": {"targets": {"car": 20}}}, "gt_sampling.targets.car"),
+        ({"drcpo": {"min_points": {"Cyclst": 5}}}, "drcpo.min_points.Cyclst"),
+        ({"gt_sampling": {"min_points": {"Vann": 5}}}, "gt_sampling.min_points.Vann"),
+        ({"drcpo": {"construction": {"mirror": ["Car", "Cylist"]}}}, "mirror[1]"),
+        ({"drcpo": {"construction": {"grids": {"Cars": [10, 4, 3]}}}}, "grids.Cars"),
+        # "default" is the fallback of the minimum-point maps only: in sample or targets it
+        # would be read as a class named "default" and sample nothing.
+        ({"drcpo": {"sample": {"default": 3}}}, "drcpo.sample.default"),
+    ],
+)
+def test_unknown_class_names_the_key_and_lists_the_known_classes(data, path):
+    with pytest.raises(ConfigError) as info:
+        load_config(data)
+    message = str(info.value)
+    assert path in message and "unknown class" in message
+    assert "Car, Cyclist, Misc, Pedestrian, Person_sitting, Tram, Truck, Van" in message
+    assert "known_classes" in message  # says how to allow another data set's classes
+
+
+def test_unknown_class_suggests_the_close_match():
+    with pytest.raises(ConfigError, match="did you mean 'Pedestrian'"):
+        load_config({"drcpo": {"sample": {"Pedestrain": 10}}})
+
+
+def test_known_classes_allow_another_data_sets_classes():
+    data = {
+        "known_classes": ["Vehicle", "Pedestrian"],
+        "gt_sampling": {"targets": {"Vehicle": 4}},
+        "drcpo": {
+            "sample": {"Vehicle": 3},
+            "min_points": {"Vehicle": 9, "default": 5},
+            "construction": {"mirror": ["Vehicle"], "grids": {"Vehicle": [10, 4, 3]}},
+        },
+    }
+    config = load_config(data)
+    assert config.known_classes == ["Vehicle", "Pedestrian"]
+    assert config.drcpo.sample == {"Vehicle": 3}
+    assert load_config(config.to_dict()) == config
+    # The default maps name Car: the message says which key to give.
+    with pytest.raises(
+        ConfigError,
+        match=r"'gt_sampling\.targets\.Car' \(a default value\).*Pedestrian, Vehicle; set gt_samp",
+    ):
+        load_config({"known_classes": ["Vehicle", "Pedestrian"]})
+
+
+def test_known_classes_apply_wherever_the_key_appears_in_a_file(tmp_path):
+    path = tmp_path / "late.yaml"
+    path.write_text(
+        "drcpo:\n  sample: {Vehicle: 2}\n  construction: {mirror: []}\n"
+        "known_classes: [Vehicle]\ngt_sampling:\n  targets: {Vehicle: 5}\n"
+    )
+    config = load_config(path)
+    assert config.drcpo.sample == {"Vehicle": 2} and config.drcpo.construction.mirror == []
+
+
+# Ranges and magnitudes -----------------------------------------------------------------------
+def test_empty_placement_range_is_refused():
+    with pytest.raises(ConfigError, match=r"drcpo\.placement\.x_range.*low must be below high"):
+        load_config({"drcpo": {"placement": {"x_range": [200, 200]}}})
+
+
+def test_absurd_radius_is_refused_naming_the_key():
+    with pytest.raises(ConfigError, match=r"drcpo\.external_occlusion\.radius.*out of range"):
+        load_config({"drcpo": {"external_occlusion": {"radius": 1e300}}})
+
+
+def test_constant_rotation_and_scaling_stay_allowed():
+    config = load_config(
+        {"global_augmentation": {"rotation": {"range": [0, 0]}, "scaling": {"range": [1, 1]}}}
+    )
+    assert config.global_augmentation.rotation.range == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("value", [10**400, -(10**400)])
+def test_huge_integers_are_config_errors(value):
+    with pytest.raises(ConfigError, match=r"drcpo\.construction\.margin.*out of range"):
+        load_config({"drcpo": {"construction": {"margin": value}}})
+    with pytest.raises(ConfigError, match=r"drcpo\.min_points_after.*out of range"):
+        load_config({"drcpo": {"min_points_after": value}})
+
+
+# One row per config key: a bad value -> ConfigError naming that key ---------------------------
+BAD_VALUES = {
+    "pipeline": "magic",
+    "preset": "voxelnet",
+    "known_classes": [],
+    "gt_sampling.enabled": "yes",
+    "gt_sampling.targets": {"Car": 1001},
+    "gt_sampling.min_points": -1,
+    "gt_sampling.exclude_difficulty": [3],
+    "gt_sampling.use_road_plane": 1,
+    "drcpo.enabled": 0,
+    "drcpo.sample": {"Car": 1.5},
+    "drcpo.min_points": 1e7,
+    "drcpo.exclude_difficulty": "-1",
+    "drcpo.min_points_after": -1,
+    "drcpo.construction.mode": "Partition",
+    "drcpo.construction.coverage": 0,
+    "drcpo.construction.max_iterations": 1001,
+    "drcpo.construction.margin": 1.5,
+    "drcpo.construction.mirror": "Car",
+    "drcpo.construction.grids": {"Car": [0, 4, 3]},
+    "drcpo.placement.x_range": [200, 200],
+    "drcpo.placement.y_range": [10, -10],
+    "drcpo.placement.height": "sky",
+    "drcpo.placement.max_non_ground_points": -1,
+    "drcpo.placement.ground_tolerance": float("inf"),
+    "drcpo.placement.attempts": 0,
+    "drcpo.placement.occluded_fraction": 0,
+    "drcpo.placement.camera_fov": "sometimes",
+    "drcpo.self_occlusion.enabled": "true",
+    "drcpo.self_occlusion.radius_factor": 1e300,
+    "drcpo.self_occlusion.min_points": 10**7,
+    "drcpo.external_occlusion.enabled": None,
+    "drcpo.external_occlusion.mode": "zbuffer",
+    "drcpo.external_occlusion.preset": "voxelnet",
+    "drcpo.external_occlusion.scope": "all",
+    "drcpo.external_occlusion.radius": 1e300,
+    "drcpo.external_occlusion.viewpoint_z": 1e3,
+    "global_augmentation.enabled": "no",
+    "global_augmentation.flip.probability": -0.1,
+    "global_augmentation.flip.axes": ["x", "x"],
+    "global_augmentation.rotation.range": [0, 7],
+    "global_augmentation.scaling.range": [0.5, 1e300],
+}
+MORE_BAD_VALUES = [
+    ("known_classes", ["Car", "Car"]),
+    ("known_classes", ["default"]),
+    ("known_classes", "Car"),
+    ("gt_sampling.targets", {3: 4}),
+    ("drcpo.sample", {"Car": True}),
+    ("drcpo.construction.mirror", ["Car", "Car"]),
+    ("drcpo.construction.grids", {"Car": [10, 4, 3, 1]}),
+    ("drcpo.construction.grids", {5: [10, 4, 3]}),
+    ("drcpo.placement.x_range", [0.0]),
+    ("drcpo.placement.x_range", [0.0, 10.0, 20.0]),
+    ("drcpo.placement.x_range", "0, 70"),
+    ("drcpo.placement.y_range", [float("nan"), 1.0]),
+    ("global_augmentation.rotation.range", [-0.1, float("inf")]),
+    ("global_augmentation.flip.axes", "x"),
+    ("drcpo.external_occlusion.radius", -1.0),
+    ("drcpo.external_occlusion.viewpoint_z", "high"),
+    ("gt_sampling.exclude_difficulty", [1.5]),
+]
+
+
+def _nest(path: str, value):
+    *sections, leaf = path.split(".")
+    data = {leaf: value}
+    for section in reversed(sections):
+        data = {section: data}
+    return data
+
+
+def _leaf_keys(config, prefix=""):
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if dataclasses.is_dataclass(value):
+            yield from _leaf_keys(value, f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}"
+
+
+def test_every_config_key_has_a_bad_value_row():
+    assert sorted(BAD_VALUES) == sorted(_leaf_keys(AugmentConfig()))
+
+
+@pytest.mark.parametrize(
+    ("path", "value"), [*BAD_VALUES.items(), *MORE_BAD_VALUES], ids=lambda x: str(x)[:40]
+)
+def test_bad_value_names_its_key(path, value):
+    with pytest.raises(ConfigError) as info:
+        load_config(_nest(path, value))
+    assert f"'{path}" in str(info.value)
+
+
+# Files ---------------------------------------------------------------------------------------
+def test_duplicate_yaml_key_names_the_key_and_line(tmp_path):
+    path = tmp_path / "dup.yaml"
+    path.write_text(
+        "drcpo:\n"
+        "  sample: {Car: 10}\n"
+        "  min_points: 5\n"
+        "  sample: {Car: 3}\n"  # line 4: the second sample silently won before
+    )
+    with pytest.raises(
+        ConfigError, match=r"dup\.yaml:4: duplicate key 'sample' \(first on line 2\)"
+    ):
+        load_config(path)
+
+
+def test_yaml_merge_keys_may_be_overridden(tmp_path):
+    path = tmp_path / "merge.yaml"
+    path.write_text(
+        "base: &base {Car: 10, Pedestrian: 4}\ndrcpo:\n  sample:\n    <<: *base\n    Car: 2\n"
+    )
+    with pytest.raises(ConfigError, match="unknown config key 'base'"):
+        load_config(path)  # the anchor's key is not a config key; the merge itself is fine
+    path.write_text(
+        "drcpo:\n  sample: &s {Car: 10}\ngt_sampling:\n  targets:\n    <<: *s\n    Car: 2\n"
+    )
+    assert load_config(path).gt_sampling.targets == {"Car": 2}
+
+
+def test_non_utf8_file_names_the_file(tmp_path):
+    path = tmp_path / "latin1.yaml"
+    path.write_bytes("# Fußgänger\ndrcpo: {enabled: true}\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match=r"latin1\.yaml: not UTF-8 text \(byte 0xdf at offset 4"):
+        load_config(path)
+
+
+def test_exponent_without_dot_reads_as_a_number(tmp_path):
+    # YAML 1.1 (PyYAML) reads 5e4 as a string; the config loader reads it as YAML 1.2 does.
+    path = tmp_path / "exp.yaml"
+    path.write_text("drcpo:\n  external_occlusion: {radius: 5e4, viewpoint_z: -1E0}\n")
+    occlusion = load_config(path).drcpo.external_occlusion
+    assert (occlusion.radius, occlusion.viewpoint_z) == (5e4, -1.0)
+
+
+def test_deeply_nested_yaml_is_a_config_error(tmp_path):
+    path = tmp_path / "deep.yaml"
+    path.write_text("drcpo: " + "[" * 100_000 + "]" * 100_000 + "\n")
+    with pytest.raises(ConfigError, match="deep.yaml"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("source", [5, 2.5, b"default", ["default"], "a\0b", "x" * 5000])
+def test_bad_sources_are_config_errors(source):
+    with pytest.raises(ConfigError):
+        load_config(source)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "a: 2001-13-45",
+        "a: !!float abc",
+        "a: !!int abc",
+        "a: !!bool maybe",
+        "a: !!timestamp x",
+        "a: " + "1" * 5000,
+    ],
+)
+def test_values_pyyaml_cannot_construct_are_config_errors(tmp_path, text):
+    path = tmp_path / "odd.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError, match=r"odd\.yaml: not valid YAML"):
+        load_config(path)
+
+
+def test_integer_past_the_digit_limit_is_named_not_printed():
+    with pytest.raises(ConfigError, match=r"min_points_after' = <an integer of \d+ bits> is out"):
+        load_config({"drcpo": {"min_points_after": 10**5000}})

@@ -87,3 +87,22 @@ def test_object_points_bounds(rng):
     db = GroundTruthDatabase.from_records(_records(rng, 3))
     with pytest.raises(IndexError):
         db.object_points(3)
+
+
+@pytest.mark.parametrize("column", ["names", "frame_ids"])
+def test_open_rejects_text_columns_that_are_not_strings(tmp_path, rng, column):
+    # A database written by another tool, consistent (checksum included) but with integer
+    # class ids in names.npy: before, it opened and `drcpo index` failed while rendering.
+    db = GroundTruthDatabase.from_records(_records(rng))
+    columns = {name: getattr(db, name) for name in ("boxes", "names", "frame_ids")}
+    columns.update(
+        index_in_frame=db.index_in_frame,
+        num_points=db.num_points,
+        difficulty=db.difficulty,
+        occlusion=db.occlusion,
+        truncation=db.truncation,
+    )
+    columns[column] = np.arange(len(db), dtype=np.int64)
+    GroundTruthDatabase(db.points, db.offsets, columns).save(tmp_path / "db")
+    with pytest.raises(DataError, match=rf"db/{column}\.npy: .*must be strings, got int64"):
+        GroundTruthDatabase.open(tmp_path / "db")

@@ -348,3 +348,23 @@ def test_progress_reaches_every_indexed_object():
         assert calls[-1] == (expected, expected)
         assert [d for d, _ in calls] == sorted(d for d, _ in calls)
     assert set(seen) == set(db.names.tolist())
+
+
+@pytest.mark.parametrize("k", [10**12, 100_001])
+def test_k_above_the_bound_is_refused(k):
+    with pytest.raises(ConfigError, match=rf"k = {k} is out of range \(allowed: 1 \.\. 100000\)"):
+        IndexConfig(k=k)
+
+
+def test_candidate_table_too_large_for_memory_is_refused_before_allocating(monkeypatch):
+    import drcpo.index
+
+    db = random_database(np.random.default_rng(18), 300, classes=("Car", "Van"))
+    largest = max(int((db.names == c).sum()) for c in ("Car", "Van"))
+    monkeypatch.setattr(drcpo.index, "_memory_bytes", lambda: 1 << 20)  # a 1 MiB machine
+    with pytest.raises(ConfigError) as info:
+        build_index(db, IndexConfig(k=5000, min_points=0))
+    message = str(info.value)
+    assert "K = 5000" in message and "300 objects" in message and "5.7 MiB" in message
+    assert "1.0 MiB" in message and f"at most {largest - 1} candidates" in message
+    build_index(db, IndexConfig(k=200, min_points=0))  # 234 KiB: fits

@@ -104,6 +104,44 @@ def test_short_calib_field_names_file_and_line(tmp_path):
         read_calib(path)
 
 
+_R0_LINE = CALIB_TEXT.splitlines()[2]
+_TR_LINE = CALIB_TEXT.splitlines()[3]
+
+
+@pytest.mark.parametrize(
+    ("line", "replacement", "where"),
+    [
+        (_R0_LINE, "R0_rect: " + " ".join(["0"] * 9), r"000009\.txt:3: R0_rect"),
+        (_TR_LINE, "Tr_velo_to_cam: " + " ".join(["0"] * 12), r"000009\.txt:4: Tr_velo_to_cam"),
+        # Rank 2: the third row repeats the first (a copy-paste slip).
+        (_R0_LINE, "R0_rect: 1 0 0 0 1 0 1 0 0", r"000009\.txt:3: R0_rect"),
+        # The rotation part is singular even though the translation column is not zero.
+        (_TR_LINE, "Tr_velo_to_cam: 0 0 0 1 0 0 0 2 0 0 0 3", r"000009\.txt:4: Tr_velo_to_cam"),
+    ],
+)
+def test_singular_calibration_names_the_file_and_matrix(tmp_path, line, replacement, where):
+    # Before: read_calib accepted it and the LiDAR conversion raised numpy's LinAlgError.
+    path = tmp_path / "000009.txt"
+    path.write_text(CALIB_TEXT.replace(line, replacement))
+    with pytest.raises(DataError, match=where + r" is singular"):
+        read_calib(path)
+
+
+def test_singular_calibration_fails_a_kitti_frame_with_a_data_error(tmp_path):
+    (tmp_path / "ImageSets").mkdir()
+    (tmp_path / "ImageSets" / "train.txt").write_text("000000\n")
+    base = tmp_path / "training"
+    for sub in ("velodyne", "label_2", "calib"):
+        (base / sub).mkdir(parents=True)
+    np.zeros((3, 4), np.float32).tofile(base / "velodyne" / "000000.bin")
+    (base / "label_2" / "000000.txt").write_text(LABEL_TEXT)
+    (base / "calib" / "000000.txt").write_text(
+        CALIB_TEXT.replace(_R0_LINE, "R0_rect: " + " ".join(["0"] * 9))
+    )
+    with pytest.raises(DataError, match=r"calib/000000\.txt:3: R0_rect is singular"):
+        KittiDataset(tmp_path, "train")[0]
+
+
 def test_sample_calib_matches_openpcdet_infos(kitti_sample):
     for frame_id, info in _infos(kitti_sample).items():
         calib = read_calib(kitti_sample / "training" / "calib" / f"{frame_id}.txt")

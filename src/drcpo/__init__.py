@@ -1,7 +1,12 @@
 """drcpo: diversified and realistic 3D LiDAR augmentation (DR.CPO, Shin et al., AAAI 2023)."""
 
-from drcpo.errors import ConfigError, DataError, DrcpoError
-from drcpo.frame import Frame
+# First: where numba caches the kernels must be settled before any kernel module is imported.
+from drcpo import _numba_cache
+
+_numba_cache.configure()
+
+from drcpo.errors import ConfigError, DataError, DrcpoError  # noqa: E402
+from drcpo.frame import Frame  # noqa: E402
 
 __version__ = "0.1.0"
 

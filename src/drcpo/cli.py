@@ -1,44 +1,102 @@
 """Command-line interface: build-db, import-openpcdet, info, index, augment, synth, demo.
 
-Every command prints a summary at the end and exits with status 1 and a one-line message naming
-the culprit on bad input (any :class:`drcpo.errors.DrcpoError`).
+Every command prints a summary at the end. On bad input it prints one line naming the culprit
+and exits with status 1: any :class:`drcpo.errors.DrcpoError`, out of memory, or an operating
+system error (the path and the reason: permission denied, disk full, ...); Ctrl-C prints
+"interrupted" and exits with 130 (SIGINT or SIGTERM while an output is written: 128 + the signal
+number, after removing the unfinished output). Usage errors (an option out of range) exit with
+2. Set ``DRCPO_DEBUG=1`` to get the traceback instead.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
+from typer.core import TyperGroup
 
 from drcpo.errors import DrcpoError
 from drcpo.outputs import Interrupted
 
-app = typer.Typer(
-    add_completion=False,
-    no_args_is_help=True,
-    help="DR.CPO LiDAR augmentation: ground-truth database, candidate index, augmentation.",
-)
 console = Console(stderr=True)
+
+
+def say_error(message: str) -> None:
+    """Print ``error: message`` on stderr as one line."""
+    # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
+    console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
 
 
 def fail(message: str) -> None:
     """Print an error message and exit with status 1."""
-    # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
-    console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
+    say_error(message)
     raise typer.Exit(1)
 
 
-def interrupted(exc: Interrupted) -> None:
-    """Report an output write stopped by SIGINT / SIGTERM; exit with 128 + the signal number."""
-    console.print(Text.assemble(("interrupted:", "bold red"), " ", str(exc)), soft_wrap=True)
-    raise typer.Exit(exc.exit_status)
+@contextmanager
+def safety_net() -> Iterator[None]:
+    """Turn the errors a user can meet into one line on stderr and an exit status (no traceback).
+
+    :class:`DrcpoError`, :class:`MemoryError` and :class:`OSError` exit with 1,
+    :class:`KeyboardInterrupt` with 130. Anything else is a bug in drcpo and keeps its traceback;
+    with ``DRCPO_DEBUG=1`` every exception does.
+    """
+    if os.environ.get("DRCPO_DEBUG") == "1":
+        yield
+        return
+    try:
+        yield
+    except DrcpoError as exc:
+        _exit(str(exc))
+    except Interrupted as exc:  # SIGINT/SIGTERM while an output was being written
+        console.print(Text.assemble(("interrupted:", "bold red"), " ", str(exc)), soft_wrap=True)
+        raise SystemExit(exc.exit_status) from None
+    except KeyboardInterrupt:
+        console.print("interrupted", soft_wrap=True, markup=False)
+        raise SystemExit(130) from None
+    except MemoryError as exc:
+        _exit(f"out of memory ({exc})" if str(exc) else "out of memory")
+    except BrokenPipeError:
+        raise  # stdout closed early (`drcpo info --json | head`): typer exits quietly
+    except OSError as exc:
+        _exit(os_error_message(exc))
+
+
+def _exit(message: str) -> NoReturn:
+    say_error(message)
+    raise SystemExit(1) from None
+
+
+def os_error_message(exc: OSError) -> str:
+    """``path: reason`` (``source -> target: reason`` for a rename or link) of an OS error."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    paths = [str(path) for path in (exc.filename, exc.filename2) if path is not None]
+    return f"{' -> '.join(paths)}: {reason}" if paths else reason
+
+
+class _SafeGroup(TyperGroup):
+    """The command group, every command run inside :func:`safety_net`. (The net sits here and
+    not only in :func:`main`: typer itself turns Ctrl-C into a silent exit status.)"""
+
+    def invoke(self, ctx: Any) -> Any:
+        with safety_net():
+            return super().invoke(ctx)
+
+
+app = typer.Typer(
+    cls=_SafeGroup,
+    add_completion=False,
+    no_args_is_help=True,
+    help="DR.CPO LiDAR augmentation: ground-truth database, candidate index, augmentation.",
+)
 
 
 def class_table(summary: dict[str, dict[str, int]], title: str) -> Table:
@@ -106,8 +164,6 @@ def build_db(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
-    except Interrupted as exc:
-        interrupted(exc)
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -131,8 +187,6 @@ def import_openpcdet_command(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
-    except Interrupted as exc:
-        interrupted(exc)
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -217,8 +271,6 @@ def index(
         seconds = time.perf_counter() - start
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
-    except Interrupted as exc:
-        interrupted(exc)
     table = Table(title=f"{path} (K = {k}, {seconds:.1f} s)")
     for column in ("class", "objects", "indexed", "mean candidates", "first stage"):
         table.add_column(column, justify="left" if column == "class" else "right")
@@ -249,7 +301,9 @@ def augment(
     frames: Annotated[
         int | None, typer.Option(min=0, help="Augment the first N frames (default: all).")
     ] = None,
-    seed: Annotated[int, typer.Option(help="Random seed (frame i uses (seed, i)).")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Random seed, >= 0 (frame i uses (seed, i)).")
+    ] = 0,
     fov: Annotated[bool, typer.Option(help="Cut frames to the camera field of view first.")] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
 ) -> None:
@@ -268,8 +322,6 @@ def augment(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
-    except Interrupted as exc:
-        interrupted(exc)
     table = Table(title=f"{out}: {summary['frames']} frames, {summary['points']} points")
     table.add_column("class")
     table.add_column("boxes", justify="right")
@@ -283,7 +335,9 @@ def augment(
 def synth(
     out: Annotated[Path, typer.Option("--out", help="KITTI root to create.")],
     frames: Annotated[int, typer.Option(min=1, help="Frames to generate.")] = 10,
-    seed: Annotated[int, typer.Option(help="Random seed (frame i uses (seed, i)).")] = 0,
+    seed: Annotated[
+        int, typer.Option(min=0, help="Random seed, >= 0 (frame i uses (seed, i)).")
+    ] = 0,
     val_fraction: Annotated[
         float, typer.Option(min=0.0, max=0.99, help="Share of frames listed in val.txt.")
     ] = 0.5,
@@ -303,8 +357,6 @@ def synth(
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
-    except Interrupted as exc:
-        interrupted(exc)
     points = summary["points"]
     table = Table(title=f"{out}: {frames} frames")
     table.add_column("")
@@ -325,7 +377,7 @@ def demo(
     frames: Annotated[
         int, typer.Option(min=1, help="Synthetic frames (cached in OUT/kitti).")
     ] = 16,
-    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Random seed, >= 0.")] = 0,
     augment_frames: Annotated[int, typer.Option(min=1, help="Frames to augment.")] = 4,
 ) -> None:
     """Run every available stage on the built-in synthetic world; writes figures and a summary."""
@@ -335,8 +387,6 @@ def demo(
         run_demo(out, frames=frames, seed=seed, augment_frames=augment_frames)
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))
-    except Interrupted as exc:
-        interrupted(exc)
 
 
 @app.command()
@@ -396,7 +446,9 @@ def evaluation_table(result, title: str) -> Table:
 
 
 def main() -> None:
-    app()
+    """The ``drcpo`` console script: the app, inside :func:`safety_net`."""
+    with safety_net():
+        app()
 
 
 if __name__ == "__main__":

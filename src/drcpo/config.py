@@ -12,7 +12,13 @@ allowed range or choices.
 
 Per-class values (object counts, minimum points) are mappings ``{class name: value}``; where a
 single number makes sense for every class (minimum points) a plain number is accepted and stored
-as ``{"default": n}``. The key ``default`` applies to classes without their own entry.
+as ``{"default": n}``. The key ``default`` applies to classes without their own entry (in the
+minimum-point maps and partition grids only: object counts are per named class). Every class
+name used must be listed in the top-level ``known_classes`` (KITTI's classes by default), so a
+misspelt name (``Pedestrain``) is an error rather than a class that never occurs.
+
+YAML files are read as UTF-8 with PyYAML's safe loader, except that a key given twice in one
+mapping is an error (naming the key and both lines) and ``5e4`` reads as a number, as in YAML 1.2.
 
 Detector presets (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``) choose the e-HPR
 viewpoint height and radius of the paper's reference configuration for each detector; they live
@@ -22,9 +28,11 @@ as YAML files in ``drcpo/configs/`` next to ``default.yaml`` (the paper defaults
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
-from collections.abc import Mapping
+import re
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -40,6 +48,20 @@ PRESETS: tuple[str, ...] = ("second", "pointrcnn", "pv_rcnn", "pv_rcnn_plusplus"
 DEFAULT_PRESET = "pv_rcnn_plusplus"
 #: Pipelines :func:`build_pipeline` can make.
 PIPELINES: tuple[str, ...] = ("drcpo", "cda")
+#: Class names the per-class keys may use unless ``known_classes`` says otherwise (KITTI's).
+KITTI_CLASSES: tuple[str, ...] = (
+    "Car",
+    "Van",
+    "Truck",
+    "Pedestrian",
+    "Person_sitting",
+    "Cyclist",
+    "Tram",
+    "Misc",
+)
+#: Largest e-HPR radius: the same bound as :data:`drcpo.occlusion.MAX_RADIUS` (not imported:
+#: that module compiles numba kernels and this one must stay light).
+MAX_RADIUS = 1e150
 
 
 # --------------------------------------------------------------------------------------------
@@ -57,6 +79,9 @@ class _Spec:
     choices: tuple[str, ...] = ()
     optional: bool = False
     scalar_ok: bool = False  # per_class: a plain number means {"default": n}
+    strict: bool = False  # range: low < high (an empty interval is meaningless)
+    classes: bool = False  # names / per_class / grids: class names, checked vs known_classes
+    nonempty: bool = False  # names: at least one
 
     def describe_range(self) -> str:
         left = "(" if self.low_open else "["
@@ -118,7 +143,7 @@ class ScalingConfig:
 
     range: list[float] = field(
         default_factory=lambda: [0.95, 1.05],
-        metadata=_spec("range", "factor interval", low=0.0, low_open=True),
+        metadata=_spec("range", "factor interval", low=0.0, low_open=True, high=10.0),
     )
 
 
@@ -144,6 +169,7 @@ class GTSamplingConfig:
             "objects per class after sampling (existing ones count)",
             low=0,
             high=1000,
+            classes=True,
         ),
     )
     min_points: dict[str, int] = field(
@@ -154,6 +180,7 @@ class GTSamplingConfig:
             low=0,
             high=1e6,
             scalar_ok=True,
+            classes=True,
         ),
     )
     exclude_difficulty: list[int] = field(
@@ -197,10 +224,11 @@ class ConstructionConfig:
     )
     mirror: list[str] = field(
         default_factory=lambda: ["Car", "Cyclist"],
-        metadata=_spec("names", "classes mirrored across the x axis"),
+        metadata=_spec("names", "classes mirrored across the x axis", classes=True),
     )
     grids: dict[str, list[int]] = field(
-        default_factory=lambda: {}, metadata=_spec("grids", "partition grid overrides per class")
+        default_factory=lambda: {},
+        metadata=_spec("grids", "partition grid overrides per class", classes=True),
     )
 
 
@@ -210,11 +238,11 @@ class PlacementSettings:
 
     x_range: list[float] = field(
         default_factory=lambda: [0.0, 70.4],
-        metadata=_spec("range", "metres, box inside", low=-200.0, high=200.0),
+        metadata=_spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
     )
     y_range: list[float] = field(
         default_factory=lambda: [-40.0, 40.0],
-        metadata=_spec("range", "metres, box inside", low=-200.0, high=200.0),
+        metadata=_spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
     )
     height: str = field(
         default="ground",
@@ -295,7 +323,10 @@ class ExternalOcclusionConfig:
         metadata=_spec("choice", "which points e-HPR may remove", choices=("inserted", "frame")),
     )
     radius: float | None = field(
-        default=None, metadata=_spec("float", "override R", low=0.0, low_open=True, optional=True)
+        default=None,
+        metadata=_spec(
+            "float", "override R", low=0.0, low_open=True, high=MAX_RADIUS, optional=True
+        ),
     )
     viewpoint_z: float | None = field(
         default=None,
@@ -317,6 +348,7 @@ class DRCPOConfig:
             "objects tried per frame",
             low=0,
             high=1000,
+            classes=True,
         ),
     )
     min_points: dict[str, int] = field(
@@ -327,6 +359,7 @@ class DRCPOConfig:
             low=0,
             high=1e6,
             scalar_ok=True,
+            classes=True,
         ),
     )
     exclude_difficulty: list[int] = field(
@@ -362,6 +395,10 @@ class AugmentConfig:
         metadata=_spec(
             "choice", "detector preset applied before these keys", choices=PRESETS, optional=True
         ),
+    )
+    known_classes: list[str] = field(
+        default_factory=lambda: list(KITTI_CLASSES),
+        metadata=_spec("names", "class names the per-class keys may use", nonempty=True),
     )
     gt_sampling: GTSamplingConfig = field(default_factory=GTSamplingConfig, metadata=_SECTION)
     drcpo: DRCPOConfig = field(default_factory=DRCPOConfig, metadata=_SECTION)
@@ -422,7 +459,10 @@ def _merge(base: Any, data: Mapping[str, Any] | None, path: str) -> Any:
 
 
 def _show(value: Any) -> str:
-    text = repr(value)
+    try:
+        text = repr(value)
+    except ValueError:  # an integer past Python's digit limit for str()
+        text = f"<an integer of {value.bit_length()} bits>"
     return text if len(text) < 60 else text[:57] + "..."
 
 
@@ -468,7 +508,8 @@ def _number(value: Any, spec: _Spec, where: str, integer: bool) -> int | float:
         else:
             wanted = "an integer" if integer else "a number"
             raise ConfigError(f"config key {where!r} must be {wanted}, got {_show(value)}")
-    if not math.isfinite(value):
+    # Integers compare exactly with the bounds (float() of a huge one would overflow).
+    if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(f"config key {where!r} must be finite, got {value}")
     too_low = spec.low is not None and (value <= spec.low if spec.low_open else value < spec.low)
     too_high = spec.high is not None and (
@@ -476,7 +517,7 @@ def _number(value: Any, spec: _Spec, where: str, integer: bool) -> int | float:
     )
     if too_low or too_high:
         raise ConfigError(
-            f"config key {where!r} = {value} is out of range; allowed range: "
+            f"config key {where!r} = {_show(value)} is out of range; allowed range: "
             f"{spec.describe_range()}"
         )
     return int(value) if integer else float(value)
@@ -486,6 +527,8 @@ def _interval(value: Any, spec: _Spec, where: str) -> list[float]:
     if not isinstance(value, list | tuple) or len(value) != 2:
         raise ConfigError(f"config key {where!r} must be a pair [low, high], got {_show(value)}")
     low, high = (_number(v, spec, f"{where}[{i}]", integer=False) for i, v in enumerate(value))
+    if spec.strict and low >= high:
+        raise ConfigError(f"config key {where!r} = [{low}, {high}]: low must be below high")
     if low > high:
         raise ConfigError(f"config key {where!r} = [{low}, {high}]: low must not exceed high")
     return [low, high]
@@ -511,14 +554,22 @@ def _per_class(value: Any, spec: _Spec, where: str) -> dict[str, int]:
 def _names(value: Any, spec: _Spec, where: str) -> list[str]:
     if isinstance(value, str) or not isinstance(value, list | tuple):
         raise ConfigError(f"config key {where!r} must be a list of names, got {_show(value)}")
+    if spec.nonempty and not value:
+        raise ConfigError(f"config key {where!r} must name at least one class")
+    seen: set[str] = set()
     for i, name in enumerate(value):
-        if not isinstance(name, str):
-            raise ConfigError(f"config key {where}[{i}] must be a string, got {_show(name)}")
+        if not isinstance(name, str) or not name:
+            raise ConfigError(
+                f"config key {f'{where}[{i}]'!r} must be a non-empty string, got {_show(name)}"
+            )
         if spec.choices and name not in spec.choices:
             raise ConfigError(
-                f"config key {where}[{i}] = {name!r} is not allowed; "
+                f"config key {f'{where}[{i}]'!r} = {name!r} is not allowed; "
                 f"choose from: {', '.join(spec.choices)}"
             )
+        if name in seen:
+            raise ConfigError(f"config key {f'{where}[{i}]'!r} = {name!r} is listed twice")
+        seen.add(name)
     return list(value)
 
 
@@ -528,12 +579,62 @@ def _grids(value: Any, where: str) -> dict[str, list[int]]:
     out = {}
     cell_spec = _Spec("int", low=1, high=100)
     for name, grid in value.items():
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"config key {where!r}: class names must be strings, got {name!r}")
         if not isinstance(grid, list | tuple) or len(grid) != 3:
-            raise ConfigError(f"config key {where}.{name} must be [nx, ny, nz], got {_show(grid)}")
-        out[str(name)] = [
+            raise ConfigError(
+                f"config key {f'{where}.{name}'!r} must be [nx, ny, nz], got {_show(grid)}"
+            )
+        out[name] = [
             _number(n, cell_spec, f"{where}.{name}[{i}]", integer=True) for i, n in enumerate(grid)
         ]
     return out
+
+
+def _check_classes(config: AugmentConfig) -> None:
+    """Every class name in a per-class key of ``config`` is one of its ``known_classes``.
+
+    Runs on the whole tree once it is merged, so ``known_classes`` may come anywhere in a file.
+    ``default`` is allowed where it is a fallback (minimum points, grids), not in object counts.
+    """
+    known = config.known_classes
+    if "default" in known:
+        raise ConfigError(
+            "config key 'known_classes' lists 'default', which is not a class name "
+            "(it is the fallback entry of the per-class maps)"
+        )
+    for where, spec, value, default in _class_keys(config, AugmentConfig(), ""):
+        fallback = spec.scalar_ok or spec.kind == "grids"
+        if spec.kind == "names":
+            labelled = [(f"{where}[{i}]", name) for i, name in enumerate(value)]
+        else:
+            labelled = [(f"{where}.{name}", name) for name in value]
+        for key, name in labelled:
+            if name in known or (fallback and name == "default"):
+                continue
+            close = difflib.get_close_matches(name, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            allowed = ", ".join(sorted(known)) + (", default" if fallback else "")
+            if value == default:
+                what, advice = " (a default value)", f"set {where} for your classes"
+            else:
+                what, advice = "", "list a data set's own classes in the top-level known_classes"
+            raise ConfigError(
+                f"config key {key!r}{what}: unknown class {name!r}{hint}; "
+                f"known classes: {allowed}; {advice}"
+            )
+
+
+def _class_keys(config: Any, default: Any, path: str) -> Iterator[tuple[str, _Spec, Any, Any]]:
+    """``(key path, spec, value, default value)`` of every class-keyed field of ``config``."""
+    for f in dataclasses.fields(config):
+        where = f"{path}.{f.name}" if path else f.name
+        spec: _Spec = f.metadata["spec"]
+        value, default_value = getattr(config, f.name), getattr(default, f.name)
+        if spec.kind == "section":
+            yield from _class_keys(value, default_value, where)
+        elif spec.classes:
+            yield where, spec, value, default_value
 
 
 def per_class(values: Mapping[str, int], name: str, fallback: int = 0) -> int:
@@ -541,13 +642,60 @@ def per_class(values: Mapping[str, int], name: str, fallback: int = 0) -> int:
     return int(values.get(name, values.get("default", fallback)))
 
 
+class _ConfigLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # libyaml when built
+    """PyYAML's safe loader, refusing a key given twice in one mapping (the last would win
+    silently) and reading ``5e4`` as a number (YAML 1.1 reads it as a string; 1.2 as a float)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        first_line: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            # Merge keys (<<) are exempt: the keys written next to one are meant to override it.
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == _MERGE_TAG:
+                continue
+            key = self.construct_object(key_node)
+            line = key_node.start_mark.line + 1
+            if key in first_line:
+                raise _DuplicateKey(
+                    f"{line}: duplicate key {key!r} (first on line {first_line[key]})"
+                )
+            first_line[key] = line
+        return super().construct_mapping(node, deep=deep)
+
+
+class _DuplicateKey(Exception):
+    """A key repeated in one YAML mapping (the message starts with its line)."""
+
+
+_MERGE_TAG = "tag:yaml.org,2002:merge"
+_ConfigLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
 def _read_yaml(path: Path) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_bytes().decode("utf-8")
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config file ({exc.strerror})") from exc
+        raise ConfigError(f"{path}: cannot read config file ({exc.strerror or exc})") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
+            "save the config file as UTF-8"
+        ) from None
+    try:
+        data = yaml.load(text, Loader=_ConfigLoader)  # a SafeLoader subclass: no arbitrary objects
+    except _DuplicateKey as exc:
+        raise ConfigError(f"{path}:{exc}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: not valid YAML ({exc})") from exc
+    except RecursionError:
+        raise ConfigError(f"{path}: not a config file (YAML nested too deeply)") from None
+    except Exception as exc:
+        # PyYAML's scalar constructors raise plain ValueError, KeyError, AttributeError ... on
+        # values they cannot convert (!!int abc, 2001-13-45, !!bool maybe, a 5000-digit int).
+        raise ConfigError(f"{path}: not valid YAML (unreadable value: {exc!r})") from exc
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -574,25 +722,40 @@ def load_config(source: str | os.PathLike | Mapping[str, Any] | AugmentConfig | 
     detector preset. Raises :class:`ConfigError` naming the file and key on any bad value.
     """
     if isinstance(source, AugmentConfig):
+        _build(source.to_dict())  # one built in code is checked as a file would be
         return source
     if source is None:
         return AugmentConfig()
     origin = ""
     if isinstance(source, Mapping):
         data = dict(source)
-    else:
-        path = Path(source)
-        if not path.exists() and str(source) in ("default", *PRESETS):
-            path = preset_path(str(source))
-        if not path.is_file():
-            raise ConfigError(
-                f"{path}: config file not found (or give a preset: default, {', '.join(PRESETS)})"
-            )
+    elif isinstance(source, str | os.PathLike):
+        path = _config_path(source)
         data, origin = _read_yaml(path), str(path)
+    else:
+        raise ConfigError(
+            f"a config must be a mapping, a YAML file path or a preset name, got {_show(source)}"
+        )
     try:
         return _build(data)
     except ConfigError as exc:
         raise ConfigError(f"{origin}: {exc}" if origin else str(exc)) from None
+
+
+def _config_path(source: str | os.PathLike) -> Path:
+    """The YAML file ``source`` names: itself, else the packaged preset of that name."""
+    path = Path(source)
+    try:
+        if not path.exists() and str(source) in ("default", *PRESETS):
+            path = preset_path(str(source))
+        found = path.is_file()
+    except (OSError, ValueError) as exc:  # e.g. a name too long, a NUL byte
+        raise ConfigError(f"{_show(str(source))}: not a usable config file path ({exc})") from None
+    if not found:
+        raise ConfigError(
+            f"{path}: config file not found (or give a preset: default, {', '.join(PRESETS)})"
+        )
+    return path
 
 
 def _build(data: dict[str, Any]) -> AugmentConfig:
@@ -604,7 +767,9 @@ def _build(data: dict[str, Any]) -> AugmentConfig:
         preset_data = _read_yaml(preset_path(preset))
         preset_data.pop("preset", None)
         base = _merge(base, preset_data, "")
-    return _merge(base, data, "")
+    config = _merge(base, data, "")
+    _check_classes(config)
+    return config
 
 
 def build_pipeline(config: Any = None, database: Any = None, index: Any = None, kind=None):

@@ -104,6 +104,7 @@ class GroundTruthDatabase:
         points = _load(path / "points.npy", mmap=True)
         offsets = _load(path / "offsets.npy", mmap=True)
         columns = {name: _load(path / f"{name}.npy") for name in _COLUMNS}
+        _check_text_columns(path, columns)
         return cls(points, offsets, columns, manifest=manifest, path=path)
 
     @classmethod
@@ -327,6 +328,16 @@ def _load(path: Path, mmap: bool = False) -> np.ndarray:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise DataError(f"{path}: unreadable array ({exc})") from exc
+
+
+def _check_text_columns(path: Path, columns: dict[str, np.ndarray]) -> None:
+    """Class names and frame ids are unicode arrays (another tool may store integer ids)."""
+    for name, kind in _COLUMNS.items():
+        if kind is str and columns[name].dtype.kind != "U":
+            raise DataError(
+                f"{path / f'{name}.npy'}: {name} must be strings, got {columns[name].dtype} "
+                "(a drcpo database stores names as text, e.g. 'Car')"
+            )
 
 
 def _check_consistent(

@@ -78,6 +78,9 @@ INDEX_OUTPUT = OutputKind("drcpo candidate index", "manifest.json", FORMAT_NAME)
 #: ``progress(class_name, objects_done, objects_total)``, called from the calling thread.
 Progress = Callable[[str, int, int], None]
 
+#: Largest K: far beyond the paper's 400; above it the N x K candidate table alone is out of
+#: reach for any real database (checked against the memory before it is allocated).
+MAX_K = 100_000
 _BOUND_SLACK = 1e-9  # relative safety margin on IoU upper bounds against rounding
 _MAX_CELLS = 1 << 22  # cap on the u-space grid (the cell table costs 8 bytes per cell)
 _CHUNK_POINTS = 1 << 20  # points per chunk when counting partition occupancy
@@ -120,7 +123,12 @@ class IndexConfig:
     block_size: int = 512
 
     def __post_init__(self) -> None:
-        _require(isinstance(self.k, int | np.integer) and self.k >= 1, "k", self.k, ">= 1")
+        _require(
+            isinstance(self.k, int | np.integer) and 1 <= self.k <= MAX_K,
+            "k",
+            self.k,
+            f"1 .. {MAX_K}",
+        )
         _require(
             isinstance(self.alpha, int | float) and 0 < self.alpha < math.inf,
             "alpha",
@@ -362,6 +370,7 @@ def build_index(
     n = len(database)
     rows_of = {name: np.flatnonzero(names == name) for name in classes}
     indexed_of = {name: rows[keep[rows]] for name, rows in rows_of.items()}
+    _check_table_fits(n, config.k, {name: len(rows) for name, rows in indexed_of.items()})
     densities, max_counts = _densities(database, grids, config.mirrored, p_max, indexed_of)
     candidates = np.full((n, config.k), -1, np.int32)
     stats: dict[str, dict[str, Any]] = {}
@@ -390,6 +399,37 @@ def build_index(
     return CandidateIndex(
         candidates, densities, grids, max_counts, config, database.checksum, stats
     )
+
+
+def _check_table_fits(n: int, k: int, indexed: Mapping[str, int]) -> None:
+    """Refuse, before allocating it, an ``int32 (n, k)`` candidate table larger than memory."""
+    need = n * k * np.dtype(np.int32).itemsize
+    have = _memory_bytes()
+    if have is None or need <= have:
+        return
+    largest = max(indexed, key=lambda name: indexed[name], default=None)
+    most = max(indexed[largest] - 1, 0) if largest is not None else 0
+    raise ConfigError(
+        f"index K = {k} for {n} objects needs a candidate table of {_fmt_bytes(need)} "
+        f"(int32 N x K), more than this machine's {_fmt_bytes(have)} of memory; the largest "
+        f"class ({largest}, {most + 1} indexed objects) gives an object at most {most} "
+        "candidates: choose a smaller K"
+    )
+
+
+def _memory_bytes() -> int | None:
+    """Physical memory of this machine in bytes (``None`` where the OS does not say)."""
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
+        return None
+
+
+def _fmt_bytes(count: float) -> str:
+    """``6000000`` -> ``"5.7 MiB"`` (binary units, up to TiB)."""
+    units = ("B", "KiB", "MiB", "GiB", "TiB")
+    power = min(int(math.log(max(count, 1), 1024)), len(units) - 1)
+    return f"{count / 1024**power:.1f} {units[power]}"
 
 
 def _densities(

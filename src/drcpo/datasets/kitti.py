@@ -18,6 +18,7 @@ Every reader raises :class:`~drcpo.errors.DataError` naming the file (and line) 
 
 from __future__ import annotations
 
+import math
 import os
 import struct
 from collections.abc import Iterator, Sequence
@@ -146,6 +147,10 @@ def read_points(path: str | os.PathLike, num_features: int = 4) -> np.ndarray:
 
 # Calibration --------------------------------------------------------------------------------
 _CALIB_FIELDS = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+#: Fields whose 3 x 3 part is inverted (LiDAR <-> camera). KITTI's are rotations (condition
+#: number 1); past this bound the float32 inverse keeps hardly a digit, so the file is wrong.
+_INVERTED_FIELDS = ("R0_rect", "Tr_velo_to_cam")
+_MAX_CONDITION = 1e6
 
 
 def read_calib(path: str | os.PathLike) -> Calibration:
@@ -153,11 +158,13 @@ def read_calib(path: str | os.PathLike) -> Calibration:
 
     Fields are found by name, so their order does not matter; other fields are ignored.
     Raises :class:`DataError` naming the file (and line or field) when it is missing, a
-    required field is absent, or a value is not a finite number.
+    required field is absent, a value is not a finite number, or ``R0_rect`` or the rotation
+    part of ``Tr_velo_to_cam`` is singular (e.g. all zeros), which makes LiDAR boxes undefined.
     """
     path = Path(path)
     lines = _read_lines(path, "calibration")
     values: dict[str, np.ndarray] = {}
+    line_of: dict[str, int] = {}
     for number, line in enumerate(lines, start=1):
         key, sep, rest = line.partition(":")
         key = key.strip()
@@ -171,10 +178,25 @@ def read_calib(path: str | os.PathLike) -> Calibration:
                 f"got {rest.split()!r}"
             )
         values[key] = numbers.astype(np.float32).reshape(shape)
+        line_of[key] = number
     missing = [key for key in _CALIB_FIELDS if key not in values]
     if missing:
         raise DataError(f"{path}: calibration field(s) {', '.join(missing)} missing")
+    for key in _INVERTED_FIELDS:
+        condition = _condition_number(values[key][:, :3])
+        if condition > _MAX_CONDITION:
+            raise DataError(
+                f"{path}:{line_of[key]}: {key} is singular (condition number {condition:.3g}): "
+                "its 3 x 3 part must be a rotation for LiDAR <-> camera conversions"
+            )
     return Calibration(values["P2"], values["R0_rect"], values["Tr_velo_to_cam"])
+
+
+def _condition_number(matrix: np.ndarray) -> float:
+    """Ratio of the largest to the smallest singular value of a finite square matrix (inf when
+    singular, including all zeros, where numpy's ``cond`` would give NaN)."""
+    singular = np.linalg.svd(matrix.astype(np.float64), compute_uv=False)
+    return float(singular[0] / singular[-1]) if singular[-1] > 0 else math.inf
 
 
 # Labels -------------------------------------------------------------------------------------
