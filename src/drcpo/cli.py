@@ -330,6 +330,60 @@ def demo(
         fail(str(exc))
 
 
+@app.command()
+def evaluate(
+    gt: Annotated[Path, typer.Option("--gt", help="KITTI root (ImageSets/, training/label_2/).")],
+    pred: Annotated[
+        Path, typer.Option("--pred", help="Result files: one KITTI label file + score per frame.")
+    ],
+    split: Annotated[str, typer.Option(help="Split: frames of ImageSets/<split>.txt.")] = "val",
+    classes: Annotated[
+        str, typer.Option(help="Comma-separated classes (Car, Pedestrian, Cyclist, Van, ...).")
+    ] = "Car,Pedestrian,Cyclist",
+    loose: Annotated[
+        bool, typer.Option("--loose", help="Loose IoU thresholds (Car 0.5, others 0.25).")
+    ] = False,
+    missing_empty: Annotated[
+        bool,
+        typer.Option("--missing-empty", help="A frame without a result file has no detections."),
+    ] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
+) -> None:
+    """KITTI AP (2D, BEV, 3D; R40 and R11; easy, moderate, hard) of result files."""
+    from drcpo.evaluation import DIFFICULTIES, METRICS, evaluate_kitti_split
+
+    names = [name.strip() for name in classes.split(",") if name.strip()]
+    try:
+        result = evaluate_kitti_split(
+            gt, split, pred, names, "loose" if loose else "strict", missing_empty
+        )
+    except DrcpoError as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(result.to_dict()))
+        return
+    table = Table(title=f"KITTI {split}: {result.frames} frames, AP in % (R40 / R11)")
+    for column in ("class", "metric", "IoU", *DIFFICULTIES):
+        table.add_column(column, justify="left" if column in ("class", "metric") else "right")
+    for c, name in enumerate(result.classes):
+        rows = [
+            (
+                m,
+                f"{result.min_overlaps[c, i]:.2f}",
+                result.ap(m, name, "R40"),
+                result.ap(m, name, "R11"),
+            )
+            for i, m in enumerate(METRICS)
+        ]
+        if result.aos_r40 is not None and result.aos_r11 is not None:
+            rows.append(("aos", "", result.aos_r40[c], result.aos_r11[c]))
+        for i, (metric, threshold, r40, r11) in enumerate(rows):
+            cells = [f"{a:.2f} / {b:.2f}" for a, b in zip(r40, r11, strict=True)]
+            table.add_row(name if i == 0 else "", metric, threshold, *cells)
+        table.add_section()
+    Console().print(table)
+
+
 def main() -> None:
     app()
 
