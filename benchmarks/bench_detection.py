@@ -80,6 +80,12 @@ QUICK = Plan(frames=12, val_frames=8, fractions=(0.5, 1.0), seeds=(0,), steps=3,
 
 
 # Data -----------------------------------------------------------------------------------------
+def _cpu() -> float:
+    """CPU seconds of this process and its finished children (timings on a shared machine)."""
+    times = os.times()
+    return times.user + times.system + times.children_user + times.children_system
+
+
 def _synthesize(root: Path, frames: int, seed: int, street_angle: float) -> dict[str, Any]:
     """Write (or reuse, when its ``synth.json`` matches) a synthetic KITTI root of ``frames``
     frames, all in ``train``; returns the seconds it took (0 when reused)."""
@@ -89,14 +95,15 @@ def _synthesize(root: Path, frames: int, seed: int, street_angle: float) -> dict
     world = WorldConfig().with_street_angle(street_angle)
     if matches(root, synth_parameters(frames, seed, world, LidarConfig(), 0.0)):
         return {"root": str(root), "seconds": 0.0, "reused": True}
-    start = time.perf_counter()
+    start = _cpu()
     write_synthetic_kitti(root, frames, seed, world, val_fraction=0.0, overwrite=True)
-    return {"root": str(root), "seconds": time.perf_counter() - start, "reused": False}
+    return {"root": str(root), "seconds": _cpu() - start, "reused": False}
 
 
 def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
     """Synthesise the training pool and the validation set (in parallel), write the subset
-    splits, and build each subset's database (and index, when a DR.CPO arm runs)."""
+    splits, and build each subset's database (and index, when a DR.CPO arm runs). Timings
+    (``*_s``) are CPU seconds."""
     from drcpo.database_build import build_database
     from drcpo.datasets.kitti import read_split
     from drcpo.datasets.kitti_writer import write_image_sets
@@ -128,18 +135,18 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
         entry = {"split": split, "frames": size, "db": None}
         db = work / "db" / split
         if needs_db:
-            start = time.perf_counter()
+            start = _cpu()
             if not (db / "manifest.json").is_file():
                 build_database(train_root, split, db, workers=plan.workers, overwrite=True)
-            entry["db_s"] = time.perf_counter() - start
+            entry["db_s"] = _cpu() - start
             entry["db"] = str(db)
         if needs_index and not (db / "index" / "manifest.json").is_file():
             from drcpo.database import GroundTruthDatabase
 
-            start = time.perf_counter()
+            start = _cpu()
             database = GroundTruthDatabase.open(db)
             build_index(database, IndexConfig(workers=plan.workers)).save(db, overwrite=True)
-            entry["index_s"] = time.perf_counter() - start
+            entry["index_s"] = _cpu() - start
         subsets[fraction] = entry
     return {"train": str(train_root), "val": str(val_root), "subsets": subsets, **timings}
 
@@ -174,27 +181,30 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
     from detection.scoring import heading_errors, kitti_ap, write_results
     from detection.train import TrainConfig, load_frames, predict, train
 
-    start = time.perf_counter()
+    wall = time.perf_counter()
+    clock = [time.process_time()]
+
+    def lap() -> float:
+        clock.append(time.process_time())
+        return clock[-1] - clock[-2]
+
     frames = load_frames(task["train"], task["split"])
     augment = make_augment(task["arm"], task["db"])
     config = TrainConfig(steps=task["steps"], batch_size=task["batch_size"], seed=task["seed"])
-    loaded = time.perf_counter()
+    setup = lap()
     result = train(frames, augment, config)
-    trained = time.perf_counter()
+    trained = lap()
     if task["val"] not in _VAL_FRAMES:
         _VAL_FRAMES.clear()
         _VAL_FRAMES[task["val"]] = load_frames(task["val"], "val")
     val_frames = _VAL_FRAMES[task["val"]]
     detections = predict(result.model, val_frames)
     results_dir = Path(task["results"])
-    write_results(
-        results_dir,
-        [f.frame_id for f in val_frames],
-        [d.kitti_lines(f) for d, f in zip(detections, val_frames, strict=True)],
-    )
-    predicted = time.perf_counter()
+    lines = [d.kitti_lines(f) for d, f in zip(detections, val_frames, strict=True)]
+    write_results(results_dir, [f.frame_id for f in val_frames], lines)
+    predicted = lap()
     ap = kitti_ap(task["val"], "val", results_dir)
-    done = time.perf_counter()
+    evaluated = lap()
     samples = max(result.samples, 1)
     return {
         **{k: task[k] for k in ("arm", "fraction", "seed", "split")},
@@ -207,13 +217,14 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
         },
         "labels_per_frame": {name: count / samples for name, count in result.labels.items()},
         "final_loss": float(np.mean(result.losses[-20:])),
-        "seconds": {
-            "setup": loaded - start,
+        "seconds": {  # CPU seconds of this single-threaded process, except wall
+            "setup": setup,
             **{f"{k}_per_step": v / config.steps for k, v in result.seconds.items()},
-            "train": trained - loaded,
-            "predict": predicted - trained,
-            "evaluate": done - predicted,
-            "total": done - start,
+            "train": trained,
+            "predict": predicted,
+            "evaluate": evaluated,
+            "cpu": clock[-1] - clock[0],
+            "wall": time.perf_counter() - wall,
         },
     }
 
@@ -248,7 +259,7 @@ def run_grid(work: Path, plan: Plan, data: dict[str, Any]) -> list[dict[str, Any
             print(
                 f"  {run['arm']:>8} {run['frames']:4d} frames seed {run['seed']}: moderate AP_R40 "
                 f"3D {ap['3d']['mean']:5.1f} BEV {ap['bev']['mean']:5.1f} "
-                f"({run['seconds']['total']:.0f} s)",
+                f"({run['seconds']['cpu']:.0f} CPU-s, {run['seconds']['wall']:.0f} s)",
                 file=sys.stderr,
             )
             runs.append(run)

@@ -48,7 +48,9 @@ class TrainResult:
 
     ``added`` counts, per transform and class, the objects the augmentation reports it added
     (drcpo's statistics); ``labels`` counts the labelled objects the model trained on per class;
-    ``seconds`` is the time spent augmenting, encoding and in the optimiser step.
+    ``seconds`` is the CPU time of this process spent augmenting, encoding (BEV features and
+    targets) and in the optimiser steps (forward, backward, update): on a shared machine, what
+    an idle core would take.
     """
 
     model: BevDetector
@@ -132,7 +134,7 @@ def train(
     result = TrainResult(model, [], 0, seconds={"augment": 0.0, "encode": 0.0, "step": 0.0})
     model.train()
     for step, batch in enumerate(order):
-        start = time.perf_counter()
+        start = time.process_time()
         samples = []
         for epoch, index in batch:
             frame = frames[int(index)]
@@ -142,9 +144,9 @@ def train(
             samples.append(frame)
             for name in frame.names.tolist():
                 result.labels[name] = result.labels.get(name, 0) + 1
-        encoded = time.perf_counter()
+        encoded = time.process_time()
         features, heat, code, mask = _batch(samples, grid)
-        stepping = time.perf_counter()
+        stepping = time.process_time()
         heat_logits, code_out = model(features)
         loss, _ = detection_loss(heat_logits, code_out, heat, code, mask, config.code_weight)
         optimiser.zero_grad(set_to_none=True)
@@ -152,7 +154,7 @@ def train(
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         optimiser.step()
         schedule.step()
-        done = time.perf_counter()
+        done = time.process_time()
         result.seconds["augment"] += encoded - start
         result.seconds["encode"] += stepping - encoded
         result.seconds["step"] += done - stepping
