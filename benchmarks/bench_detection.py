@@ -441,11 +441,19 @@ def parse_plan(argv: list[str] | None) -> tuple[Plan, argparse.Namespace]:
 
 def main(argv: list[str] | None = None) -> int:
     plan, args = parse_plan(argv)
+    from drcpo.config import load_config
+    from drcpo.errors import DrcpoError
+
+    try:  # an unknown preset fails now, not after the data are made
+        for arm in plan.arms:
+            if arm not in ("none", "cda", "paper"):
+                load_config(arm)
+    except DrcpoError as exc:
+        print(f"error: arm {arm!r}: {exc}", file=sys.stderr)
+        return 1
     if importlib.util.find_spec("torch") is None:
         print('error: bench_detection needs torch: pip install -e ".[detection]"', file=sys.stderr)
         return 1
-    from drcpo.errors import DrcpoError
-
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_detection_") as scratch:
         work = args.work or Path(scratch)

@@ -39,3 +39,12 @@ def test_quick_grid_runs_end_to_end(tmp_path):
     # the results the evaluator scored are KITTI result files, one per validation frame
     results = sorted((tmp_path / "work" / "results" / "paper-1-0").glob("*.txt"))
     assert len(results) == result["plan"]["val_frames"]
+
+
+def test_an_unknown_arm_fails_at_once_naming_it(tmp_path):
+    command = [sys.executable, str(SCRIPT), "--quick", "--work", str(tmp_path / "work")]
+    done = subprocess.run(
+        [*command, "--arms", "none", "realistic_typo"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 1 and "realistic_typo" in done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "work").exists()
