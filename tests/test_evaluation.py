@@ -226,6 +226,9 @@ def test_bad_arguments_raise_clear_errors():
         evaluate_kitti([frame], [frame, frame])
     with pytest.raises(ConfigError, match="unknown class 'Bus'"):
         evaluate_kitti([frame], [frame], ["Bus"])
+    no_box = _objects([("Car", -1, -1, np.zeros(4), CAR_AT[0], 0.5)])
+    with pytest.raises(DataError, match="none of the 1 detections has a 2D box"):
+        evaluate_kitti([frame], [no_box])
     with pytest.raises(ConfigError, match="overlaps must be"):
         evaluate_kitti([frame], [frame], overlaps="tight")
 

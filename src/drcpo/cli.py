@@ -341,7 +341,7 @@ def evaluate(
         str, typer.Option(help="Comma-separated classes (Car, Pedestrian, Cyclist, Van, ...).")
     ] = "Car,Pedestrian,Cyclist",
     loose: Annotated[
-        bool, typer.Option("--loose", help="Loose IoU thresholds (Car 0.5, others 0.25).")
+        bool, typer.Option("--loose", help="Loose BEV/3D IoU thresholds (Car 0.5, others 0.25).")
     ] = False,
     missing_empty: Annotated[
         bool,
@@ -350,7 +350,7 @@ def evaluate(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
 ) -> None:
     """KITTI AP (2D, BEV, 3D; R40 and R11; easy, moderate, hard) of result files."""
-    from drcpo.evaluation import DIFFICULTIES, METRICS, evaluate_kitti_split
+    from drcpo.evaluation import evaluate_kitti_split
 
     names = [name.strip() for name in classes.split(",") if name.strip()]
     try:
@@ -362,18 +362,20 @@ def evaluate(
     if as_json:
         typer.echo(json.dumps(result.to_dict()))
         return
-    table = Table(title=f"KITTI {split}: {result.frames} frames, AP in % (R40 / R11)")
+    Console().print(evaluation_table(result, f"KITTI {split}: {result.frames} frames"))
+
+
+def evaluation_table(result, title: str) -> Table:
+    """One row per class and metric (2d, bev, 3d, aos): AP R40 / R11 per difficulty."""
+    from drcpo.evaluation import DIFFICULTIES, METRICS
+
+    table = Table(title=f"{title}, AP in % (R40 / R11)")
     for column in ("class", "metric", "IoU", *DIFFICULTIES):
         table.add_column(column, justify="left" if column in ("class", "metric") else "right")
     for c, name in enumerate(result.classes):
         rows = [
-            (
-                m,
-                f"{result.min_overlaps[c, i]:.2f}",
-                result.ap(m, name, "R40"),
-                result.ap(m, name, "R11"),
-            )
-            for i, m in enumerate(METRICS)
+            (m, f"{threshold:.2f}", result.ap(m, name, "R40"), result.ap(m, name, "R11"))
+            for m, threshold in zip(METRICS, result.min_overlaps[c], strict=True)
         ]
         if result.aos_r40 is not None and result.aos_r11 is not None:
             rows.append(("aos", "", result.aos_r40[c], result.aos_r11[c]))
@@ -381,7 +383,7 @@ def evaluate(
             cells = [f"{a:.2f} / {b:.2f}" for a, b in zip(r40, r11, strict=True)]
             table.add_row(name if i == 0 else "", metric, threshold, *cells)
         table.add_section()
-    Console().print(table)
+    return table
 
 
 def main() -> None:

@@ -58,28 +58,34 @@ def read_kitti_objects(path: str | os.PathLike, results: bool = False) -> KittiO
     path = Path(path)
     what = "result" if results else "label"
     allowed = (_FIELDS + 1,) if results else (_FIELDS, _FIELDS + 1)
-    names, rows = [], []
-    for number, line in enumerate(_read_lines(path, what), start=1):
-        fields = line.split()
-        if not fields:
-            continue
+    numbered = [(n, line.split()) for n, line in enumerate(_read_lines(path, what), start=1)]
+    numbered = [(n, fields) for n, fields in numbered if fields]
+    for number, fields in numbered:
         if len(fields) not in allowed:
             expected = " or ".join(str(n) for n in allowed)
             raise DataError(
                 f"{path}:{number}: expected {expected} fields (type, truncated, occluded, alpha, "
                 f"bbox x4, h w l, x y z, ry{', score' if results else '[, score]'}), "
-                f"got {len(fields)}: {line.strip()!r}"
+                f"got {len(fields)}: {' '.join(fields)!r}"
             )
-        values = _parse_floats(fields[1:], path, number)
-        if not np.isfinite(values).all():
-            raise DataError(f"{path}:{number}: NaN or infinite value in {line.strip()!r}")
-        if fields[0] != DONT_CARE and (values[7:10] <= 0).any():
-            raise DataError(
-                f"{path}:{number}: {fields[0]} has a non-positive size h, w, l = {values[7:10]}"
-            )
-        names.append(fields[0])
-        rows.append(values if len(values) == _FIELDS else np.append(values, 0.0))
-    return _objects(names, np.array(rows, dtype=np.float64).reshape(-1, _FIELDS))
+    names = [fields[0] for _, fields in numbered]
+    padded = [fields[1:] if len(fields) > _FIELDS else [*fields[1:], "0"] for _, fields in numbered]
+    try:  # one conversion for the whole file; per line only to name a bad one
+        table = np.array(padded, dtype=np.float64).reshape(-1, _FIELDS)
+    except ValueError:
+        for number, fields in numbered:
+            _parse_floats(fields[1:], path, number)
+        raise DataError(f"{path}: not a number in the file") from None
+    bad = ~np.isfinite(table).all(axis=1)
+    sized = (table[:, 7:10] <= 0).any(axis=1) & (np.array(names, dtype=str) != DONT_CARE)
+    for row in np.flatnonzero(bad | sized)[:1]:
+        number, fields = numbered[row]
+        if bad[row]:
+            raise DataError(f"{path}:{number}: NaN or infinite value in {' '.join(fields)!r}")
+        raise DataError(
+            f"{path}:{number}: {names[row]} has a non-positive size h, w, l = {table[row, 7:10]}"
+        )
+    return _objects(names, table)
 
 
 def _objects(names: list[str], table: np.ndarray) -> KittiObjects:

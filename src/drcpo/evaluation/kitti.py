@@ -77,8 +77,8 @@ class KittiEvaluation:
         classes: evaluated class names, ``C`` of them.
         min_overlaps: ``(C, 3)`` overlap thresholds per class for 2D, BEV, 3D.
         ap_r11, ap_r40: ``(3, C, 3)`` AP per metric (:data:`METRICS`), class and difficulty.
-        aos_r11, aos_r40: ``(C, 3)`` average orientation similarity (2D), or ``None`` when the
-            detections carry no observation angle (alpha -10).
+        aos_r11, aos_r40: ``(C, 3)`` average orientation similarity (2D), or ``None`` when a
+            detection carries no observation angle (alpha -10, KITTI's "unknown").
         frames: number of frames evaluated.
     """
 
@@ -169,7 +169,7 @@ def evaluate_kitti(
             or a mapping class -> (2D, BEV, 3D) IoU thresholds.
 
     Raises:
-        DataError: the two sequences differ in length.
+        DataError: the two sequences differ in length, or no detection has a 2D box.
         ConfigError: an unknown class or overlap set.
     """
     if len(ground_truth) != len(detections):
@@ -180,11 +180,16 @@ def evaluate_kitti(
     gt = _Stack.of(ground_truth, "objects")
     dc = _Stack.of(ground_truth, "dontcare")
     dt = _Stack.of(detections, "objects")
+    if len(dt.score) and not (dt.bbox[:, 3] != dt.bbox[:, 1]).any():
+        raise DataError(
+            f"none of the {len(dt.score)} detections has a 2D box (all heights 0): KITTI's rules "
+            "ignore detections lower than 25 px in every metric, so every AP would be 0; "
+            "write each box's projection into the image as its bbox"
+        )
     gi, di = _frame_pairs(gt.frame, dt.frame, len(ground_truth))
     pair_overlaps = (
         image_iou(dt.bbox[di], gt.bbox[gi]),
-        bev_iou(dt.boxes[di], gt.boxes[gi]),
-        iou3d(dt.boxes[di], gt.boxes[gi]),
+        *_box_overlaps(gt.boxes, dt.boxes, gi, di),
     )
     excused_by = _dont_care_coverage(dc, dt, len(ground_truth))
     with_aos = len(dt.alpha) > 0 and bool((dt.alpha != -10).all())
@@ -249,6 +254,22 @@ def _frame_pairs(
     return ia, ib
 
 
+def _box_overlaps(
+    gt_boxes: np.ndarray, dt_boxes: np.ndarray, gi: np.ndarray, di: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """BEV and 3D IoU ``(P,)`` of the pairs ``(gi, di)``; only pairs whose footprints' bounding
+    circles meet are gathered (a frame holds many pairs of distant boxes)."""
+    reach = (
+        np.hypot(gt_boxes[:, 3], gt_boxes[:, 5])[gi] + np.hypot(dt_boxes[:, 3], dt_boxes[:, 5])[di]
+    ) / 2
+    gap = np.hypot(gt_boxes[gi, 0] - dt_boxes[di, 0], gt_boxes[gi, 2] - dt_boxes[di, 2])
+    near = np.flatnonzero(gap <= reach * (1 + 1e-9))
+    bev, box3d = np.zeros(len(gi)), np.zeros(len(gi))
+    bev[near] = bev_iou(dt_boxes[di[near]], gt_boxes[gi[near]])
+    box3d[near] = iou3d(dt_boxes[di[near]], gt_boxes[gi[near]])
+    return bev, box3d
+
+
 def _dont_care_coverage(dc: _Stack, dt: _Stack, frames: int) -> np.ndarray:
     """Per detection, the largest share of its 2D box inside one of its frame's DontCare boxes."""
     ci, di = _frame_pairs(dc.frame, dt.frame, frames)
@@ -283,6 +304,8 @@ def _precision(
     precision = np.zeros(SAMPLE_POINTS)
     orientation = np.zeros(SAMPLE_POINTS)
     found = tp + fp
+    # A threshold can leave nothing counted (its detections all absorbed by ignored objects);
+    # precision 0 there, where the reference would divide 0 by 0.
     np.divide(tp, found, out=precision[: len(tp)], where=found > 0)
     if with_aos:
         np.divide(similarity, found, out=orientation[: len(tp)], where=found > 0)
