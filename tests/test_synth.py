@@ -68,6 +68,22 @@ def test_world_config_rejects_reversed_ranges():
         WorldConfig(road_width=(12.0, 8.0))
 
 
+def test_street_angle_sets_the_range_of_street_yaws():
+    assert WorldConfig().street_yaw == (-0.1, 0.1)  # the default world is unchanged
+    wide = WorldConfig().with_street_angle(45.0)
+    assert wide.street_yaw == pytest.approx((-np.pi / 4, np.pi / 4))
+    yaws = np.array([generate_world(frame_rng(3, i), wide).street.yaw for i in range(12)])
+    assert np.abs(yaws).max() <= np.pi / 4 and np.abs(yaws).max() > 0.3
+    straight = WorldConfig().with_street_angle(0.0)
+    assert generate_world(frame_rng(3, 0), straight).street.yaw == 0.0
+
+
+@pytest.mark.parametrize("degrees", [-1.0, 90.5, float("nan")])
+def test_street_angle_rejects_values_outside_0_to_90_degrees(degrees):
+    with pytest.raises(ConfigError, match="street angle"):
+        WorldConfig().with_street_angle(degrees)
+
+
 # Ray casting ----------------------------------------------------------------------------------
 
 
@@ -336,6 +352,26 @@ def test_synth_command_writes_a_kitti_root(tmp_path):
         assert (root / "training" / kind / f"000001{suffix}").is_file()
     again = CliRunner().invoke(app, ["synth", "--out", str(root), "--frames", "1"])
     assert again.exit_code == 1 and "already exists" in again.output
+
+
+def test_synth_command_street_angle_reaches_the_world(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+
+    args = ["synth", "--frames", "1", "--azimuth-step", "1.0"]
+    wide = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a"), "--street-angle", "30"])
+    assert wide.exit_code == 0, wide.output
+    stored = json.loads((tmp_path / "a" / "synth.json").read_text())["world"]["street_yaw"]
+    assert stored == pytest.approx([-np.pi / 6, np.pi / 6])
+    default = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b")])
+    assert default.exit_code == 0, default.output
+    stored = json.loads((tmp_path / "b" / "synth.json").read_text())["world"]["street_yaw"]
+    assert stored == [-0.1, 0.1]
+    bad = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "c"), "--street-angle", "120"])
+    assert bad.exit_code != 0 and "street-angle" in bad.output and not (tmp_path / "c").exists()
 
 
 def test_free_pose_stands_on_the_ground_clear_of_everything(frames):

@@ -344,16 +344,26 @@ def synth(
     azimuth_step: Annotated[
         float, typer.Option(min=0.01, max=10.0, help="LiDAR azimuth step, degrees.")
     ] = 0.17,
+    street_angle: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            max=90.0,
+            help="Largest absolute yaw of the street from the sensor's x axis, degrees "
+            "(default: 0.1 rad, about 5.7).",
+        ),
+    ] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
 ) -> None:
     """Generate a synthetic KITTI data set: a ray-cast HDL-64E in procedural streets."""
-    from drcpo.synth import LidarConfig, write_synthetic_kitti
+    from drcpo.synth import LidarConfig, WorldConfig, write_synthetic_kitti
 
     try:
         lidar = LidarConfig(azimuth_step_deg=azimuth_step)
+        world = None if street_angle is None else WorldConfig().with_street_angle(street_angle)
         with progress_bar("synthetic frames") as progress:
             summary = write_synthetic_kitti(
-                out, frames, seed, None, lidar, val_fraction, overwrite, progress
+                out, frames, seed, world, lidar, val_fraction, overwrite, progress
             )
     except (DrcpoError, FileExistsError) as exc:
         fail(str(exc))

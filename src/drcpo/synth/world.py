@@ -8,7 +8,7 @@ and the sensor in a lane at ``(0, sensor_v)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
@@ -70,6 +70,18 @@ class WorldConfig:
             raise ConfigError("WorldConfig: road_width >= 5 m and half_length >= 20 m required")
         if min(self.cars[0], self.pedestrians[0], self.cyclists[0]) < 0:
             raise ConfigError("WorldConfig: object counts must be non-negative")
+
+    def with_street_angle(self, degrees: float) -> WorldConfig:
+        """This configuration with streets at yaws uniform in ``[-degrees, +degrees]`` from the
+        sensor's x axis (the default ``street_yaw`` is +-0.1 rad, about 5.7 degrees).
+
+        Parked and moving objects follow the street, so this also spreads their headings.
+        Raises :class:`ConfigError` unless ``0 <= degrees <= 90``.
+        """
+        if not np.isfinite(degrees) or not 0.0 <= degrees <= 90.0:
+            raise ConfigError(f"street angle must be in [0, 90] degrees, got {degrees}")
+        limit = float(np.radians(degrees))
+        return replace(self, street_yaw=(-limit, limit))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,187 @@
+"""Training loop and inference of :class:`~.model.BevDetector` on drcpo frames.
+
+The loop draws frames in epochs (a fresh permutation per epoch from ``(seed, epoch)``) and
+augments each with its own generator ``np.random.default_rng([seed, epoch, index])``
+(``index`` = the frame's position in the training set), so an arm's samples do not depend on the
+batch size or on what other arms do, and runs of different arms with one seed see the same
+frames in the same order. One torch thread, deterministic algorithms, and ``torch.manual_seed``
+make a run repeat exactly for a seed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, KittiDataset, fov_mask
+from drcpo.frame import Frame
+from drcpo.pipeline import STATS_KEY
+
+from .bev import Grid, bev_features
+from .heads import Detections, decode, encode_targets
+from .model import BevDetector, detection_loss
+
+Augment = Callable[[Frame, np.random.Generator], Frame]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings: AdamW with a one-cycle learning rate over ``steps`` steps."""
+
+    steps: int = 600
+    batch_size: int = 4
+    learning_rate: float = 3e-3
+    weight_decay: float = 1e-2
+    code_weight: float = 0.5
+    seed: int = 0
+
+
+@dataclass
+class TrainResult:
+    """A trained model, its loss per step, and what the augmentation did per sample.
+
+    ``added`` counts, per transform and class, the objects the augmentation reports it added
+    (drcpo's statistics); ``labels`` counts the labelled objects the model trained on per class;
+    ``seconds`` is the CPU time of this process spent augmenting, encoding (BEV features and
+    targets) and in the optimiser steps (forward, backward, update): on a shared machine, what
+    an idle core would take.
+    """
+
+    model: BevDetector
+    losses: list[float]
+    samples: int
+    added: dict[str, dict[str, int]] = field(default_factory=dict)
+    labels: dict[str, int] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def configure_torch(seed: int) -> None:
+    """One thread (the benchmark runs one process per core), deterministic kernels, the seed."""
+    torch.set_num_threads(1)
+    torch.use_deterministic_algorithms(True)
+    torch.manual_seed(seed)
+
+
+def camera_view(frame: Frame) -> Frame:
+    """The frame cut to the camera's field of view, as OpenPCDet trains KITTI (metadata
+    ``fov_only`` tells DR.CPO to place objects where the camera sees them)."""
+    calib = frame.metadata["calib"]
+    keep = fov_mask(frame.points, calib, frame.metadata.get("image_shape", DEFAULT_IMAGE_SHAPE))
+    return frame.replace(points=frame.points[keep], metadata={**frame.metadata, "fov_only": True})
+
+
+def load_frames(root: str | Path, split: str) -> list[Frame]:
+    """Frames of a KITTI split, cut to the camera's field of view."""
+    return [camera_view(frame) for frame in KittiDataset(root, split)]
+
+
+def sample_order(count: int, steps: int, batch_size: int, seed: int) -> np.ndarray:
+    """``int64 (steps, batch_size, 2)``: (epoch, frame index) of each sample of each step."""
+    needed = steps * batch_size
+    epochs = -(-needed // count)
+    order = [
+        np.column_stack([np.full(count, e), np.random.default_rng([seed, e]).permutation(count)])
+        for e in range(epochs)
+    ]
+    return np.concatenate(order)[:needed].reshape(steps, batch_size, 2)
+
+
+def _tally_added(added: dict[str, dict[str, int]], frame: Frame) -> None:
+    for transform, per_class in frame.metadata.get(STATS_KEY, {}).get("objects", {}).items():
+        row = added.setdefault(transform, {})
+        for name, entry in per_class.items():
+            row[name] = row.get(name, 0) + int(entry["added"])
+
+
+def _batch(samples: Sequence[Frame], grid: Grid) -> tuple[torch.Tensor, ...]:
+    features = np.stack([bev_features(f.points, grid) for f in samples])
+    targets = [encode_targets(f.boxes, f.names, grid) for f in samples]
+    heat, code, mask = (np.stack(parts) for parts in zip(*targets, strict=True))
+    return tuple(torch.from_numpy(a) for a in (features, heat, code, mask))
+
+
+def train(
+    frames: Sequence[Frame],
+    augment: Augment | None,
+    config: TrainConfig | None = None,
+    grid: Grid | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> TrainResult:
+    """Train a fresh detector on ``frames`` (cut to the camera view), each sample passed through
+    ``augment(frame, rng)`` first (``None``: no augmentation).
+
+    ``progress(step, loss)`` is called after each step.
+    """
+    config = config or TrainConfig()
+    grid = grid or Grid()
+    if not frames:
+        raise ValueError("train: no training frames")
+    configure_torch(config.seed)
+    model = BevDetector(grid.channels)
+    optimiser = torch.optim.AdamW(
+        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+    )
+    schedule = torch.optim.lr_scheduler.OneCycleLR(
+        optimiser, max_lr=config.learning_rate, total_steps=config.steps, pct_start=0.3
+    )
+    order = sample_order(len(frames), config.steps, config.batch_size, config.seed)
+    result = TrainResult(model, [], 0, seconds={"augment": 0.0, "encode": 0.0, "step": 0.0})
+    model.train()
+    for step, batch in enumerate(order):
+        start = time.process_time()
+        samples = []
+        for epoch, index in batch:
+            frame = frames[int(index)]
+            if augment is not None:
+                frame = augment(frame, np.random.default_rng([config.seed, int(epoch), int(index)]))
+                _tally_added(result.added, frame)
+            samples.append(frame)
+            for name in frame.names.tolist():
+                result.labels[name] = result.labels.get(name, 0) + 1
+        encoded = time.process_time()
+        features, heat, code, mask = _batch(samples, grid)
+        stepping = time.process_time()
+        heat_logits, code_out = model(features)
+        loss, _ = detection_loss(heat_logits, code_out, heat, code, mask, config.code_weight)
+        optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        optimiser.step()
+        schedule.step()
+        done = time.process_time()
+        result.seconds["augment"] += encoded - start
+        result.seconds["encode"] += stepping - encoded
+        result.seconds["step"] += done - stepping
+        result.losses.append(float(loss.detach()))
+        result.samples += len(samples)
+        if progress is not None:
+            progress(step + 1, result.losses[-1])
+    return result
+
+
+@torch.no_grad()
+def predict(
+    model: BevDetector,
+    frames: Sequence[Frame],
+    grid: Grid | None = None,
+    batch_size: int = 8,
+    **decode_options: Any,
+) -> list[Detections]:
+    """Detections of ``model`` on each frame (options go to :func:`~.heads.decode`)."""
+    grid = grid or Grid()
+    model.eval()
+    out: list[Detections] = []
+    for start in range(0, len(frames), batch_size):
+        chunk = frames[start : start + batch_size]
+        features = torch.from_numpy(np.stack([bev_features(f.points, grid) for f in chunk]))
+        heat_logits, code = model(features)
+        heat, code = torch.sigmoid(heat_logits).numpy(), code.numpy()
+        for k in range(len(chunk)):
+            out.append(Detections(*decode(heat[k], code[k], grid, **decode_options)))
+    return out
