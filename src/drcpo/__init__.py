@@ -2,7 +2,8 @@
 
 from drcpo.errors import ConfigError, DataError, DrcpoError
 from drcpo.frame import Frame
+from drcpo.warmup import warmup
 
 __version__ = "0.1.0"
 
-__all__ = ["ConfigError", "DataError", "DrcpoError", "Frame", "__version__"]
+__all__ = ["ConfigError", "DataError", "DrcpoError", "Frame", "__version__", "warmup"]
