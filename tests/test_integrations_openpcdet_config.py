@@ -9,6 +9,7 @@ generator's seed there.
 from __future__ import annotations
 
 import pickle
+import sys
 
 import numpy as np
 import pytest
@@ -259,3 +260,14 @@ def test_runner_usage_without_a_script(capsys):
     with pytest.raises(SystemExit) as info:
         openpcdet.main(["no_such_script.py"])
     assert info.value.code == 2
+
+
+def test_runner_without_openpcdet_says_so_in_one_line(tmp_path, monkeypatch, capsys):
+    script = tmp_path / "train.py"
+    script.write_text("raise SystemExit('the script must not run')\n")
+    monkeypatch.setitem(sys.modules, "pcdet", None)  # import pcdet raises ImportError
+    with pytest.raises(SystemExit) as info:
+        openpcdet.main([str(script)])
+    assert info.value.code == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: cannot import OpenPCDet") and err.count("\n") == 1

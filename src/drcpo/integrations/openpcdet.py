@@ -395,7 +395,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     if not script.is_file():
         print(f"error: {script}: no such script", file=sys.stderr)
         raise SystemExit(2)
-    register()
+    try:
+        register()
+    except ImportError as exc:
+        print(f"error: cannot import OpenPCDet (pcdet) to register drcpo: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
     sys.argv = [str(script), *args[1:]]
     sys.path.insert(0, str(script.resolve().parent))
     runpy.run_path(str(script), run_name="__main__")
