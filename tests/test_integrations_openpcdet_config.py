@@ -265,7 +265,9 @@ def test_runner_usage_without_a_script(capsys):
 def test_runner_without_openpcdet_says_so_in_one_line(tmp_path, monkeypatch, capsys):
     script = tmp_path / "train.py"
     script.write_text("raise SystemExit('the script must not run')\n")
-    monkeypatch.setitem(sys.modules, "pcdet", None)  # import pcdet raises ImportError
+    # `import pcdet...` raises ImportError, also where another test module imported it.
+    for name in ["pcdet", *(m for m in sys.modules if m.startswith("pcdet."))]:
+        monkeypatch.setitem(sys.modules, name, None)
     with pytest.raises(SystemExit) as info:
         openpcdet.main([str(script)])
     assert info.value.code == 1
