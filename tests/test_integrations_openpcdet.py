@@ -312,7 +312,7 @@ def test_forked_worker_after_warmup_pays_no_kernel_loading(drcpo_db):
     cold, cold_steady = _in_fresh_process(drcpo_db, warmup=False)
     warm, steady = _in_fresh_process(drcpo_db, warmup=True)
     assert warm < steady + 0.25, (warm, steady)
-    assert cold > cold_steady + 1.0, (cold, cold_steady)
+    assert cold > cold_steady + 0.5, (cold, cold_steady)  # about 1 s on a hot disk cache
 
 
 def _in_fresh_process(db, warmup: bool) -> tuple[float, float]:
