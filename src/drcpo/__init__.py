@@ -7,7 +7,8 @@ _numba_cache.configure()
 
 from drcpo.errors import ConfigError, DataError, DrcpoError  # noqa: E402
 from drcpo.frame import Frame  # noqa: E402
+from drcpo.warmup import warmup  # noqa: E402
 
 __version__ = "0.1.0"
 
-__all__ = ["ConfigError", "DataError", "DrcpoError", "Frame", "__version__"]
+__all__ = ["ConfigError", "DataError", "DrcpoError", "Frame", "__version__", "warmup"]

@@ -64,6 +64,8 @@ FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
 #: What :func:`augment_kitti` writes; ``augment.json`` (written last) marks it as drcpo's.
 AUGMENT_OUTPUT = OutputKind("drcpo augment output", "augment.json", "drcpo-augmented-kitti")
+#: Keys of a global stage's statistics that hold its random draws (lists, one entry per run).
+DRAW_KEYS = ("flipped", "angle", "scale")
 
 
 # --------------------------------------------------------------------------------------------
@@ -79,9 +81,15 @@ class Stats:
          "construction_iterations": {class: [iterations of each constructed object]},
          "labels_dropped": {class: original boxes dropped for losing their points}}
 
-    A stage recorded twice (e.g. two rotations in one pipeline) adds up its milliseconds and keeps
-    the first ``points_in`` and the last ``points_out``. A new :class:`Stats` starts from the
-    statistics already attached to the input frame, so a pipeline's stages accumulate.
+    The global stages also record what they drew, as lists with one entry per run of the stage
+    (:data:`DRAW_KEYS`): ``global_flip`` ``"flipped"`` (per run, the axes flipped),
+    ``global_rotation`` ``"angle"`` (radians) and ``global_scaling`` ``"scale"``, so that a caller
+    can tell how the frame moved (OpenPCDet's ``flip_x``, ``noise_rot``, ``noise_scale``).
+
+    A stage recorded twice (e.g. two rotations in one pipeline) adds up its milliseconds, keeps
+    the first ``points_in`` and the last ``points_out`` and appends its draws. A new
+    :class:`Stats` starts from the statistics already attached to the input frame, so a
+    pipeline's stages accumulate.
     """
 
     def __init__(self, existing: Mapping[str, Any] | None = None) -> None:
@@ -113,6 +121,9 @@ class Stats:
             else:
                 previous["ms"] += record["ms"]
                 previous["points_out"] = record["points_out"]
+                for key in DRAW_KEYS:  # a stage run twice keeps each run's draw, in order
+                    if key in record:
+                        previous[key] = previous.get(key, []) + record[key]
 
     def _object_entry(self, transform: str, name: str) -> dict[str, Any]:
         per_transform = self.objects.setdefault(transform, {})
@@ -271,11 +282,13 @@ class GlobalFlip(Transform):
         return cls(**_config_body(data, cls.__name__))
 
     def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
-        with stats.stage(self.name, len(frame)):
+        with stats.stage(self.name, len(frame)) as record:
             points, boxes = frame.points, frame.boxes
+            record["flipped"] = [[]]
             for axis in self.config.axes:
                 if rng.random() >= self.config.probability:
                     continue
+                record["flipped"][0].append(axis)
                 column = 1 if axis == "x" else 0
                 points = points.copy() if points is frame.points else points
                 boxes = boxes.copy() if boxes is frame.boxes else boxes
@@ -302,9 +315,10 @@ class GlobalRotation(Transform):
         return cls(**_config_body(data, cls.__name__))
 
     def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
-        with stats.stage(self.name, len(frame)):
+        with stats.stage(self.name, len(frame)) as record:
             low, high = self.config.range
             angle = rng.uniform(low, high)
+            record["angle"] = [float(angle)]
             points = rotate_points_z(frame.points, angle)
             boxes = rotate_points_z(frame.boxes, angle)
             boxes[:, 6] = wrap_angle(boxes[:, 6] + angle)
@@ -326,9 +340,10 @@ class GlobalScaling(Transform):
         return cls(**_config_body(data, cls.__name__))
 
     def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
-        with stats.stage(self.name, len(frame)):
+        with stats.stage(self.name, len(frame)) as record:
             low, high = self.config.range
             scale = rng.uniform(low, high)
+            record["scale"] = [float(scale)]
             points = frame.points.copy()
             _scale_rows(points, float(scale))
             boxes = frame.boxes.copy()
