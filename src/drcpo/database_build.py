@@ -306,6 +306,7 @@ def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
     for class_name, objects in infos.items():
         if not isinstance(class_name, str):
             raise DataError(f"{source}: class name {_shown(class_name)} is not a str")
+        class_name = str(class_name)  # OpenPCDet's keys are numpy str_ scalars
         if not isinstance(objects, list):
             kind = type(objects).__name__
             raise DataError(f"{source}: class {class_name!r} holds a {kind}, not a list")
@@ -381,7 +382,7 @@ def _shown(value: Any) -> str:
     text = (
         repr(value) if not isinstance(value, np.ndarray) else f"array {value.dtype} {value.shape}"
     )
-    return text if len(text) <= 60 else f"{text[:57]}..."
+    return text if len(text) <= 200 else f"{text[:197]}..."
 
 
 def _text(value: Any) -> str | None:
