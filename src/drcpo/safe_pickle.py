@@ -317,8 +317,11 @@ def _globals() -> dict[tuple[str, str], _Global]:
 ALLOWED_GLOBALS = _globals()
 """``(module, name)`` pairs a pickle may name, with drcpo's own rebuilding of each."""
 
-_MUTABLE = (list, dict, set, bytearray, collections.OrderedDict)
-_CONTAINERS = (list, dict, set, frozenset, tuple, collections.OrderedDict)
+# Exact types (the machine makes no subclasses): containers whose depth is tracked, those of
+# them the opcodes can grow in place, and the machine's own stand-ins.
+_TRACKED = frozenset({list, dict, set, frozenset, tuple, collections.OrderedDict})
+_GROWABLE = frozenset({list, dict, set, collections.OrderedDict})
+_PENDING = frozenset({_PendingDtype, _PendingArray})
 
 
 # The stack machine ----------------------------------------------------------------------------
@@ -350,30 +353,46 @@ class _Machine:
         entry = self.depths.get(id(value))
         return entry[0] if entry is not None and entry[1] is value else 0
 
-    def nest(self, container: Any, items: Any, floor: int = 0) -> Any:
+    def nest(self, container: Any, items: list[Any], floor: int = 0) -> Any:
         """Record ``container`` holding ``items`` one level above its deepest item.
 
-        ``floor``: the container's depth so far, when items are added to it in place.
+        ``floor``: the container's depth so far, when items are added to it in place. Mutable
+        items are sealed: a container placed in another may not change any more, which keeps
+        the recorded depths exact and makes cycles impossible.
         """
-        depth = max(floor, 1 + max((self.depth(item) for item in items), default=0))
-        if depth > MAX_DEPTH:
+        deepest = max(floor - 1, 0)
+        depths, sealed = self.depths, self.sealed
+        for item in items:  # a plain loop: this runs for every item of the file
+            kind = type(item)
+            if kind in _TRACKED:
+                if item is container:
+                    raise _Invalid("a container cannot be put inside itself")
+                entry = depths.get(id(item))
+                if entry is not None and entry[1] is item and entry[0] > deepest:
+                    deepest = entry[0]
+                if kind in _GROWABLE:
+                    sealed.add(id(item))
+        if deepest >= MAX_DEPTH:
             raise _Invalid(f"containers nested deeper than {MAX_DEPTH}")
-        for item in items:
-            if isinstance(item, _MUTABLE):
-                self.sealed.add(id(item))
-        self.depths[id(container)] = (depth, container)
+        depths[id(container)] = (deepest + 1, container)
         return container
 
-    def value(self, item: Any, inside: str) -> Any:
-        """``item`` as stored in a ``inside`` container: pending numpy objects resolved."""
-        if isinstance(item, (_PendingDtype, _PendingArray)):
-            return item.resolve()
-        if inside != "tuple" and (isinstance(item, _Global) or id(item) in self.carries_global):
-            raise _Invalid(f"global {item!r} can only be called, not stored")
-        return item
-
     def values(self, items: list[Any], inside: str) -> list[Any]:
-        return [self.value(item, inside) for item in items]
+        """``items`` (a fresh list, changed in place) as stored in an ``inside`` container.
+
+        Pending numpy objects are resolved; globals may only sit in tuples (REDUCE arguments).
+        """
+        carries = self.carries_global
+        for index, item in enumerate(items):
+            kind = type(item)
+            if kind in _PENDING:
+                items[index] = item.resolve()
+            elif inside != "tuple" and (kind is _Global or (kind is tuple and id(item) in carries)):
+                raise _Invalid(f"global {item!r} can only be called, not stored")
+        return items
+
+    def value(self, item: Any, inside: str) -> Any:
+        return self.values([item], inside)[0]
 
     def grow(self, target: Any, items: list[Any], kinds: tuple[type, ...], opcode: str) -> None:
         """Check that ``target`` may take ``items`` in place (no cycles, no changes once nested)."""
@@ -381,8 +400,6 @@ class _Machine:
             raise _Invalid(f"{opcode} on a {type(target).__name__}")
         if id(target) in self.sealed:
             raise _Invalid(f"{opcode} changes a container already placed in another")
-        if any(item is target for item in items):
-            raise _Invalid(f"{opcode} puts a container inside itself")
         self.nest(target, items, floor=self.depth(target))
 
     # stack --------------------------------------------------------------------------------
@@ -413,8 +430,9 @@ class _Machine:
     def push_tuple(self, items: list[Any]) -> None:
         items = self.values(items, "tuple")
         made = self.nest(tuple(items), items)
-        if any(isinstance(i, _Global) or id(i) in self.carries_global for i in items):
-            self.carries_global.add(id(made))
+        carries = self.carries_global
+        if any(type(i) is _Global or (type(i) is tuple and id(i) in carries) for i in items):
+            carries.add(id(made))
         self.stack.append(made)
 
     def pairs(self, items: list[Any], opcode: str) -> list[tuple[Any, Any]]:
@@ -424,13 +442,6 @@ class _Machine:
         return list(zip(items[::2], items[1::2], strict=True))
 
     # opcodes ------------------------------------------------------------------------------
-    def step(self, name: str, arg: Any) -> bool:
-        """Run one opcode; True at STOP (the result is then in ``self.result``)."""
-        handler = _HANDLERS.get(name)
-        if handler is None:
-            raise _Invalid(f"opcode {name} is not allowed")
-        return bool(handler(self, arg))
-
     def op_stop(self, arg: Any) -> bool:
         self.result = self.value(self.pop(), "result")
         return True
@@ -489,7 +500,11 @@ class _Machine:
         self.push_tuple(self.pop_mark())
 
     def op_tuple_n(self, count: int) -> None:
-        items = [self.pop() for _ in range(count)][::-1]
+        stack = self.stack
+        if len(stack) - count < self.fence():
+            raise _Invalid("stack underflow")
+        items = stack[-count:]
+        del stack[-count:]
         self.push_tuple(items)
 
     def op_dict(self, arg: Any) -> None:
@@ -648,7 +663,10 @@ def loads(data: bytes, source: str = "<bytes>") -> Any:
     try:
         for op, arg, at in pickletools.genops(bytes(data)):
             position, opcode = at, op.name
-            if machine.step(opcode, arg):
+            handler = _HANDLERS.get(opcode)
+            if handler is None:
+                raise _Invalid(f"opcode {opcode} is not allowed")
+            if handler(machine, arg):  # True at STOP
                 return machine.result
     except _Refused as exc:
         raise DataError(
