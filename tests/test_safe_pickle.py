@@ -207,8 +207,8 @@ def test_allocation_bomb_is_refused_before_allocating(tmp_path):
         # protocol 5 array over a buffer claiming 2**40 bytes
         (b"\x80\x05\x96" + (1 << 40).to_bytes(8, "little") + b"ab.", "bytes in a bytearray8"),
         # set() of a list referenced many times: copies beyond the file's size
-        (b"\x80\x04c__builtin__\nset\n\x94](" + b"K\x01" * 300 + b"e\x9400" + b"h\x00h\x01\x85R0" * 1000
-         + b"N.", "the file asks for more copies than its size allows"),
+        (b"\x80\x04c__builtin__\nset\n\x94](" + b"K\x01" * 300 + b"e\x9400"
+         + b"h\x00h\x01\x85R0" * 1000 + b"N.", "the file asks for more copies than its size"),
         (b"\x80\x04]\x94h\x00a.", "a container cannot be put inside itself"),
         (b"\x80\x04]\x94]\x94h\x00a0h\x01a.", "APPEND changes a container already placed"),
         (b"\x80\x04cnumpy\nndarray\n.", "global numpy.ndarray can only be called"),
@@ -216,6 +216,9 @@ def test_allocation_bomb_is_refused_before_allocating(tmp_path):
         (b"\x80\x04cnumpy\ndtype\n(Vf8\ntR(K\x03V<\nNNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x01"
          b"tb.", "flags 1 is not numpy's 0"),
         (b"\x80\x04h\x05.", "memo entry 5 was never stored"),
+        # a 4000-byte int (too long for repr) as an array dimension
+        (b"\x80\x04cnumpy.core.numeric\n_frombuffer\n(C\x00cnumpy\ndtype\n(Vf8\ntR\x8b\xa0\x0f"
+         + b"\x00\x00" + b"\x01" * 4000 + b"\x85VC\ntR.", "bad dimension <int of 31993 bits>"),
         (b"\x80\x04K\x01\x81.", "opcode NEWOBJ is not allowed"),
         (b"\x80\x04}]K\x01s.", "unhashable type: 'list'"),
     ],

@@ -45,7 +45,7 @@ _BUDGET_SLACK = 1 << 16
 
 # numpy's type strings of the plain dtypes: bool, integers, floats up to 64 bits, complex up
 # to 128 bits, fixed-width str and bytes. float128/complex256 differ between platforms.
-_TYPESTR = re.compile(r"b1|[iu](?:1|2|4|8)|f(?:2|4|8)|c(?:8|16)|[US]\d{1,10}")
+_TYPESTR = re.compile(r"b1|[iu](?:1|2|4|8)|f(?:2|4|8)|c(?:8|16)|[US]\d{1,9}")
 _BYTEORDERS = ("<", ">", "|", "=")
 
 
@@ -102,7 +102,7 @@ class _PendingArray:
         if len(state) == 5:
             version, *state = state
             if version != 1:
-                raise _Invalid(f"array state version {version!r} is not 1")
+                raise _Invalid(f"array state version {_shown(version)} is not 1")
         shape, dtype, fortran, raw = state
         if not isinstance(fortran, bool):
             raise _Invalid(f"array order flag must be a bool, got {_kind(fortran)}")
@@ -116,9 +116,17 @@ class _PendingArray:
         return self.array
 
 
+def _shown(value: Any) -> str:
+    """``repr(value)`` cut to 40 characters; ints too long for ``repr`` get their size instead."""
+    try:
+        text = repr(value)
+    except ValueError:  # over sys.get_int_max_str_digits() digits
+        text = f"<int of {value.bit_length()} bits>" if isinstance(value, int) else "<too large>"
+    return text if len(text) <= 40 else f"{text[:37]}..."
+
+
 def _kind(value: Any) -> str:
-    text = repr(value)
-    return f"{type(value).__name__} {text[:40]}{'...' if len(text) > 40 else ''}"
+    return f"{type(value).__name__} {_shown(value)}"
 
 
 def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
@@ -127,7 +135,7 @@ def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
         raise _Invalid(f"dtype state must be a version 3 or 4 tuple, got {_kind(state)}")
     _, order, subarray, names, fields, elsize, alignment, flags, *metadata = state
     if order not in _BYTEORDERS:
-        raise _Invalid(f"dtype byte order {order!r} is not one of {''.join(_BYTEORDERS)}")
+        raise _Invalid(f"dtype byte order {_shown(order)} is not one of {''.join(_BYTEORDERS)}")
     if (subarray, names, fields, *metadata) != (None, None, None, *[None] * len(metadata)):
         raise _Invalid(f"dtype {typestr!r}: structured, subarray or metadata dtypes are refused")
     for field, value in (("size", elsize), ("alignment", alignment), ("flags", flags)):
@@ -136,7 +144,7 @@ def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
     kind = typestr[0]
     if kind in "US" and elsize != -1:
         if not 0 <= elsize < 2**31 or (kind == "U" and elsize % 4):
-            raise _Invalid(f"dtype {typestr!r}: size {elsize} is not valid")
+            raise _Invalid(f"dtype {typestr!r}: size {_shown(elsize)} is not valid")
         typestr = f"{kind}{elsize // 4 if kind == 'U' else elsize}"
     dtype = np.dtype(typestr)
     if order in "<>" and dtype.itemsize > 1 and kind != "S":
@@ -146,7 +154,9 @@ def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
     expected = {"size": dtype.itemsize, "alignment": dtype.alignment, "flags": dtype.flags}
     for field, value in (("size", elsize), ("alignment", alignment), ("flags", flags)):
         if value != expected[field] and not (value == -1 and field != "flags"):
-            raise _Invalid(f"dtype {dtype.str}: {field} {value} is not numpy's {expected[field]}")
+            raise _Invalid(
+                f"dtype {dtype.str}: {field} {_shown(value)} is not numpy's {expected[field]}"
+            )
     return dtype
 
 
@@ -177,7 +187,7 @@ def _array(machine: _Machine, dtype: Any, shape: Any, order: Any, raw: Any) -> n
     count = 1
     for size in shape:
         if type(size) is not int or not 0 <= size < 2**63:
-            raise _Invalid(f"array shape {_kind(shape)} holds a bad dimension {size!r}")
+            raise _Invalid(f"array shape {_kind(shape)} holds a bad dimension {_shown(size)}")
         count = min(count * size, 2**63)  # capped: a product over the file size is refused
     if count and not dtype.itemsize:
         raise _Invalid(f"array of {count} elements of zero-size dtype {dtype.str}")
@@ -204,7 +214,7 @@ def _make_dtype(machine: _Machine, args: tuple) -> _PendingDtype:
     if not isinstance(typestr, str) or not _TYPESTR.fullmatch(typestr):
         raise _Invalid(f"numpy.dtype {_kind(typestr)} is not a plain numeric, bool or str type")
     if not all(isinstance(flag, bool) for flag in flags):
-        raise _Invalid(f"numpy.dtype flags must be bools, got {flags!r}")
+        raise _Invalid(f"numpy.dtype flags must be bools, got {_shown(flags)}")
     return _PendingDtype(typestr)
 
 
@@ -268,7 +278,7 @@ def _make_bytearray(machine: _Machine, args: tuple) -> bytearray:
 def _make_complex(machine: _Machine, args: tuple) -> complex:
     _arity(args, 0, 2, "complex")
     if not all(type(part) in (int, float) for part in args):
-        raise _Invalid(f"complex() takes numbers, got {args!r}"[:120])
+        raise _Invalid(f"complex() takes numbers, got {_shown(args)}")
     return complex(*args)
 
 
@@ -282,7 +292,7 @@ def _latin1_encode(machine: _Machine, args: tuple) -> bytes:
     _arity(args, 2, 2, "_codecs.encode")
     text, encoding = args
     if encoding != "latin1" or not isinstance(text, str):
-        raise _Invalid(f"_codecs.encode with {encoding!r} is not allowed")
+        raise _Invalid(f"_codecs.encode with {_shown(encoding)} is not allowed")
     machine.charge(len(text), "encoded text")
     return text.encode("latin1")
 
