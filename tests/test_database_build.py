@@ -364,6 +364,9 @@ INT32 = r"an int in \[0, 2147483647\]"
         ("gt_idx", -1, rf"field 'gt_idx' = -1 is not {INT32}"),
         ("gt_idx", True, rf"field 'gt_idx' = True is not {INT32}"),
         ("gt_idx", 2**40, rf"field 'gt_idx' = 1099511627776 is not {INT32}"),
+        pytest.param(
+            "gt_idx", 10**5000, f"field 'gt_idx' = an int of 16610 bits is not {INT32}", id="huge"
+        ),
         ("num_points_in_gt", "12", rf"field 'num_points_in_gt' = '12' is not {INT32}"),
         ("num_points_in_gt", 12.0, rf"field 'num_points_in_gt' = 12.0 is not {INT32}"),
         ("difficulty", "hard", r"field 'difficulty' = 'hard' is not an int in \[-1, 2\]"),
@@ -373,6 +376,8 @@ INT32 = r"an int in \[0, 2147483647\]"
         ("box3d_lidar", np.ones((1, 7)), r"field 'box3d_lidar' = array float64 \(1, 7\)"),
         ("box3d_lidar", [1, 2, 3, 1, 1, np.nan, 0], "field 'box3d_lidar' = .* is not a box"),
         ("box3d_lidar", [1, 2, 3, 1, 1, "1", 0], "field 'box3d_lidar' = .* is not a box"),
+        ("box3d_lidar", [1, 2, 3, 1, 1, 10**400, 0], "field 'box3d_lidar' = .* is not a box"),
+        pytest.param("score", 10**5000, "field 'score' = an int of 16610 bits", id="huge"),
         ("box3d_lidar", np.array(["1"] * 7), r"field 'box3d_lidar' = array <U1 \(7,\) is not a"),
         ("bbox", np.zeros(3), r"field 'bbox' = array float64 \(3,\) is not 4 numbers"),
         ("score", None, "field 'score' = None is not a number"),

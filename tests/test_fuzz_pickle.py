@@ -271,9 +271,11 @@ def _record(index: int) -> dict:
 
 _field_values = st.one_of(
     _leaves,
-    st.lists(st.one_of(st.integers(), st.floats(), st.text(max_size=3)), max_size=9),
+    st.lists(
+        st.one_of(st.integers(), st.floats(), st.just(10**400), st.text(max_size=3)), max_size=9
+    ),
     st.sampled_from(["../x.bin", "/etc/passwd", "", "a/../../b", "000000", "Car", "Van"]),
-    st.sampled_from([-1, 0, 2, 3, 2**31, -(2**63), np.int64(-5), np.uint8(1), np.nan]),
+    st.sampled_from([-1, 0, 2, 3, 2**31, -(2**63), 10**400, np.int64(-5), np.uint8(1), np.nan]),
 )
 
 

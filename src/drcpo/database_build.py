@@ -379,9 +379,12 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
 
 
 def _shown(value: Any) -> str:
-    text = (
-        repr(value) if not isinstance(value, np.ndarray) else f"array {value.dtype} {value.shape}"
-    )
+    if isinstance(value, np.ndarray):
+        return f"array {value.dtype} {value.shape}"
+    try:
+        text = repr(value)
+    except ValueError:  # an int over sys.get_int_max_str_digits() digits, or holding one
+        return f"an int of {value.bit_length()} bits" if isinstance(value, int) else "too large"
     return text if len(text) <= 200 else f"{text[:197]}..."
 
 
@@ -405,7 +408,10 @@ def _reals(value: Any) -> np.ndarray | None:
     numbers = (int, float, np.integer, np.floating)
     if not all(isinstance(v, numbers) and not isinstance(v, (bool, np.bool_)) for v in value):
         return None
-    return np.array([float(v) for v in value], dtype=np.float64)
+    try:
+        return np.array([float(v) for v in value], dtype=np.float64)
+    except OverflowError:  # an int beyond float range
+        return None
 
 
 class _LabelLookup:
