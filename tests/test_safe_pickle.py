@@ -186,7 +186,9 @@ def test_deep_nesting_is_refused(tmp_path):
     nested = 1
     for _ in range(safe_pickle.MAX_DEPTH - 1):
         nested = [nested]
-    assert safe_pickle.loads(pickle.dumps({"a": nested}))["a"] == nested
+    assert safe_pickle.loads(pickle.dumps({"a": nested}))["a"] == nested  # 64 levels
+    with pytest.raises(DataError, match="nested deeper than 64"):
+        safe_pickle.loads(pickle.dumps({"a": [nested]}))
 
 
 @pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs Linux /proc")
