@@ -640,10 +640,11 @@ def _handlers() -> dict[str, Callable[[_Machine, Any], Any]]:
         "MEMOIZE": m.op_memoize,
     }
     # Opcodes whose argument, decoded by pickletools, is the value to push: ints, floats,
-    # str and bytes read from the file (so no larger than it).
+    # str and bytes read from the file (so no larger than it). Not STRING: Python 2's quoted
+    # text, which no OpenPCDet file holds and whose escapes Python 3 is deprecating.
     for name in (
         "INT", "BININT", "BININT1", "BININT2", "LONG", "LONG1", "LONG4", "FLOAT", "BINFLOAT",
-        "STRING", "BINSTRING", "SHORT_BINSTRING", "BINBYTES", "SHORT_BINBYTES", "BINBYTES8",
+        "BINSTRING", "SHORT_BINSTRING", "BINBYTES", "SHORT_BINBYTES", "BINBYTES8",
         "BYTEARRAY8", "UNICODE", "BINUNICODE", "SHORT_BINUNICODE", "BINUNICODE8",
     ):  # fmt: skip
         table[name] = m.op_push
@@ -658,7 +659,11 @@ _HANDLERS = _handlers()
 
 # What a corrupt file can raise from pickletools' decoding or numpy's checks of values we
 # already validated (every other failure is an _Invalid of ours).
-_DECODE_ERRORS = (ValueError, TypeError, OverflowError, KeyError, IndexError, struct.error)
+# DeprecationWarning: pickletools decodes a STRING's escapes before we can refuse the opcode,
+# and warnings may be set to raise.
+_DECODE_ERRORS = (
+    ValueError, TypeError, OverflowError, KeyError, IndexError, struct.error, DeprecationWarning
+)  # fmt: skip
 
 
 def loads(data: bytes, source: str = "<bytes>") -> Any:
