@@ -218,6 +218,22 @@ def test_every_transform_refuses_bad_shapes_and_dtypes(transforms, name, data, m
         transforms[name](dict(data), np.random.default_rng(0))
 
 
+@pytest.mark.parametrize(
+    ("column", "value", "field"),
+    [(0, 2e6, "points"), (2, -1e30, "points"), (1, 3e6, "boxes"), (4, 1e7, "boxes")],
+)
+def test_huge_coordinates_are_refused(column, value, field):
+    frame = synthetic_frame(np.random.default_rng(3), objects=3)
+    points, boxes = frame.points.copy(), frame.boxes.copy()
+    (points if field == "points" else boxes)[2, column] = value
+    with pytest.raises(DataError, match=rf"^frame synthetic: {field} row 2 holds a value beyond"):
+        GlobalFlip()(frame.replace(points=points, boxes=boxes), np.random.default_rng(0))
+    # large features are fine (only coordinates are bounded)
+    points = frame.points.copy()
+    points[:, 3] = 1e9
+    assert len(GlobalFlip()(frame.replace(points=points), np.random.default_rng(0))) == len(points)
+
+
 def test_huge_float64_points_overflowing_float32_are_refused():
     points = np.zeros((4, 4))
     points[2, 0] = 1e300  # finite in float64, inf once stored as float32

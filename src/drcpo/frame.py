@@ -96,6 +96,11 @@ class Frame:
         return cls(points=data["points"], boxes=boxes, names=np.asarray(names), metadata=metadata)
 
 
+#: Largest coordinate (and box size) accepted, metres. LiDAR ranges stay below a few hundred
+#: metres; at a million metres float32 keeps about 6 cm of resolution, and the grids and
+#: squared ranges of the geometry kernels stay far from overflow.
+MAX_COORDINATE = 1e6
+
 #: Field names in messages, for a :class:`Frame` and for an OpenPCDet data dict.
 FRAME_FIELDS = ("points", "boxes", "names")
 DICT_FIELDS = ("points", "gt_boxes", "gt_names")
@@ -107,8 +112,9 @@ def validate_frame(
     """Check a frame's values; return it unchanged or raise :class:`DataError`.
 
     Shapes, dtypes and the names' length are checked when a :class:`Frame` is made; this adds
-    the values: every point value (x, y, z and features) and every box value finite, box sizes
-    ``dx, dy, dz`` positive, and a road plane in ``metadata["plane"]`` (when not ``None``) four
+    the values: every point value (x, y, z and features) and every box value finite, point
+    coordinates and box values within :data:`MAX_COORDINATE`, box sizes ``dx, dy, dz``
+    positive, and a road plane in ``metadata["plane"]`` (when not ``None``) four
     finite numbers. The message names ``source``, the field (``fields``: the names of points,
     boxes and names to use, e.g. :data:`DICT_FIELDS`), the first bad row and its values.
 
@@ -116,28 +122,40 @@ def validate_frame(
     looked for only once one has failed.
     """
     points, boxes = frame.points, frame.boxes
-    if not np.isfinite(points).all():
-        row = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+    # One pass each for the usual case: every value finite and within the limit.
+    if len(points) and not (-MAX_COORDINATE <= points.min() and points.max() <= MAX_COORDINATE):
+        _check_rows(points, source, fields[0])
+    if len(boxes) and not np.abs(boxes).max() <= MAX_COORDINATE:
+        _check_rows(boxes, source, fields[1], boxes.shape[1])
+    if len(boxes) and not (boxes[:, 3:6] > 0).all():
+        row = int(np.flatnonzero(~(boxes[:, 3:6] > 0).all(axis=1))[0])
         raise DataError(
-            f"{source}: {fields[0]} row {row} holds a NaN or infinite value: {points[row].tolist()}"
+            f"{source}: {fields[1]} row {row} (class {str(frame.names[row])!r}) has a "
+            f"non-positive size (dx, dy, dz) = {boxes[row, 3:6].tolist()}"
         )
-    if len(boxes):
-        if not np.isfinite(boxes).all():
-            row = int(np.flatnonzero(~np.isfinite(boxes).all(axis=1))[0])
-            raise DataError(
-                f"{source}: {fields[1]} row {row} holds a NaN or infinite value: "
-                f"{boxes[row].tolist()}"
-            )
-        if not (boxes[:, 3:6] > 0).all():
-            row = int(np.flatnonzero(~(boxes[:, 3:6] > 0).all(axis=1))[0])
-            raise DataError(
-                f"{source}: {fields[1]} row {row} (class {str(frame.names[row])!r}) has a "
-                f"non-positive size (dx, dy, dz) = {boxes[row, 3:6].tolist()}"
-            )
     plane = frame.metadata.get("plane")
     if plane is not None:
         _check_plane(plane, source)
     return frame
+
+
+def _check_rows(values: np.ndarray, source: str, field: str, bounded: int = 3) -> None:
+    """The slow path of :func:`validate_frame`: raise on the first row of ``values`` holding a
+    NaN/inf value or, in its first ``bounded`` columns, a value beyond :data:`MAX_COORDINATE`
+    (point features may be large)."""
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        row = int(np.flatnonzero(~finite)[0])
+        raise DataError(
+            f"{source}: {field} row {row} holds a NaN or infinite value: {values[row].tolist()}"
+        )
+    near = (np.abs(values[:, :bounded]) <= MAX_COORDINATE).all(axis=1)
+    if not near.all():
+        row = int(np.flatnonzero(~near)[0])
+        raise DataError(
+            f"{source}: {field} row {row} holds a value beyond {MAX_COORDINATE:g} (metres): "
+            f"{values[row].tolist()}"
+        )
 
 
 def _real_array(values: Any, field: str) -> np.ndarray:
