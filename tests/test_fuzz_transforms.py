@@ -141,7 +141,9 @@ def _corrupt(change: str | None, rng: np.random.Generator, frame: dict) -> tuple
     elif change == "int_points":
         frame["points"] = np.round(points).astype(np.int32)
     elif change == "float16_points":
-        frame["points"] = points.astype(np.float16)
+        with np.errstate(over="ignore"):
+            frame["points"] = points.astype(np.float16)
+        return frame, not np.isfinite(frame["points"]).all()  # beyond 65504 m: inf
     elif change == "boxes_8_columns":  # OpenPCDet's class column: cut off
         frame["gt_boxes"] = np.column_stack([boxes, np.ones(m)])
     elif change == "big_features" and points.shape[1] > 3:
