@@ -28,7 +28,11 @@ settings.register_profile(
     "drcpo-fuzz",
     max_examples=fuzz_examples(),
     deadline=None,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+    suppress_health_check=[
+        HealthCheck.too_slow,
+        HealthCheck.data_too_large,
+        HealthCheck.function_scoped_fixture,
+    ],
     print_blob=True,
 )
 FUZZ = settings.get_profile("drcpo-fuzz")

@@ -13,27 +13,19 @@ counts per test.
 from __future__ import annotations
 
 import collections
-import os
 import pickle
 
 import numpy as np
 import pytest
 from conftest import KITTI_SAMPLE
-from hypothesis import HealthCheck, given, settings
+from fuzz_settings import FUZZ
+from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from drcpo import safe_pickle
 from drcpo.database_build import validate_dbinfos
 from drcpo.errors import DataError
-
-settings.register_profile(
-    "drcpo-fuzz",
-    max_examples=int(os.environ.get("DRCPO_FUZZ_EXAMPLES", "200")),
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)
-FUZZ = settings.get_profile("drcpo-fuzz")
 
 SOURCE = "fuzz.pkl"
 DBINFOS = KITTI_SAMPLE / "kitti_dbinfos_train.pkl"
