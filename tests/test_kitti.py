@@ -371,3 +371,17 @@ def test_dataset_frames(kitti_sample):
     assert frame.metadata["difficulty"].tolist() == [1, -1, -1]
     assert [f.frame_id for f in dataset] == dataset.frame_ids
     frame.validate()
+
+
+@pytest.mark.parametrize("bad", ["../../../escape", "/abs/path", "a/b", ".hidden", "a b"])
+def test_split_frame_ids_cannot_name_paths_outside_their_directory(tmp_path, bad):
+    (tmp_path / "ImageSets").mkdir()
+    (tmp_path / "ImageSets" / "train.txt").write_text(f"000000\n\n{bad}\n")
+    with pytest.raises(DataError, match=r"train\.txt:3: .* is not a frame id"):
+        read_split(tmp_path, "train")
+
+
+def test_split_keeps_ordinary_frame_ids_in_order(tmp_path):
+    (tmp_path / "ImageSets").mkdir()
+    (tmp_path / "ImageSets" / "val.txt").write_text("000002\n  000001  \n\nsynth_0.v2\n")
+    assert read_split(tmp_path, "val") == ["000002", "000001", "synth_0.v2"]

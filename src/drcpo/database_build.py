@@ -10,7 +10,6 @@ when indexing or sampling, as OpenPCDet does.
 from __future__ import annotations
 
 import os
-import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path, PurePosixPath
@@ -20,7 +19,14 @@ import numpy as np
 
 from drcpo import safe_pickle
 from drcpo.database import DATABASE_OUTPUT, GroundTruthDatabase, ObjectRecord
-from drcpo.datasets.kitti import DONT_CARE, KittiDataset, KittiLabels, read_labels, read_points
+from drcpo.datasets.kitti import (
+    DONT_CARE,
+    FRAME_ID,
+    KittiDataset,
+    KittiLabels,
+    read_labels,
+    read_points,
+)
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import rotate_points_z, to_canonical
@@ -327,8 +333,6 @@ def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
     return entries
 
 
-# A frame id names label files: letters, digits, "_", "-", "." (not first), no separators.
-_FRAME_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
 _MAX_INT32 = 2**31 - 1
 
 
@@ -350,7 +354,7 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
     relative = PurePosixPath(path)
     if relative.is_absolute() or ".." in relative.parts:
         raise bad("path", "a path inside the data root (absolute and '..' paths are refused)")
-    if frame_id is None or not _FRAME_ID.fullmatch(frame_id):
+    if frame_id is None or not FRAME_ID.fullmatch(frame_id):
         raise bad("image_idx", "a frame id (str of letters, digits, '_', '-', '.')")
     gt_idx = _integer(info["gt_idx"], 0, _MAX_INT32)
     if gt_idx is None:

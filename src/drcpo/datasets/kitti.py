@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import struct
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -374,7 +375,26 @@ def read_split(root: str | os.PathLike, split: str) -> list[str]:
         available = sorted(p.stem for p in image_sets.glob("*.txt")) if image_sets.is_dir() else []
         listing = ", ".join(available) if available else f"none: no {image_sets}/*.txt"
         raise DataError(f"{path}: unknown split {split!r} (available: {listing})")
-    return [line.strip() for line in _read_lines(path, "split") if line.strip()]
+    ids = []
+    for number, line in enumerate(_read_lines(path, "split"), start=1):
+        if line.strip():
+            ids.append(check_frame_id(line.strip(), f"{path}:{number}"))
+    return ids
+
+
+# A frame id names files (velodyne/ID.bin, label_2/ID.txt, ...): letters, digits, "_", "-", "."
+# (not first), never a path separator or "..", so no id can reach outside its directory.
+FRAME_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+
+
+def check_frame_id(frame_id: Any, where: str) -> str:
+    """``frame_id`` if it is a safe frame id, else :class:`DataError` naming ``where``."""
+    if not isinstance(frame_id, str) or not FRAME_ID.fullmatch(frame_id):
+        raise DataError(
+            f"{where}: {frame_id!r} is not a frame id (letters, digits, '_', '-' and '.' "
+            "not first; no path separators)"
+        )
+    return frame_id
 
 
 def split_directory(root: str | os.PathLike, split: str) -> Path:
