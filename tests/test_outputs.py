@@ -343,6 +343,18 @@ def test_a_signal_during_the_replace_waits_for_it(tmp_path, monkeypatch, renamea
     assert hidden(tmp_path) == []
 
 
+def test_a_signal_during_a_failed_replace_is_not_lost(tmp_path, monkeypatch):
+    def commit(*args):
+        signal.raise_signal(signal.SIGINT)  # Ctrl-C, then the move itself fails
+        raise OSError(errno.ENOSPC, "No space left on device", str(args[1]))
+
+    monkeypatch.setattr(outputs, "_commit", commit)
+    with pytest.raises(KeyboardInterrupt):
+        write_directory(tmp_path / "out", fill("new"), KIND)
+    assert not (tmp_path / "out").exists()
+    assert hidden(tmp_path) == []
+
+
 # Defect 8: temporaries of dead runs, SIGTERM --------------------------------------------------
 def test_stale_temporaries_of_dead_runs_are_removed(tmp_path):
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -351,7 +363,9 @@ def test_stale_temporaries_of_dead_runs_are_removed(tmp_path):
     try:
         names = [
             f".out.tmp-{dead.pid}-0123abcd",  # removed: its run is gone
-            f".out.tmp-{alive.pid}-0123abcd",  # kept: its process lives
+            # Removed too: its PID lives, but no run of ours can own it while we hold the lock
+            # (the PID was reused).
+            f".out.tmp-{alive.pid}-0123abcd",
             ".out.tmp-0123abcd",  # kept: not a name drcpo gives
             f".other.tmp-{dead.pid}-0123abcd",  # kept: another output's
         ]
@@ -359,7 +373,7 @@ def test_stale_temporaries_of_dead_runs_are_removed(tmp_path):
             (tmp_path / name).mkdir()
             (tmp_path / name / "points.npy").write_bytes(bytes(1000))
         write_directory(tmp_path / "out", fill("new"), KIND)
-        assert hidden(tmp_path) == sorted(names[1:])
+        assert hidden(tmp_path) == sorted(names[2:])
     finally:
         alive.kill()
         alive.wait()

@@ -260,32 +260,19 @@ def _temporary_pattern(name: str) -> re.Pattern[str]:
 def _remove_stale(target: Path) -> None:
     """Remove the temporaries of dead runs next to ``target`` (called holding its lock).
 
-    An old output whose run died between its two renames goes back to ``target`` when
-    ``target`` is missing.
+    Every run holds the lock for as long as its temporaries exist, so whatever matches while we
+    hold it was left by a run that died (whatever its PID is now: PIDs are reused). An old
+    output whose run died between its two renames goes back to ``target`` when ``target`` is
+    missing.
     """
     pattern = _temporary_pattern(target.name)
     found = [(pattern.fullmatch(entry.name), entry) for entry in target.parent.iterdir()]
     ours = [(match, entry) for match, entry in found if match is not None]
     for match, entry in sorted(ours, key=lambda item: item[0][1] != "old"):
-        if _alive(int(match[2])):
-            continue
         if match[1] == "old" and not os.path.lexists(target):
             os.rename(entry, target)
         else:
             _remove(entry)
-
-
-def _alive(pid: int) -> bool:
-    """Whether ``pid`` names a live process other than this one (ours are stale under the lock)."""
-    if pid <= 0 or pid == os.getpid():
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # it exists, owned by another user
-        return True
-    return True
 
 
 # Locking, signals, errors ---------------------------------------------------------------------
@@ -365,17 +352,16 @@ def _signals_deferred() -> Iterator[None]:
         yield  # signals interrupt only the main thread, never this one
         return
     pending: list[int] = []
-    previous = {
-        number: signal.signal(number, lambda signum, frame: pending.append(signum))
-        for number in (signal.SIGINT, signal.SIGTERM)
-    }
+    # A handler installed from C reads back as None and could not be restored: leave it be.
+    numbers = [n for n in (signal.SIGINT, signal.SIGTERM) if signal.getsignal(n) is not None]
+    previous = {n: signal.signal(n, lambda signum, frame: pending.append(signum)) for n in numbers}
     try:
         yield
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-    for number in pending:
-        signal.raise_signal(number)  # now handled as it would have been
+        for number in pending:  # also when the move failed: a Ctrl-C is never lost
+            signal.raise_signal(number)  # now handled as it would have been
 
 
 @contextmanager
