@@ -1,4 +1,4 @@
-"""Command-line interface: build-db, import-openpcdet, info, index, augment, synth, demo.
+"""Command-line interface: build-db, import-openpcdet, info, index, augment, synth, evaluate, demo.
 
 Every command prints a summary at the end. On bad input it prints one line naming the culprit
 and exits with status 1: any :class:`drcpo.errors.DrcpoError`, out of memory, or an operating
@@ -15,7 +15,7 @@ import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
 from rich.console import Console
@@ -25,6 +25,9 @@ from typer.core import TyperGroup
 
 from drcpo.errors import DrcpoError
 from drcpo.outputs import Interrupted
+
+if TYPE_CHECKING:  # the evaluator loads its kernels: imported by its command only
+    from drcpo.evaluation import KittiEvaluation
 
 console = Console(stderr=True)
 VERIFY_HELP = (
@@ -441,7 +444,7 @@ def evaluate(
     Console().print(evaluation_table(result, f"KITTI {split}: {result.frames} frames"))
 
 
-def evaluation_table(result, title: str) -> Table:
+def evaluation_table(result: KittiEvaluation, title: str) -> Table:
     """One row per class and metric (2d, bev, 3d, aos): AP R40 / R11 per difficulty."""
     from drcpo.evaluation import DIFFICULTIES, METRICS
 
