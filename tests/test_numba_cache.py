@@ -107,15 +107,18 @@ def test_read_only_install_without_home_cache_imports_and_caches_in_tmp(tmp_path
     assert "Warning" not in stderr
 
 
-def test_xdg_cache_home_comes_first(tmp_path):
-    report, _ = _run(tmp_path, env={"XDG_CACHE_HOME": str(tmp_path / "xdg")}, call=False)
-    assert report["cache_dir"] == str(tmp_path / "xdg" / "drcpo" / "numba")
-    assert report["cached"] == "FunctionCache"
+def test_numba_own_user_cache_is_left_to_numba(tmp_path):
+    # A read-only install with a writable XDG cache: numba falls back on $XDG_CACHE_HOME/numba
+    # itself, so drcpo leaves the process's NUMBA_CACHE_DIR alone.
+    report, _ = _run(tmp_path, env={"XDG_CACHE_HOME": str(tmp_path / "xdg")})
+    assert report["cache_dir"] is None and report["cached"] == "FunctionCache"
+    assert _cache_files(tmp_path / "xdg" / "numba")
 
 
-def test_home_cache_comes_before_tmp(tmp_path):
-    report, _ = _run(tmp_path, home_is_file=False, call=False)
-    assert report["cache_dir"] == str(tmp_path / "home" / ".cache" / "drcpo" / "numba")
+def test_home_cache_is_left_to_numba(tmp_path):
+    report, _ = _run(tmp_path, home_is_file=False)
+    assert report["cache_dir"] is None
+    assert _cache_files(tmp_path / "home" / ".cache" / "numba")
 
 
 def test_a_cache_dir_the_user_set_is_kept(tmp_path):

@@ -5,9 +5,10 @@ numba caches an ``@njit(cache=True)`` function in the ``__pycache__`` beside its
 cache, e.g. in a container), decorating the function raises ``RuntimeError: cannot cache
 function ...: no locator available`` and ``import drcpo.pipeline`` fails. So, before any kernel
 module is imported: when ``NUMBA_CACHE_DIR`` is unset and a package ``__pycache__`` is not
-writable, ``NUMBA_CACHE_DIR`` is pointed at the first writable of ``$XDG_CACHE_HOME/drcpo/numba``,
-``~/.cache/drcpo/numba`` and a private per-user directory in the temporary directory. When none
-is writable, drcpo's kernels are compiled in every process instead of cached, with one warning.
+writable and neither is numba's own user-wide cache (``$XDG_CACHE_HOME/numba``, else
+``~/.cache/numba``), ``NUMBA_CACHE_DIR`` is pointed at a private per-user directory in the
+temporary directory. When that is not usable either, drcpo's kernels are compiled in every
+process instead of cached, with one warning.
 
 ``NUMBA_CACHE_DIR`` applies to every numba function of the process, not only drcpo's; it is only
 set where numba's own choice would fail for drcpo.
@@ -36,6 +37,8 @@ def configure() -> Path | None:
         return Path(os.environ[ENV])  # the user's choice
     if all(_writable(directory / "__pycache__") for directory in _package_dirs()):
         return None
+    if _writable(_numba_user_cache()):
+        return None  # numba's own fallback (its user-wide cache) works: leave it its choice
     tried = []
     for candidate, private in _candidates():
         tried.append(str(candidate))
@@ -51,21 +54,21 @@ def _package_dirs() -> list[Path]:
     return [_PACKAGE, *(p.parent for p in sorted(_PACKAGE.glob("*/__init__.py")))]
 
 
+def _numba_user_cache() -> Path:
+    """The user-wide directory numba itself falls back on (its appdirs' user cache on POSIX)."""
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    try:
+        return (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache") / "numba"
+    except (RuntimeError, KeyError):  # no home directory known
+        return Path(os.devnull) / "numba"  # never writable
+
+
 def _candidates() -> list[tuple[Path, bool]]:
     """Cache directories to try, best first, each with whether it must be private to us."""
-    out = []
-    xdg = os.environ.get("XDG_CACHE_HOME", "")
-    if os.path.isabs(xdg):
-        out.append((Path(xdg) / "drcpo" / "numba", False))
     try:
-        out.append((Path.home() / ".cache" / "drcpo" / "numba", False))
-    except (RuntimeError, KeyError):  # no home directory known
-        pass
-    try:
-        out.append((Path(tempfile.gettempdir()) / f"drcpo-numba-{_user()}", True))
+        return [(Path(tempfile.gettempdir()) / f"drcpo-numba-{_user()}", True)]
     except OSError:  # no usable temporary directory
-        pass
-    return out
+        return []
 
 
 def _user() -> str:
