@@ -442,5 +442,5 @@ def test_values_pyyaml_cannot_construct_are_config_errors(tmp_path, text):
 
 
 def test_integer_past_the_digit_limit_is_named_not_printed():
-    with pytest.raises(ConfigError, match=r"min_points_after' = <an integer of \d+ bits> is out"):
+    with pytest.raises(ConfigError, match=r"min_points_after' = <an int of \d+ bits> is out"):
         load_config({"drcpo": {"min_points_after": 10**5000}})

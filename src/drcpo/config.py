@@ -40,7 +40,7 @@ from typing import Any
 
 import yaml
 
-from drcpo.errors import ConfigError
+from drcpo.errors import ConfigError, shown
 
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
 PRESETS: tuple[str, ...] = ("second", "pointrcnn", "pv_rcnn", "pv_rcnn_plusplus")
@@ -441,7 +441,7 @@ def _merge(base: Any, data: Mapping[str, Any] | None, path: str) -> Any:
     if data is None:
         return base
     if not isinstance(data, Mapping):
-        raise ConfigError(f"config key {path or '<root>'!r} must be a mapping, got {_show(data)}")
+        raise ConfigError(f"config key {path or '<root>'!r} must be a mapping, got {shown(data)}")
     fields = {f.name: f for f in dataclasses.fields(base)}
     changes: dict[str, Any] = {}
     for key, value in data.items():
@@ -458,14 +458,6 @@ def _merge(base: Any, data: Mapping[str, Any] | None, path: str) -> Any:
     return dataclasses.replace(base, **changes)
 
 
-def _show(value: Any) -> str:
-    try:
-        text = repr(value)
-    except ValueError:  # an integer past Python's digit limit for str()
-        text = f"<an integer of {value.bit_length()} bits>"
-    return text if len(text) < 60 else text[:57] + "..."
-
-
 def _check(value: Any, spec: _Spec, where: str) -> Any:
     if value is None:
         if spec.optional:
@@ -474,14 +466,14 @@ def _check(value: Any, spec: _Spec, where: str) -> Any:
     kind = spec.kind
     if kind == "bool":
         if not isinstance(value, bool):
-            raise ConfigError(f"config key {where!r} must be true or false, got {_show(value)}")
+            raise ConfigError(f"config key {where!r} must be true or false, got {shown(value)}")
         return value
     if kind in ("int", "float"):
         return _number(value, spec, where, integer=kind == "int")
     if kind == "choice":
         if value not in spec.choices:
             raise ConfigError(
-                f"config key {where!r} = {_show(value)} is not allowed; "
+                f"config key {where!r} = {shown(value)} is not allowed; "
                 f"choose one of: {', '.join(spec.choices)}"
             )
         return value
@@ -507,7 +499,7 @@ def _number(value: Any, spec: _Spec, where: str, integer: bool) -> int | float:
             value = int(value)
         else:
             wanted = "an integer" if integer else "a number"
-            raise ConfigError(f"config key {where!r} must be {wanted}, got {_show(value)}")
+            raise ConfigError(f"config key {where!r} must be {wanted}, got {shown(value)}")
     # Integers compare exactly with the bounds (float() of a huge one would overflow).
     if isinstance(value, float) and not math.isfinite(value):
         raise ConfigError(f"config key {where!r} must be finite, got {value}")
@@ -517,7 +509,7 @@ def _number(value: Any, spec: _Spec, where: str, integer: bool) -> int | float:
     )
     if too_low or too_high:
         raise ConfigError(
-            f"config key {where!r} = {_show(value)} is out of range; allowed range: "
+            f"config key {where!r} = {shown(value)} is out of range; allowed range: "
             f"{spec.describe_range()}"
         )
     return int(value) if integer else float(value)
@@ -525,7 +517,7 @@ def _number(value: Any, spec: _Spec, where: str, integer: bool) -> int | float:
 
 def _interval(value: Any, spec: _Spec, where: str) -> list[float]:
     if not isinstance(value, list | tuple) or len(value) != 2:
-        raise ConfigError(f"config key {where!r} must be a pair [low, high], got {_show(value)}")
+        raise ConfigError(f"config key {where!r} must be a pair [low, high], got {shown(value)}")
     low, high = (_number(v, spec, f"{where}[{i}]", integer=False) for i, v in enumerate(value))
     if spec.strict and low >= high:
         raise ConfigError(f"config key {where!r} = [{low}, {high}]: low must be below high")
@@ -541,7 +533,7 @@ def _per_class(value: Any, spec: _Spec, where: str) -> dict[str, int]:
         hint = "a number or " if spec.scalar_ok else ""
         raise ConfigError(
             f"config key {where!r} must be {hint}a mapping of class name to integer, "
-            f"got {_show(value)}"
+            f"got {shown(value)}"
         )
     out = {}
     for name, count in value.items():
@@ -553,14 +545,14 @@ def _per_class(value: Any, spec: _Spec, where: str) -> dict[str, int]:
 
 def _names(value: Any, spec: _Spec, where: str) -> list[str]:
     if isinstance(value, str) or not isinstance(value, list | tuple):
-        raise ConfigError(f"config key {where!r} must be a list of names, got {_show(value)}")
+        raise ConfigError(f"config key {where!r} must be a list of names, got {shown(value)}")
     if spec.nonempty and not value:
         raise ConfigError(f"config key {where!r} must name at least one class")
     seen: set[str] = set()
     for i, name in enumerate(value):
         if not isinstance(name, str) or not name:
             raise ConfigError(
-                f"config key {f'{where}[{i}]'!r} must be a non-empty string, got {_show(name)}"
+                f"config key {f'{where}[{i}]'!r} must be a non-empty string, got {shown(name)}"
             )
         if spec.choices and name not in spec.choices:
             raise ConfigError(
@@ -583,7 +575,7 @@ def _grids(value: Any, where: str) -> dict[str, list[int]]:
             raise ConfigError(f"config key {where!r}: class names must be strings, got {name!r}")
         if not isinstance(grid, list | tuple) or len(grid) != 3:
             raise ConfigError(
-                f"config key {f'{where}.{name}'!r} must be [nx, ny, nz], got {_show(grid)}"
+                f"config key {f'{where}.{name}'!r} must be [nx, ny, nz], got {shown(grid)}"
             )
         out[name] = [
             _number(n, cell_spec, f"{where}.{name}[{i}]", integer=True) for i, n in enumerate(grid)
@@ -734,7 +726,7 @@ def load_config(source: str | os.PathLike | Mapping[str, Any] | AugmentConfig | 
         data, origin = _read_yaml(path), str(path)
     else:
         raise ConfigError(
-            f"a config must be a mapping, a YAML file path or a preset name, got {_show(source)}"
+            f"a config must be a mapping, a YAML file path or a preset name, got {shown(source)}"
         )
     try:
         return _build(data)
@@ -750,7 +742,7 @@ def _config_path(source: str | os.PathLike) -> Path:
             path = preset_path(str(source))
         found = path.is_file()
     except (OSError, ValueError) as exc:  # e.g. a name too long, a NUL byte
-        raise ConfigError(f"{_show(str(source))}: not a usable config file path ({exc})") from None
+        raise ConfigError(f"{shown(str(source))}: not a usable config file path ({exc})") from None
     if not found:
         raise ConfigError(
             f"{path}: config file not found (or give a preset: default, {', '.join(PRESETS)})"

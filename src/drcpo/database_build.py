@@ -27,7 +27,7 @@ from drcpo.datasets.kitti import (
     read_labels,
     read_points,
 )
-from drcpo.errors import ConfigError, DataError
+from drcpo.errors import ConfigError, DataError, shown
 from drcpo.frame import Frame
 from drcpo.geometry import rotate_points_z, to_canonical
 from drcpo.outputs import check_output
@@ -312,7 +312,7 @@ def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
     seen: dict[tuple[str, int], str] = {}
     for class_name, objects in infos.items():
         if not isinstance(class_name, str):
-            raise DataError(f"{source}: class name {_shown(class_name)} is not a str")
+            raise DataError(f"{source}: class name {shown(class_name, 200)} is not a str")
         class_name = str(class_name)  # OpenPCDet's keys are numpy str_ scalars
         if not isinstance(objects, list):
             kind = type(objects).__name__
@@ -344,7 +344,7 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
         raise DataError(f"{where}: missing key(s) {', '.join(missing)}")
 
     def bad(key: str, expected: str) -> DataError:
-        return DataError(f"{where}: field {key!r} = {_shown(info[key])} is not {expected}")
+        return DataError(f"{where}: field {key!r} = {shown(info[key], 200)} is not {expected}")
 
     name, path, frame_id = (_text(info[key]) for key in ("name", "path", "image_idx"))
     if not name:
@@ -381,16 +381,6 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
         "num_points": num_points,
         "difficulty": difficulty,
     }
-
-
-def _shown(value: Any) -> str:
-    if isinstance(value, np.ndarray):
-        return f"array {value.dtype} {value.shape}"
-    try:
-        text = repr(value)
-    except ValueError:  # an int over sys.get_int_max_str_digits() digits, or holding one
-        return f"an int of {value.bit_length()} bits" if isinstance(value, int) else "too large"
-    return text if len(text) <= 200 else f"{text[:197]}..."
 
 
 def _text(value: Any) -> str | None:

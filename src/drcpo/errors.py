@@ -6,6 +6,10 @@ training loop can catch one type, and its message names the culprit (file, line,
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
+
 
 class DrcpoError(Exception):
     """Base class of drcpo's errors about input data or configuration."""
@@ -29,3 +33,15 @@ class OutputError(DrcpoError, OSError):
 
 class OutputExistsError(OutputError, FileExistsError):
     """The output path already exists and ``overwrite`` was not asked for."""
+
+
+def shown(value: Any, limit: int = 60) -> str:
+    """``repr(value)`` for an error message, cut to ``limit`` characters; an int too long for
+    ``repr`` (Python's digit limit) is shown by its size, an array by its dtype and shape."""
+    if isinstance(value, np.ndarray):
+        return f"<array {value.dtype} {value.shape}>"
+    try:
+        text = repr(value)
+    except ValueError:  # over sys.get_int_max_str_digits() digits, or a container holding one
+        return f"<an int of {value.bit_length()} bits>" if isinstance(value, int) else "<too large>"
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."

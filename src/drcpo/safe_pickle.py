@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from drcpo.errors import DataError
+from drcpo.errors import DataError, shown
 
 MAX_DEPTH = 64
 """Deepest nesting of containers accepted; OpenPCDet and MMDetection3D infos need under 10."""
@@ -102,7 +102,7 @@ class _PendingArray:
         if len(state) == 5:
             version, *state = state
             if version != 1:
-                raise _Invalid(f"array state version {_shown(version)} is not 1")
+                raise _Invalid(f"array state version {shown(version, 40)} is not 1")
         shape, dtype, fortran, raw = state
         if not isinstance(fortran, bool):
             raise _Invalid(f"array order flag must be a bool, got {_kind(fortran)}")
@@ -116,17 +116,8 @@ class _PendingArray:
         return self.array
 
 
-def _shown(value: Any) -> str:
-    """``repr(value)`` cut to 40 characters; ints too long for ``repr`` get their size instead."""
-    try:
-        text = repr(value)
-    except ValueError:  # over sys.get_int_max_str_digits() digits
-        text = f"<int of {value.bit_length()} bits>" if isinstance(value, int) else "<too large>"
-    return text if len(text) <= 40 else f"{text[:37]}..."
-
-
 def _kind(value: Any) -> str:
-    return f"{type(value).__name__} {_shown(value)}"
+    return f"{type(value).__name__} {shown(value, 40)}"
 
 
 def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
@@ -135,7 +126,7 @@ def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
         raise _Invalid(f"dtype state must be a version 3 or 4 tuple, got {_kind(state)}")
     _, order, subarray, names, fields, elsize, alignment, flags, *metadata = state
     if order not in _BYTEORDERS:
-        raise _Invalid(f"dtype byte order {_shown(order)} is not one of {''.join(_BYTEORDERS)}")
+        raise _Invalid(f"dtype byte order {shown(order, 40)} is not one of {''.join(_BYTEORDERS)}")
     if (subarray, names, fields, *metadata) != (None, None, None, *[None] * len(metadata)):
         raise _Invalid(f"dtype {typestr!r}: structured, subarray or metadata dtypes are refused")
     for field, value in (("size", elsize), ("alignment", alignment), ("flags", flags)):
@@ -144,7 +135,7 @@ def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
     kind = typestr[0]
     if kind in "US" and elsize != -1:
         if not 0 <= elsize < 2**31 or (kind == "U" and elsize % 4):
-            raise _Invalid(f"dtype {typestr!r}: size {_shown(elsize)} is not valid")
+            raise _Invalid(f"dtype {typestr!r}: size {shown(elsize, 40)} is not valid")
         typestr = f"{kind}{elsize // 4 if kind == 'U' else elsize}"
     dtype = np.dtype(typestr)
     if order in "<>" and dtype.itemsize > 1 and kind != "S":
@@ -155,7 +146,7 @@ def _dtype_from_state(typestr: str, state: Any) -> np.dtype:
     for field, value in (("size", elsize), ("alignment", alignment), ("flags", flags)):
         if value != expected[field] and not (value == -1 and field != "flags"):
             raise _Invalid(
-                f"dtype {dtype.str}: {field} {_shown(value)} is not numpy's {expected[field]}"
+                f"dtype {dtype.str}: {field} {shown(value, 40)} is not numpy's {expected[field]}"
             )
     return dtype
 
@@ -187,7 +178,7 @@ def _array(machine: _Machine, dtype: Any, shape: Any, order: Any, raw: Any) -> n
     count = 1
     for size in shape:
         if type(size) is not int or not 0 <= size < 2**63:
-            raise _Invalid(f"array shape {_kind(shape)} holds a bad dimension {_shown(size)}")
+            raise _Invalid(f"array shape {_kind(shape)} holds a bad dimension {shown(size, 40)}")
         count = min(count * size, 2**63)  # capped: a product over the file size is refused
     if count and not dtype.itemsize:
         raise _Invalid(f"array of {count} elements of zero-size dtype {dtype.str}")
@@ -214,7 +205,7 @@ def _make_dtype(machine: _Machine, args: tuple) -> _PendingDtype:
     if not isinstance(typestr, str) or not _TYPESTR.fullmatch(typestr):
         raise _Invalid(f"numpy.dtype {_kind(typestr)} is not a plain numeric, bool or str type")
     if not all(isinstance(flag, bool) for flag in flags):
-        raise _Invalid(f"numpy.dtype flags must be bools, got {_shown(flags)}")
+        raise _Invalid(f"numpy.dtype flags must be bools, got {shown(flags, 40)}")
     return _PendingDtype(typestr)
 
 
@@ -278,7 +269,7 @@ def _make_bytearray(machine: _Machine, args: tuple) -> bytearray:
 def _make_complex(machine: _Machine, args: tuple) -> complex:
     _arity(args, 0, 2, "complex")
     if not all(type(part) in (int, float) for part in args):
-        raise _Invalid(f"complex() takes numbers, got {_shown(args)}")
+        raise _Invalid(f"complex() takes numbers, got {shown(args, 40)}")
     return complex(*args)
 
 
@@ -292,7 +283,7 @@ def _latin1_encode(machine: _Machine, args: tuple) -> bytes:
     _arity(args, 2, 2, "_codecs.encode")
     text, encoding = args
     if encoding != "latin1" or not isinstance(text, str):
-        raise _Invalid(f"_codecs.encode with {_shown(encoding)} is not allowed")
+        raise _Invalid(f"_codecs.encode with {shown(encoding, 40)} is not allowed")
     machine.charge(len(text), "encoded text")
     return text.encode("latin1")
 
