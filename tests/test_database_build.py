@@ -2,6 +2,7 @@ import json
 import os
 import pickle
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from drcpo.database_build import (
     DEFAULT_CLASSES,
     build_database,
     frame_records,
+    import_mmdet3d,
     import_openpcdet,
     points_in_boxes_openpcdet,
 )
@@ -124,6 +126,59 @@ def test_import_gives_the_same_database(kitti_sample, built, tmp_path):
     np.testing.assert_array_equal(imported.offsets, built.offsets)
     np.testing.assert_allclose(imported.points, built.points, rtol=0, atol=1e-5)
     assert imported.manifest["parameters"]["source"] == "openpcdet"
+
+
+def _mmdet3d_layout(kitti_sample, tmp_path):
+    """The sample's OpenPCDet database rewritten as MMDetection3D's create_data.py writes one:
+    ``box3d_lidar`` z at the bottom centre, points minus the bottom centre, integer
+    ``image_idx``, files under ``kitti_gt_database/``."""
+    root = tmp_path / "mmdet3d"
+    (root / "kitti_gt_database").mkdir(parents=True)
+    (root / "training").mkdir()
+    (root / "training" / "label_2").symlink_to(kitti_sample / "training" / "label_2")
+    infos = safe_pickle.load(kitti_sample / "kitti_dbinfos_train.pkl")
+    for objects in infos.values():
+        for info in objects:
+            box = np.array(info["box3d_lidar"], dtype=np.float32)
+            half = box[5] / np.float32(2.0)
+            points = np.fromfile(kitti_sample / info["path"], np.float32).reshape(-1, 4)
+            points[:, 2] += half
+            path = Path("kitti_gt_database") / Path(info["path"]).name
+            points.tofile(root / path)
+            box[2] -= half
+            info.update(path=str(path), box3d_lidar=box, image_idx=int(info["image_idx"]))
+    with open(root / "kitti_dbinfos_train.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    return root
+
+
+def test_mmdet3d_import_equals_the_openpcdet_import(kitti_sample, tmp_path):
+    root = _mmdet3d_layout(kitti_sample, tmp_path)
+    ours = import_mmdet3d(root / "kitti_dbinfos_train.pkl", tmp_path / "from_mmdet3d")
+    reference = import_openpcdet(kitti_sample / "kitti_dbinfos_train.pkl", tmp_path / "from_pcdet")
+    assert len(ours) == len(reference) == 10
+    for column in ("names", "frame_ids", "index_in_frame", "num_points", "difficulty", "occlusion"):
+        np.testing.assert_array_equal(getattr(ours, column), getattr(reference, column))
+    np.testing.assert_array_equal(ours.truncation, reference.truncation)
+    np.testing.assert_array_equal(ours.offsets, reference.offsets)
+    # Only float32 rounding of the shifted files separates them (a missed dz / 2 is metres).
+    np.testing.assert_allclose(ours.boxes, reference.boxes, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(ours.points, reference.points, rtol=0, atol=1e-6)
+    assert ours.manifest["parameters"]["source"] == "mmdet3d"
+
+
+def test_cli_import_mmdet3d(kitti_sample, tmp_path):
+    root = _mmdet3d_layout(kitti_sample, tmp_path)
+    pkl = str(root / "kitti_dbinfos_train.pkl")
+    result = CliRunner().invoke(app, ["import-mmdet3d", pkl, "--out", str(tmp_path / "db")])
+    assert result.exit_code == 0, result.output
+    assert GroundTruthDatabase.open(tmp_path / "db").frame_ids[0] == "000000"
+
+
+def test_import_rejects_an_unknown_origin(kitti_sample, tmp_path):
+    pkl = kitti_sample / "kitti_dbinfos_train.pkl"
+    with pytest.raises(ConfigError, match="origin must be one of centre, bottom, got 'top'"):
+        import_openpcdet(pkl, tmp_path / "db", origin="top")
 
 
 def test_import_without_labels_leaves_occlusion_unknown(kitti_sample, tmp_path):
