@@ -2,7 +2,6 @@ import json
 import os
 import pickle
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,27 +128,9 @@ def test_import_gives_the_same_database(kitti_sample, built, tmp_path):
 
 
 def _mmdet3d_layout(kitti_sample, tmp_path):
-    """The sample's OpenPCDet database rewritten as MMDetection3D's create_data.py writes one:
-    ``box3d_lidar`` z at the bottom centre, points minus the bottom centre, integer
-    ``image_idx``, files under ``kitti_gt_database/``."""
-    root = tmp_path / "mmdet3d"
-    (root / "kitti_gt_database").mkdir(parents=True)
-    (root / "training").mkdir()
-    (root / "training" / "label_2").symlink_to(kitti_sample / "training" / "label_2")
-    infos = safe_pickle.load(kitti_sample / "kitti_dbinfos_train.pkl")
-    for objects in infos.values():
-        for info in objects:
-            box = np.array(info["box3d_lidar"], dtype=np.float32)
-            half = box[5] / np.float32(2.0)
-            points = np.fromfile(kitti_sample / info["path"], np.float32).reshape(-1, 4)
-            points[:, 2] += half
-            path = Path("kitti_gt_database") / Path(info["path"]).name
-            points.tofile(root / path)
-            box[2] -= half
-            info.update(path=str(path), box3d_lidar=box, image_idx=int(info["image_idx"]))
-    with open(root / "kitti_dbinfos_train.pkl", "wb") as f:
-        pickle.dump(infos, f)
-    return root
+    from mmdet3d_support import write_mmdet3d_dbinfos
+
+    return write_mmdet3d_dbinfos(kitti_sample, tmp_path / "mmdet3d").parent
 
 
 def test_mmdet3d_import_equals_the_openpcdet_import(kitti_sample, tmp_path):
