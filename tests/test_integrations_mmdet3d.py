@@ -346,3 +346,18 @@ def test_fade_hook_needs_a_drcpo_transform(infos):
         hook.before_train_epoch(_runner(_Loader(_dataset(infos, [], packed=False)), 0, 2))
     with pytest.raises(ConfigError, match="num_last_epochs must be >= 0"):
         DRCPOFadeHook(num_last_epochs=-1)
+
+
+def test_importing_registers_without_loading_mmdet3ds_datasets():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "import drcpo.integrations.mmdet3d\n"
+        "from mmdet3d.registry import HOOKS, TRANSFORMS\n"
+        "print('DRCPOAugment' in TRANSFORMS.module_dict, 'DRCPOFadeHook' in HOOKS.module_dict,\n"
+        "      any(m in sys.modules for m in ('mmdet3d.datasets', 'mmdet3d.structures')))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["True", "True", "False"], run.stderr
