@@ -123,3 +123,57 @@ def write_mmdet3d_infos(kitti_sample: Path, out: Path) -> Path:
     metainfo = {"categories": {c: i for i, c in enumerate(KITTI_CLASSES)}, "dataset": "kitti"}
     mmengine.dump({"metainfo": metainfo, "data_list": data_list}, str(out))
     return out
+
+
+def pipeline(augment: dict) -> list[dict]:
+    """mmdet3d's KITTI 3-class train pipeline (configs/_base_/datasets/kitti-3d-3class.py) with
+    ``augment`` where ObjectSample stands."""
+    return [
+        dict(type="LoadPointsFromFile", coord_type="LIDAR", load_dim=4, use_dim=4),
+        dict(type="LoadAnnotations3D", with_bbox_3d=True, with_label_3d=True),
+        augment,
+        dict(type="RandomFlip3D", flip_ratio_bev_horizontal=0.5),
+        dict(
+            type="GlobalRotScaleTrans",
+            rot_range=[-0.78539816, 0.78539816],
+            scale_ratio_range=[0.95, 1.05],
+        ),
+        dict(type="PointsRangeFilter", point_cloud_range=POINT_RANGE),
+        dict(type="ObjectRangeFilter", point_cloud_range=POINT_RANGE),
+        dict(type="PointShuffle"),
+        dict(type="Pack3DDetInputs", keys=["points", "gt_bboxes_3d", "gt_labels_3d"]),
+    ]
+
+
+def dataset(infos: Path, transforms: list, packed: bool = True):
+    """mmdet3d's KittiDataset (training) of the sample with ``transforms`` as its pipeline;
+    ``packed``: the pipeline ends in Pack3DDetInputs (else the dataset cannot skip empty
+    samples, as it does by default)."""
+    from mmdet3d.datasets import KittiDataset
+
+    return KittiDataset(
+        filter_empty_gt=packed,
+        data_root=str(KITTI_SAMPLE),
+        ann_file=str(infos),
+        data_prefix=dict(pts="training/velodyne"),
+        pipeline=transforms,
+        modality=dict(use_lidar=True, use_camera=False),
+        metainfo=dict(classes=CLASS_NAMES),
+        test_mode=False,
+    )
+
+
+def object_sample(tmp_path: Path) -> dict:
+    """mmdet3d's own ObjectSample on an mmdet3d database of the sample."""
+    pkl = write_mmdet3d_dbinfos(KITTI_SAMPLE, tmp_path / "mmdet3d")
+    sampler = dict(
+        data_root=str(pkl.parent),
+        info_path=str(pkl),
+        rate=1.0,
+        prepare=dict(filter_by_difficulty=[-1], filter_by_min_points=dict(Car=5)),
+        classes=CLASS_NAMES,
+        # The sample's one Cyclist has difficulty -1: an empty pool crashes mmdet3d's sampler.
+        sample_groups=dict(Car=15, Pedestrian=15),
+        points_loader=dict(type="LoadPointsFromFile", coord_type="LIDAR", load_dim=4, use_dim=4),
+    )
+    return dict(type="ObjectSample", db_sampler=sampler)

@@ -35,7 +35,6 @@ for _name in ("torch", "mmengine", "mmcv", "mmdet", "mmdet3d"):
         _skip(f"{_name} is not installed; see .ci/run's MMDetection3D step for the installs")
 support.install()
 import torch  # noqa: E402
-from mmdet3d.datasets import KittiDataset  # noqa: E402
 from mmdet3d.registry import HOOKS, TRANSFORMS  # noqa: E402
 from mmdet3d.structures import LiDARInstance3DBoxes, LiDARPoints  # noqa: E402
 from mmengine.dataset import RepeatDataset  # noqa: E402
@@ -78,61 +77,11 @@ def _drcpo(db, **kwargs):
     return dict(type="DRCPOAugment", db_path=str(db), classes=support.CLASS_NAMES, **kwargs)
 
 
-def _pipeline(augment):
-    """mmdet3d's KITTI 3-class train pipeline (configs/_base_/datasets/kitti-3d-3class.py) with
-    ``augment`` where ObjectSample stands."""
-    return [
-        dict(type="LoadPointsFromFile", coord_type="LIDAR", load_dim=4, use_dim=4),
-        dict(type="LoadAnnotations3D", with_bbox_3d=True, with_label_3d=True),
-        augment,
-        dict(type="RandomFlip3D", flip_ratio_bev_horizontal=0.5),
-        dict(
-            type="GlobalRotScaleTrans",
-            rot_range=[-0.78539816, 0.78539816],
-            scale_ratio_range=[0.95, 1.05],
-        ),
-        dict(type="PointsRangeFilter", point_cloud_range=support.POINT_RANGE),
-        dict(type="ObjectRangeFilter", point_cloud_range=support.POINT_RANGE),
-        dict(type="PointShuffle"),
-        dict(type="Pack3DDetInputs", keys=["points", "gt_bboxes_3d", "gt_labels_3d"]),
-    ]
-
-
-def _dataset(infos, pipeline, packed=True):
-    # Without Pack3DDetInputs the dataset cannot look for empty samples to skip.
-    return KittiDataset(
-        filter_empty_gt=packed,
-        data_root=str(support.KITTI_SAMPLE),
-        ann_file=str(infos),
-        data_prefix=dict(pts="training/velodyne"),
-        pipeline=pipeline,
-        modality=dict(use_lidar=True, use_camera=False),
-        metainfo=dict(classes=support.CLASS_NAMES),
-        test_mode=False,
-    )
-
-
 def _samples(dataset, seed=SEED):
     # As mmengine's set_random_seed: numpy (flip, rotation, drcpo) and torch (PointShuffle).
     np.random.seed(seed)
     torch.manual_seed(seed)
     return [dataset[i] for i in range(len(dataset))]
-
-
-def _object_sample(tmp_path):
-    """mmdet3d's own ObjectSample on an mmdet3d database of the sample."""
-    pkl = support.write_mmdet3d_dbinfos(support.KITTI_SAMPLE, tmp_path / "mmdet3d")
-    sampler = dict(
-        data_root=str(pkl.parent),
-        info_path=str(pkl),
-        rate=1.0,
-        prepare=dict(filter_by_difficulty=[-1], filter_by_min_points=dict(Car=5)),
-        classes=support.CLASS_NAMES,
-        # The sample's one Cyclist has difficulty -1: an empty pool crashes mmdet3d's sampler.
-        sample_groups=dict(Car=15, Pedestrian=15),
-        points_loader=dict(type="LoadPointsFromFile", coord_type="LIDAR", load_dim=4, use_dim=4),
-    )
-    return dict(type="ObjectSample", db_sampler=sampler)
 
 
 def _arrays(sample):
@@ -177,7 +126,7 @@ def test_box_conversion_round_trips_float32_exactly():
 # The transform on its own -----------------------------------------------------------------
 def _results(infos, index=1):
     """mmdet3d's results dict after LoadPointsFromFile and LoadAnnotations3D."""
-    dataset = _dataset(infos, _pipeline(dict(type="PointShuffle"))[:2], packed=False)
+    dataset = support.dataset(infos, support.pipeline(dict(type="PointShuffle"))[:2], packed=False)
     return dataset.pipeline(dataset.get_data_info(index))
 
 
@@ -251,11 +200,11 @@ def test_bad_arguments_name_the_culprit(drcpo_db, infos):
 # mmdet3d's KITTI train pipeline -----------------------------------------------------------
 @pytest.fixture(scope="module")
 def drcpo_samples(drcpo_db, infos):
-    return _samples(_dataset(infos, _pipeline(_drcpo(drcpo_db))))
+    return _samples(support.dataset(infos, support.pipeline(_drcpo(drcpo_db))))
 
 
 def test_packed_output_matches_object_samples(drcpo_samples, infos, tmp_path):
-    default = _samples(_dataset(infos, _pipeline(_object_sample(tmp_path))))
+    default = _samples(support.dataset(infos, support.pipeline(support.object_sample(tmp_path))))
     assert len(drcpo_samples) == len(default) == 6
     for ours, theirs in zip(drcpo_samples, default, strict=True):
         assert ours.keys() == theirs.keys() == {"inputs", "data_samples"}
@@ -283,11 +232,11 @@ def test_packed_boxes_lie_in_range_with_known_labels(drcpo_samples):
 
 
 def test_same_seed_same_samples(drcpo_db, infos, drcpo_samples):
-    again = _samples(_dataset(infos, _pipeline(_drcpo(drcpo_db))))
+    again = _samples(support.dataset(infos, support.pipeline(_drcpo(drcpo_db))))
     for a, b in zip(drcpo_samples, again, strict=True):
         for x, y in zip(_arrays(a), _arrays(b), strict=True):
             np.testing.assert_array_equal(x, y)
-    other = _samples(_dataset(infos, _pipeline(_drcpo(drcpo_db))), seed=SEED + 1)
+    other = _samples(support.dataset(infos, support.pipeline(_drcpo(drcpo_db))), seed=SEED + 1)
     assert any(
         _arrays(a)[1].shape != _arrays(b)[1].shape
         or not np.array_equal(_arrays(a)[1], _arrays(b)[1])
@@ -314,8 +263,8 @@ def _runner(loader, epoch, max_epochs):
 
 
 def test_fade_hook_turns_drcpo_off_for_the_last_epochs(drcpo_db, infos):
-    dataset = _dataset(infos, _pipeline(_drcpo(drcpo_db, seed=5))[:3], packed=False)
-    plain = _dataset(infos, _pipeline(_drcpo(drcpo_db))[:2], packed=False)
+    dataset = support.dataset(infos, support.pipeline(_drcpo(drcpo_db, seed=5))[:3], packed=False)
+    plain = support.dataset(infos, support.pipeline(_drcpo(drcpo_db))[:2], packed=False)
     hook = HOOKS.build(dict(type="DRCPOFadeHook", num_last_epochs=2))
     assert isinstance(hook, DRCPOFadeHook)
     loader = _Loader(RepeatDataset(dataset, times=2))  # found through the wrapper
@@ -331,7 +280,9 @@ def test_fade_hook_turns_drcpo_off_for_the_last_epochs(drcpo_db, infos):
 
 
 def test_fade_hook_restarts_persistent_workers_only_on_a_change(drcpo_db, infos):
-    dataset = _dataset(infos, _pipeline(_drcpo(drcpo_db, warmup=False))[:3], packed=False)
+    dataset = support.dataset(
+        infos, support.pipeline(_drcpo(drcpo_db, warmup=False))[:3], packed=False
+    )
     hook = DRCPOFadeHook(num_last_epochs=1)
     loader = _Loader(dataset, persistent_workers=True)
     hook.before_train_epoch(_runner(loader, 0, max_epochs=3))
@@ -343,7 +294,7 @@ def test_fade_hook_restarts_persistent_workers_only_on_a_change(drcpo_db, infos)
 def test_fade_hook_needs_a_drcpo_transform(infos):
     hook = DRCPOFadeHook(num_last_epochs=1)
     with pytest.raises(ConfigError, match="no DRCPOAugment"):
-        hook.before_train_epoch(_runner(_Loader(_dataset(infos, [], packed=False)), 0, 2))
+        hook.before_train_epoch(_runner(_Loader(support.dataset(infos, [], packed=False)), 0, 2))
     with pytest.raises(ConfigError, match="num_last_epochs must be >= 0"):
         DRCPOFadeHook(num_last_epochs=-1)
 
