@@ -171,6 +171,18 @@ def test_per_sample_generators_ignore_call_order(drcpo_db, infos):
     assert not torch.equal(transform(_results(infos, 1))["gt_bboxes_3d"].tensor, forward[1])
 
 
+def test_building_the_transform_warms_its_kernels_up(drcpo_db, monkeypatch):
+    import importlib
+
+    module = importlib.import_module("drcpo.warmup")  # drcpo.warmup is also the function
+    warmed = []
+    monkeypatch.setattr(module, "warmup", lambda transform: warmed.append(transform))
+    transform = DRCPOAugment(str(drcpo_db), support.CLASS_NAMES)
+    assert warmed == [transform.augmentor.pipeline]
+    DRCPOAugment(str(drcpo_db), support.CLASS_NAMES, warmup=False)
+    assert len(warmed) == 1
+
+
 def test_transform_pickles_for_spawned_workers(drcpo_db, infos):
     transform = DRCPOAugment(str(drcpo_db), support.CLASS_NAMES, seed=4)
     copy = pickle.loads(pickle.dumps(transform))
