@@ -256,6 +256,42 @@ def test_same_seed_same_samples(drcpo_db, infos, drcpo_samples):
     )
 
 
+def _loader_samples(dataset, seed):
+    """All samples through a DataLoader with 2 forked workers seeded by mmengine's
+    worker_init_fn, as mmengine's runner builds it (``randomness=dict(seed=seed)``)."""
+    from functools import partial
+
+    from mmengine.dataset import pseudo_collate, worker_init_fn
+
+    init = partial(worker_init_fn, num_workers=2, rank=0, seed=seed)
+    loader = torch.utils.data.DataLoader(
+        dataset,
+        batch_size=2,
+        num_workers=2,
+        worker_init_fn=init,
+        collate_fn=pseudo_collate,
+        multiprocessing_context="fork",
+    )
+    return [_arrays({"inputs": i, "data_samples": d}) for b in loader for i, d in _unbatch(b)]
+
+
+def _unbatch(batch):
+    pairs = zip(batch["inputs"]["points"], batch["data_samples"], strict=True)
+    return [({"points": p}, d) for p, d in pairs]
+
+
+def test_loader_workers_seeded_by_mmengine_give_the_same_samples(drcpo_db, infos):
+    dataset = support.dataset(infos, support.pipeline(_drcpo(drcpo_db)))
+    first, again = _loader_samples(dataset, SEED), _loader_samples(dataset, SEED)
+    assert len(first) == 6
+    for a, b in zip(first, again, strict=True):
+        for x, y in zip(a, b, strict=True):
+            np.testing.assert_array_equal(x, y)
+    other = _loader_samples(dataset, SEED + 1)
+    pairs = zip(first, other, strict=True)
+    assert any(a[1].shape != b[1].shape or (a[1] != b[1]).any() for a, b in pairs)
+
+
 # The fade hook ----------------------------------------------------------------------------
 class _Loader:
     """What the hook reads of mmengine's train loader."""
