@@ -143,7 +143,7 @@ def test_index_of_a_database_with_integer_names_names_the_file(tmp_path):
 
 # The safety net around every command ------------------------------------------------------
 def _failing_open(error: BaseException):
-    def open_database(path):
+    def open_database(path, verify=True):
         raise error
 
     return open_database

@@ -1,7 +1,10 @@
 import json
 import os
 import pickle
+import re
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -368,3 +371,120 @@ def test_cli_import_openpcdet(kitti_sample, tmp_path):
     assert result.exit_code == 0, result.output
     assert "total" in result.stdout
     assert len(GroundTruthDatabase.open(tmp_path / "db")) == 10
+
+
+# Importer: every field checked ----------------------------------------------------------------
+def _import_with(kitti_sample, tmp_path, edit, root=None):
+    """Import the sample's dbinfos after ``edit(dbinfos)``, re-pickled into ``tmp_path``."""
+    dbinfos = safe_pickle.load(kitti_sample / "kitti_dbinfos_train.pkl")
+    edit(dbinfos)
+    path = tmp_path / "dbinfos.pkl"
+    path.write_bytes(pickle.dumps(dbinfos))
+    return import_openpcdet(path, tmp_path / "db", root=root or kitti_sample)
+
+
+def _setter(field, value, record=("Car", 2)):
+    def edit(dbinfos):
+        dbinfos[record[0]][record[1]][field] = value
+
+    return edit
+
+
+INT32 = r"an int in \[0, 2147483647\]"
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "expected"),
+    [
+        ("gt_idx", "abc", rf"field 'gt_idx' = 'abc' is not {INT32}"),
+        ("gt_idx", -1, rf"field 'gt_idx' = -1 is not {INT32}"),
+        ("gt_idx", True, rf"field 'gt_idx' = True is not {INT32}"),
+        ("gt_idx", 2**40, rf"field 'gt_idx' = 1099511627776 is not {INT32}"),
+        pytest.param(
+            "gt_idx", 10**5000, f"field 'gt_idx' = an int of 16610 bits is not {INT32}", id="huge"
+        ),
+        ("num_points_in_gt", "12", rf"field 'num_points_in_gt' = '12' is not {INT32}"),
+        ("num_points_in_gt", 12.0, rf"field 'num_points_in_gt' = 12.0 is not {INT32}"),
+        ("difficulty", "hard", r"field 'difficulty' = 'hard' is not an int in \[-1, 2\]"),
+        ("difficulty", np.int32(300), r"field 'difficulty' = np.int32\(300\) is not an int"),
+        ("box3d_lidar", "abc", "field 'box3d_lidar' = 'abc' is not a box of >= 7 finite"),
+        ("box3d_lidar", np.zeros(6), r"field 'box3d_lidar' = array float64 \(6,\) is not a box"),
+        ("box3d_lidar", np.ones((1, 7)), r"field 'box3d_lidar' = array float64 \(1, 7\)"),
+        ("box3d_lidar", [1, 2, 3, 1, 1, np.nan, 0], "field 'box3d_lidar' = .* is not a box"),
+        ("box3d_lidar", [1, 2, 3, 1, 1, "1", 0], "field 'box3d_lidar' = .* is not a box"),
+        ("box3d_lidar", [1, 2, 3, 1, 1, 10**400, 0], "field 'box3d_lidar' = .* is not a box"),
+        pytest.param("score", 10**5000, "field 'score' = an int of 16610 bits", id="huge"),
+        ("box3d_lidar", np.array(["1"] * 7), r"field 'box3d_lidar' = array <U1 \(7,\) is not a"),
+        ("bbox", np.zeros(3), r"field 'bbox' = array float64 \(3,\) is not 4 numbers"),
+        ("score", None, "field 'score' = None is not a number"),
+        ("name", 5, r"field 'name' = 5 is not a class name"),
+        ("name", "Van", "name 'Van' is not its class 'Car'"),
+        ("path", 7, r"field 'path' = 7 is not a file path"),
+        ("image_idx", 1, r"field 'image_idx' = 1 is not a frame id"),
+        ("image_idx", "../000001", r"field 'image_idx' = '../000001' is not a frame id"),
+    ],
+)
+def test_import_checks_every_field(kitti_sample, tmp_path, field, value, expected):
+    with pytest.raises(DataError, match=rf"dbinfos\.pkl: Car\[2\]: {expected}"):
+        _import_with(kitti_sample, tmp_path, _setter(field, value))
+    _no_database_left(tmp_path)
+
+
+@pytest.mark.parametrize("where", ["absolute", "../stolen.bin", "gt_database/../../stolen.bin"])
+def test_import_refuses_paths_outside_the_root(kitti_sample, tmp_path, where):
+    # A valid object file outside the root: without the check, it would be imported.
+    stolen = tmp_path / "stolen.bin"
+    shutil.copyfile(kitti_sample / "gt_database" / "000001_Car_1.bin", stolen)
+    root = _mirror(kitti_sample, tmp_path / "kitti")
+    path = str(stolen) if where == "absolute" else where
+    expected = rf"Car\[0\]: field 'path' = '{re.escape(path)}' is not a path inside the data root"
+    with pytest.raises(DataError, match=expected):
+        _import_with(kitti_sample, tmp_path, _setter("path", path, ("Car", 0)), root=root)
+    _no_database_left(tmp_path)
+
+
+def test_import_refuses_a_negative_gt_idx_that_labels_would_accept(kitti_sample, tmp_path):
+    # Frame 000001's labels are Truck, Car, Cyclist: labels[-2] is a Car, as Car[0] says.
+    with pytest.raises(DataError, match=rf"Car\[0\]: field 'gt_idx' = -2 is not {INT32}"):
+        _import_with(kitti_sample, tmp_path, _setter("gt_idx", -2, ("Car", 0)))
+    with pytest.raises(DataError, match=r"label_2/000001\.txt: object 5 is not a Car"):
+        _import_with(kitti_sample, tmp_path, _setter("gt_idx", 5, ("Car", 0)))
+
+
+def test_import_refuses_an_object_listed_twice(kitti_sample, tmp_path):
+    def duplicate(dbinfos):
+        dbinfos["Car"].append(dict(dbinfos["Car"][1]))
+
+    with pytest.raises(DataError, match=r"Car\[5\]: object 1 of frame 000002 is already listed"):
+        _import_with(kitti_sample, tmp_path, duplicate)
+
+
+@pytest.mark.parametrize("protocol", range(6))
+def test_import_does_not_depend_on_the_pickle_protocol(kitti_sample, tmp_path, protocol):
+    # The sample was written under numpy 1.x (numpy.core.*), these under numpy 2 (numpy._core.*).
+    original = import_openpcdet(kitti_sample / "kitti_dbinfos_train.pkl", tmp_path / "original")
+    data = pickle.dumps(pickle.loads((kitti_sample / "kitti_dbinfos_train.pkl").read_bytes()))
+    (tmp_path / "again.pkl").write_bytes(pickle.dumps(pickle.loads(data), protocol=protocol))
+    again = import_openpcdet(tmp_path / "again.pkl", tmp_path / "again", root=kitti_sample)
+    assert again.checksum == original.checksum
+
+
+def test_cli_import_of_a_corrupted_pickle_fails_in_one_line(kitti_sample, tmp_path):
+    # Flags 0x78 on a dtype used to crash the process; run it in a child to see a crash.
+    data = bytearray((kitti_sample / "kitti_dbinfos_train.pkl").read_bytes())
+    data[2318] = 0x78
+    root = _openpcdet_copy(kitti_sample, tmp_path)
+    pkl = root / "kitti_dbinfos_train.pkl"
+    pkl.write_bytes(bytes(data))
+    command = ["import-openpcdet", str(pkl), "--out", str(tmp_path / "db")]
+    child = subprocess.run(
+        [sys.executable, "-m", "drcpo.cli", *command],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert child.returncode == 1, (child.returncode, child.stderr[-2000:])
+    message = _words(child.stderr)
+    assert "error:" in message and "Traceback" not in message
+    assert "kitti_dbinfos_train.pkl: not a readable pickle: dtype <U3: flags 120" in message
+    _no_database_left(tmp_path)

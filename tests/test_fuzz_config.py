@@ -3,31 +3,25 @@
 Random documents (the default config with random keys replaced by random values, random YAML
 text, random bytes, random non-path sources) must each give a valid config, which reads back
 unchanged, or a :class:`ConfigError`; any other exception is a bug. The number of cases per test
-is ``DRCPO_FUZZ_EXAMPLES`` (default 300), through the hypothesis profile ``drcpo-fuzz``.
+is ``DRCPO_FUZZ_EXAMPLES`` (default 200), through the hypothesis profile ``drcpo-fuzz``
+(``fuzz_settings.py``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
-from hypothesis import HealthCheck, given, settings
+from fuzz_settings import FUZZ
+from hypothesis import given
 from hypothesis import strategies as st
 
 from drcpo.config import KITTI_CLASSES, PRESETS, AugmentConfig, load_config
 from drcpo.errors import ConfigError
 
-settings.register_profile(
-    "drcpo-fuzz",
-    max_examples=int(os.environ.get("DRCPO_FUZZ_EXAMPLES", "300")),
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
-)
-FUZZ = settings.get_profile("drcpo-fuzz")
 DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 
 

@@ -62,6 +62,28 @@ def test_bin_size_not_multiple_of_16_names_the_file(tmp_path):
         read_points(path)
 
 
+@pytest.mark.parametrize("extra", [1, 2, 3, 5, 15])
+def test_partial_last_point_is_refused_with_the_true_size(tmp_path, extra):
+    # 1-3 bytes past a whole point: not even a whole float32 more, which a count of the
+    # float32 values read would miss.
+    path = tmp_path / "000005.bin"
+    path.write_bytes(np.ones((5, 4), np.float32).tobytes() + b"\x01" * extra)
+    size = 80 + extra
+    with pytest.raises(DataError, match=rf"000005\.bin: size {size} bytes is not a multiple of 16"):
+        read_points(path)
+
+
+def test_read_points_is_float32_and_native(tmp_path, rng):
+    points = rng.normal(size=(7, 4)).astype(np.float32)
+    points.tofile(tmp_path / "000008.bin")
+    out = read_points(tmp_path / "000008.bin")
+    assert out.dtype == np.float32 and out.dtype.isnative and out.flags.c_contiguous
+    assert out.flags.writeable
+    np.testing.assert_array_equal(
+        read_points(tmp_path / "000008.bin", num_features=2), points.reshape(-1, 2)
+    )
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_nan_or_inf_points_name_the_file_and_point(tmp_path, bad):
     points = np.zeros((6, 4), np.float32)

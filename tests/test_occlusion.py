@@ -801,3 +801,101 @@ def test_frame_grid_windows_select_by_direction(rng):
     got = grid.directions(rows)
     for values, want in zip(got, (azimuth, elevation, distance), strict=True):
         np.testing.assert_array_equal(values, want[rows])
+
+
+# ----------------------------------------------------------------------------------------------
+# "auto" on inputs that crowd the per-point test's neighbourhoods
+# ----------------------------------------------------------------------------------------------
+def _tiny_sphere(rng: np.random.Generator, count: int, radius: float = 0.1) -> np.ndarray:
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    return (directions * radius + [10.0, 0.0, 0.0]).astype(np.float32)
+
+
+def _no_per_point_test(monkeypatch) -> None:
+    """Fail if the per-point test runs on more than a few points (a degenerate hull's
+    fallback may run it on the distinct points)."""
+    original = occlusion._LocalState.visible
+
+    def refuse(self, *args):
+        if self.size > 100:
+            raise AssertionError(f"the per-point test ran on {self.size} crowded points")
+        return original(self, *args)
+
+    monkeypatch.setattr(occlusion._LocalState, "visible", refuse)
+
+
+@pytest.mark.parametrize(
+    "scene",
+    ["tiny_sphere", "copies", "sphere_and_copies"],
+)
+def test_auto_sends_crowded_sets_to_one_hull(rng, monkeypatch, scene):
+    # The per-point test is quadratic in the points per neighbourhood: 30,000 points on a
+    # 0.1 m sphere 10 m away with R = 100 took it 11.6 CPU-s (one hull: 0.1 s).
+    sphere = _tiny_sphere(rng, 6000)
+    copies = np.tile(np.float32([[10.0, 2.0, -1.0]]), (6000, 1))
+    points = {"tiny_sphere": sphere, "copies": copies}.get(scene)
+    if points is None:
+        points = np.concatenate([sphere, copies, sphere[:50]])
+    reference = hidden_point_removal(points, radius=100.0, method="reference")
+    sectors = hidden_point_removal(points, radius=100.0, method="sectors")
+    _no_per_point_test(monkeypatch)
+    auto = hidden_point_removal(points, radius=100.0)
+    np.testing.assert_array_equal(auto, reference)
+    np.testing.assert_array_equal(auto, sectors)
+    query = rng.random(len(points)) < 0.3
+    np.testing.assert_array_equal(
+        hidden_point_removal(points, radius=100.0, query=query), reference | ~query
+    )
+
+
+def test_auto_keeps_the_per_point_test_on_lidar_like_frames(rng, monkeypatch):
+    # A sweep over flat ground (and a wall where the ground is out of reach).
+    azimuth = rng.uniform(-np.pi, np.pi, 40000)
+    elevation = rng.uniform(-0.4, 0.05, 40000)
+    ranges = np.minimum(1.73 / np.maximum(-np.sin(elevation), 0.02), 80.0)
+    points = np.column_stack(
+        [
+            ranges * np.cos(elevation) * np.cos(azimuth),
+            ranges * np.cos(elevation) * np.sin(azimuth),
+            ranges * np.sin(elevation),
+        ]
+    )
+    calls = []
+    original = occlusion._LocalState.visible
+    monkeypatch.setattr(
+        occlusion._LocalState,
+        "visible",
+        lambda self, *args: calls.append(self.size) or original(self, *args),
+    )
+    hidden_point_removal(points, radius=HPR_PRESETS["pv_rcnn"].radius)
+    assert calls == [len(points)]
+
+
+def test_copies_under_a_radius_too_large_for_a_hull_are_decided_once_each(monkeypatch):
+    # R / range above 1e7: no hull; the per-point test runs on the one distinct point.
+    copies = np.tile(np.float32([[10.0, 2.0, -1.0]]), (5000, 1))
+    sizes = []
+    original = occlusion._local
+    monkeypatch.setattr(
+        occlusion,
+        "_local",
+        lambda setup, *args: sizes.append(setup.size) or original(setup, *args),
+    )
+    assert hidden_point_removal(copies, radius=1e10).all()
+    assert sizes == [1]
+    sizes.clear()
+    assert hidden_point_removal(copies, radius=100.0, method="reference").all()
+    assert sizes == [1]  # a hull of one distinct point is degenerate: the fallback runs once
+
+
+def test_hidden_by_insertion_on_a_crowded_set_matches_the_reference(rng):
+    points = np.concatenate([_tiny_sphere(rng, 3000), _tiny_sphere(rng, 3000, 0.05) + 0.3])
+    inserted = np.zeros(len(points), dtype=bool)
+    inserted[3000:] = True
+    behind = ~inserted
+    removed = occlusion.hidden_by_insertion(points, inserted, behind, radius=100.0)
+    expected = occlusion.hidden_by_insertion(
+        points, inserted, behind, radius=100.0, method="reference"
+    )
+    np.testing.assert_array_equal(removed, expected)

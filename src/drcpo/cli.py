@@ -28,6 +28,10 @@ from drcpo.errors import DrcpoError
 from drcpo.outputs import Interrupted
 
 console = Console(stderr=True)
+VERIFY_HELP = (
+    "Check the database's files against its manifest checksum (and for NaN/inf) on opening; "
+    "--no-verify skips it for huge databases verified once already."
+)
 
 
 def say_error(message: str) -> None:
@@ -219,12 +223,13 @@ def import_mmdet3d_command(
 def info(
     db: Annotated[Path, typer.Argument(help="Database directory.")],
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
+    verify: Annotated[bool, typer.Option(help=VERIFY_HELP)] = True,
 ) -> None:
     """Describe a ground-truth database: objects and points per class."""
     from drcpo.database import GroundTruthDatabase
 
     try:
-        database = GroundTruthDatabase.open(db)
+        database = GroundTruthDatabase.open(db, verify=verify)
     except DrcpoError as exc:
         fail(str(exc))
     summary = database.summary()
@@ -235,6 +240,7 @@ def info(
             "objects": len(database),
             "points": len(database.points),
             "checksum": database.checksum,
+            "verified": database.verified,
         }
         typer.echo(json.dumps(payload))
         return
@@ -331,6 +337,7 @@ def augment(
     ] = 0,
     fov: Annotated[bool, typer.Option(help="Cut frames to the camera field of view first.")] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
+    verify: Annotated[bool, typer.Option(help=VERIFY_HELP)] = True,
 ) -> None:
     """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame."""
     from drcpo.config import load_config
@@ -339,7 +346,7 @@ def augment(
 
     try:
         settings = load_config(config)
-        database = GroundTruthDatabase.open(db)
+        database = GroundTruthDatabase.open(db, verify=verify)
         transform = build_pipeline(settings, database, kind=pipeline)
         with progress_bar(f"frames of {split}") as progress:
             summary = augment_kitti(

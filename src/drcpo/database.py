@@ -52,6 +52,9 @@ _COLUMNS: dict[str, Any] = {
     "truncation": np.float32,
 }
 _CHECKSUM_ORDER = ("points", "offsets", *_COLUMNS)
+_FILES = tuple(f"{name}.npy" for name in _CHECKSUM_ORDER)
+_FINITE = ("points", "boxes")  # arrays whose values must all be finite (truncation may be NaN)
+_CHUNK_ROWS = 1 << 18  # rows hashed at a time (4 MiB of points): cache-sized, few calls
 
 
 def difficulty_name(code: int) -> str:
@@ -93,19 +96,31 @@ class GroundTruthDatabase:
         self._columns = columns
         self.path = path
         self.manifest = manifest if manifest is not None else {}
+        self._verified = False
         _check_consistent(points, offsets, columns, where=str(path or "<memory>"))
 
     # Construction -------------------------------------------------------------------------
     @classmethod
-    def open(cls, path: str | os.PathLike) -> GroundTruthDatabase:
-        """Open a database directory; raises :class:`DataError` naming what is wrong."""
+    def open(cls, path: str | os.PathLike, verify: bool = True) -> GroundTruthDatabase:
+        """Open a database directory; raises :class:`DataError` naming what is wrong.
+
+        Args:
+            path: the database directory.
+            verify: run :meth:`verify` (every array's bytes against the manifest checksum, no
+                NaN/inf in points or boxes): one streaming pass over the files, about as long
+                as reading them. ``False`` for huge databases verified once already; building
+                an index verifies them all the same (:meth:`verified_checksum`).
+        """
         path = Path(path)
         manifest = read_manifest(path, FORMAT_NAME, FORMAT_VERSION, "not a drcpo database")
         points = _load(path / "points.npy", mmap=True)
         offsets = _load(path / "offsets.npy", mmap=True)
         columns = {name: _load(path / f"{name}.npy") for name in _COLUMNS}
         _check_text_columns(path, columns)
-        return cls(points, offsets, columns, manifest=manifest, path=path)
+        database = cls(points, offsets, columns, manifest=manifest, path=path)
+        if verify:
+            database.verify()
+        return database
 
     @classmethod
     def from_records(
@@ -242,24 +257,63 @@ class GroundTruthDatabase:
         return out
 
     def compute_checksum(self) -> str:
-        """SHA-256 over every array's bytes, in a fixed order."""
+        """SHA-256 over every array's bytes, in a fixed order (``"sha256:<hex>"``)."""
+        return self._scan(check_values=False)
+
+    def _scan(self, check_values: bool) -> str:
+        """The content checksum, streamed over the arrays in chunks (memory-mapped ones are
+        read once, never copied whole); with ``check_values``, raise :class:`DataError` on
+        the first non-finite point or box value, in the same pass."""
         digest = hashlib.sha256()
         arrays = {"points": self._points, "offsets": self._offsets, **self._columns}
         for name in _CHECKSUM_ORDER:
-            array = np.ascontiguousarray(arrays[name])
+            array = arrays[name]
             digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
-            for start in range(0, len(array), 1 << 20):
-                digest.update(array[start : start + (1 << 20)].tobytes())
+            for start in range(0, len(array), _CHUNK_ROWS):
+                chunk = np.ascontiguousarray(array[start : start + _CHUNK_ROWS])
+                digest.update(chunk.reshape(-1).view(np.uint8))
+                if check_values and name in _FINITE and not np.isfinite(chunk).all():
+                    self._non_finite(name, chunk, start)
         return "sha256:" + digest.hexdigest()
 
+    def _non_finite(self, name: str, chunk: np.ndarray, start: int) -> None:
+        row = start + int(np.flatnonzero(~np.isfinite(chunk.reshape(len(chunk), -1)).all(1))[0])
+        obj = row if name == "boxes" else int(np.searchsorted(self._offsets, row, "right") - 1)
+        where = f"{self.path / f'{name}.npy'}" if self.path else f"<memory> {name}"
+        raise DataError(
+            f"{where}: row {row} (object {obj}, {self.names[obj]!s}) of database "
+            f"{self.path or '<memory>'} holds a NaN or infinite value: "
+            f"{np.asarray(chunk[row - start]).tolist()}"
+        )
+
     def verify(self) -> None:
-        """Recompute the checksum and raise :class:`DataError` if it differs from the manifest."""
+        """Check the data: recompute the checksum and compare it with the manifest's, and look
+        for NaN/inf in points and boxes (one pass). Raises :class:`DataError` naming the
+        database (and, for a bad value, the file and row)."""
+        actual = self._scan(check_values=True)
         stored = self.manifest.get("checksum")
-        if stored and stored != self.compute_checksum():
+        if stored and stored != actual:
             raise DataError(
-                f"{self.path}: content does not match the manifest checksum "
-                "(the database was modified or is corrupt)"
+                f"database {self.path}: its files ({', '.join(_FILES)}) do not match the "
+                f"checksum in {self.path / 'manifest.json'} ({stored}, data gives {actual}): "
+                "the database was modified or is corrupt; rebuild it"
             )
+        self._verified = True
+
+    @property
+    def verified(self) -> bool:
+        """Whether :meth:`verify` has passed on this object."""
+        return self._verified
+
+    def verified_checksum(self) -> str:
+        """The content checksum, known to match the data: the manifest's once :meth:`verify`
+        passed (on :meth:`open`, or here first), else (in memory) computed. What an index is
+        built against, so that it never vouches for a database whose data changed."""
+        if not self.manifest.get("checksum"):
+            return self.compute_checksum()
+        if not self._verified:
+            self.verify()
+        return self.manifest["checksum"]
 
     # Writing ------------------------------------------------------------------------------
     def save(

@@ -10,9 +10,10 @@ when indexing or sampling, as OpenPCDet does.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -255,6 +256,9 @@ def import_openpcdet(
     -heading into canonical pose. Objects are ordered by frame id, then index in frame, as a
     build from the same frames orders them. Occlusion and truncation, which the infos lack, are
     read from ``root/training/label_2`` when those label files exist (else left unknown).
+
+    Every field of every object is checked (see :func:`validate_dbinfos`) before any point is
+    read; a ``path`` outside ``root`` and a ``gt_idx`` past the frame's labels are refused.
     """
     dbinfos_pkl = Path(dbinfos_pkl)
     out = Path(out)
@@ -296,10 +300,10 @@ def import_mmdet3d(
     """Convert an MMDetection3D database (``kitti_dbinfos_train.pkl`` +
     ``kitti_gt_database/*.bin``, from its ``create_data.py``) to ours.
 
-    The same layout as OpenPCDet's (:func:`import_openpcdet`, same arguments) but for the origin:
-    MMDetection3D's ``box3d_lidar`` has z at the box's bottom centre and each object's points are
-    stored minus that bottom centre; both are moved to the centre. Integer ``image_idx`` (its
-    KITTI sample index) become KITTI's six-digit frame ids.
+    The same layout as OpenPCDet's (:func:`import_openpcdet`, same arguments and checks) but for
+    the origin: MMDetection3D's ``box3d_lidar`` has z at the box's bottom centre and each object's
+    points are stored minus that bottom centre; both are moved to the centre. Integer
+    ``image_idx`` (its KITTI sample index) become KITTI's six-digit frame ids.
     """
     return import_openpcdet(
         dbinfos_pkl, out, root, overwrite, num_features, progress, origin="bottom"
@@ -310,43 +314,158 @@ def import_mmdet3d(
 _ORIGINS = {"centre": "openpcdet", "bottom": "mmdet3d"}
 
 
-def _frame_id(value: Any) -> str:
-    """A dbinfo's ``image_idx`` as a KITTI frame id (MMDetection3D stores the integer)."""
-    if isinstance(value, int | np.integer) and not isinstance(value, bool):
-        return f"{int(value):06d}"
-    return str(value)
-
-
-def _dbinfo_entries(path: Path, origin: str = "centre") -> Iterator[dict[str, Any]]:
-    """Validated dbinfo dicts of every class, with plain Python / numpy values; boxes with z at
-    the centre whatever ``origin`` the file uses."""
+def _dbinfo_entries(path: Path, origin: str = "centre") -> list[dict[str, Any]]:
+    """The validated objects, boxes with z at the centre whatever ``origin`` the file uses."""
     infos = safe_pickle.load(path)
+    if origin == "bottom":
+        _kitti_frame_ids(infos)
+    entries = validate_dbinfos(infos, str(path))
+    if origin == "bottom":
+        for entry in entries:
+            entry["box"][2] += entry["box"][5] / 2.0
+    return entries
+
+
+def _kitti_frame_ids(infos: Any) -> None:
+    """MMDetection3D's integer ``image_idx`` as KITTI's six-digit frame ids, in place (anything
+    else is left for :func:`validate_dbinfos` to judge)."""
+    for objects in infos.values() if isinstance(infos, dict) else ():
+        for info in objects if isinstance(objects, list) else ():
+            if (
+                isinstance(info, dict)
+                and _integer(info.get("image_idx"), 0, _MAX_INT32) is not None
+            ):
+                info["image_idx"] = f"{int(info['image_idx']):06d}"
+
+
+def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
+    """The objects of an OpenPCDet dbinfos dict, every field checked, as plain values.
+
+    Args:
+        infos: what the pickle holds: class name -> list of per-object dicts with ``name``,
+            ``path``, ``image_idx``, ``gt_idx``, ``box3d_lidar``, ``num_points_in_gt`` and,
+            optionally, ``difficulty``, ``bbox`` and ``score``.
+        source: the file, for messages.
+
+    Returns one dict per object with ``name``, ``path``, ``image_idx`` (str), ``gt_idx``,
+    ``num_points``, ``difficulty`` (int) and ``box`` (``float64 (7,)``: centre, sizes, heading;
+    any velocities after it are dropped). Raises :class:`DataError` naming ``source``, the
+    record (``Car[3]``) and the field for a wrong type, shape or value, a ``path`` that leaves
+    the data root (absolute or through ``..``) and an object listed twice.
+    """
     if not isinstance(infos, dict):
-        raise DataError(f"{path}: expected a dict of class name -> list of objects")
+        raise DataError(f"{source}: expected a dict of class name -> list of objects")
+    entries: list[dict[str, Any]] = []
+    seen: dict[tuple[str, int], str] = {}
     for class_name, objects in infos.items():
+        if not isinstance(class_name, str):
+            raise DataError(f"{source}: class name {_shown(class_name)} is not a str")
+        class_name = str(class_name)  # OpenPCDet's keys are numpy str_ scalars
         if not isinstance(objects, list):
             kind = type(objects).__name__
-            raise DataError(f"{path}: class {class_name!r} holds a {kind}, not a list")
+            raise DataError(f"{source}: class {class_name!r} holds a {kind}, not a list")
         for position, info in enumerate(objects):
-            where = f"{path}: {class_name}[{position}]"
-            missing = [key for key in _DBINFO_KEYS if not isinstance(info, dict) or key not in info]
-            if missing:
-                raise DataError(f"{where}: missing key(s) {', '.join(missing)}")
-            box = np.asarray(info["box3d_lidar"], dtype=np.float64).reshape(-1)
-            if box.shape[0] < 7 or not np.isfinite(box[:7]).all() or (box[3:6] <= 0).any():
-                raise DataError(f"{where}: box3d_lidar {box} is not a valid (7,) box")
-            box = box[:7].copy()
-            if origin == "bottom":
-                box[2] += box[5] / 2.0
-            yield {
-                "name": str(info["name"]),
-                "path": str(info["path"]),
-                "image_idx": _frame_id(info["image_idx"]),
-                "gt_idx": int(info["gt_idx"]),
-                "box": box,
-                "num_points": int(info["num_points_in_gt"]),
-                "difficulty": int(info.get("difficulty", -1)),
-            }
+            where = f"{source}: {class_name}[{position}]"
+            entry = _dbinfo_entry(info, where)
+            if entry["name"] != class_name:
+                raise DataError(f"{where}: name {entry['name']!r} is not its class {class_name!r}")
+            key = (entry["image_idx"], entry["gt_idx"])
+            if key in seen:
+                raise DataError(
+                    f"{where}: object {entry['gt_idx']} of frame {entry['image_idx']} is "
+                    f"already listed as {seen[key]}"
+                )
+            seen[key] = f"{class_name}[{position}]"
+            entries.append(entry)
+    return entries
+
+
+# A frame id names label files: letters, digits, "_", "-", "." (not first), no separators.
+_FRAME_ID = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*")
+_MAX_INT32 = 2**31 - 1
+
+
+def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
+    if not isinstance(info, dict):
+        raise DataError(f"{where}: expected a dict of fields, got {type(info).__name__}")
+    missing = [key for key in _DBINFO_KEYS if key not in info]
+    if missing:
+        raise DataError(f"{where}: missing key(s) {', '.join(missing)}")
+
+    def bad(key: str, expected: str) -> DataError:
+        return DataError(f"{where}: field {key!r} = {_shown(info[key])} is not {expected}")
+
+    name, path, frame_id = (_text(info[key]) for key in ("name", "path", "image_idx"))
+    if not name:
+        raise bad("name", "a class name (non-empty str)")
+    if not path or "\0" in path:
+        raise bad("path", "a file path (non-empty str)")
+    relative = PurePosixPath(path)
+    if relative.is_absolute() or ".." in relative.parts:
+        raise bad("path", "a path inside the data root (absolute and '..' paths are refused)")
+    if frame_id is None or not _FRAME_ID.fullmatch(frame_id):
+        raise bad("image_idx", "a frame id (str of letters, digits, '_', '-', '.')")
+    gt_idx = _integer(info["gt_idx"], 0, _MAX_INT32)
+    if gt_idx is None:
+        raise bad("gt_idx", f"an int in [0, {_MAX_INT32}]")
+    num_points = _integer(info["num_points_in_gt"], 0, _MAX_INT32)
+    if num_points is None:
+        raise bad("num_points_in_gt", f"an int in [0, {_MAX_INT32}]")
+    difficulty = _integer(info.get("difficulty", -1), -1, 2)
+    if difficulty is None:
+        raise bad("difficulty", "an int in [-1, 2] (-1: unknown)")
+    box = _reals(info["box3d_lidar"])
+    if box is None or len(box) < 7 or not np.isfinite(box[:7]).all() or (box[3:6] <= 0).any():
+        raise bad("box3d_lidar", "a box of >= 7 finite numbers with positive sizes")
+    if "bbox" in info and ((bbox := _reals(info["bbox"])) is None or bbox.shape != (4,)):
+        raise bad("bbox", "4 numbers")
+    if "score" in info and _reals([info["score"]]) is None:
+        raise bad("score", "a number")
+    return {
+        "name": name,
+        "path": path,
+        "image_idx": frame_id,
+        "gt_idx": gt_idx,
+        "box": box[:7],
+        "num_points": num_points,
+        "difficulty": difficulty,
+    }
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, np.ndarray):
+        return f"array {value.dtype} {value.shape}"
+    try:
+        text = repr(value)
+    except ValueError:  # an int over sys.get_int_max_str_digits() digits, or holding one
+        return f"an int of {value.bit_length()} bits" if isinstance(value, int) else "too large"
+    return text if len(text) <= 200 else f"{text[:197]}..."
+
+
+def _text(value: Any) -> str | None:
+    return str(value) if isinstance(value, str) else None  # np.str_ is a str
+
+
+def _integer(value: Any, low: int, high: int) -> int | None:
+    """``value`` as an int when it is a Python or numpy integer (not a bool) in [low, high]."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        return None
+    return int(value) if low <= value <= high else None
+
+
+def _reals(value: Any) -> np.ndarray | None:
+    """``value`` as ``float64 (n,)`` when it is a 1-D list, tuple or array of real numbers."""
+    if isinstance(value, np.ndarray):
+        return value.astype(np.float64) if value.ndim == 1 and value.dtype.kind in "iuf" else None
+    if not isinstance(value, (list, tuple)):
+        return None
+    numbers = (int, float, np.integer, np.floating)
+    if not all(isinstance(v, numbers) and not isinstance(v, (bool, np.bool_)) for v in value):
+        return None
+    try:
+        return np.array([float(v) for v in value], dtype=np.float64)
+    except OverflowError:  # an int beyond float range
+        return None
 
 
 class _LabelLookup:

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numba as nb
 import numpy as np
 
 from drcpo.errors import DataError
@@ -38,22 +39,23 @@ class Frame:
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        points = np.asarray(self.points)
+        points = _real_array(self.points, "points")
         if points.ndim != 2 or points.shape[1] < 3:
             raise DataError(f"Frame.points must have shape (N, 3 + C), got {points.shape}")
-        boxes = np.asarray(self.boxes, dtype=np.float64)
+        boxes = _real_array(self.boxes, "boxes").astype(np.float64, copy=False)
         if boxes.size == 0:
             boxes = boxes.reshape(0, 7)
         if boxes.ndim != 2 or boxes.shape[1] != 7:
             raise DataError(f"Frame.boxes must have shape (M, 7), got {boxes.shape}")
-        names = np.asarray(self.names)
+        names = _name_array(self.names)
         if names.size == 0:
             names = np.zeros(0, dtype="<U1")
         if names.shape != (boxes.shape[0],):
             raise DataError(
                 f"Frame.names must have shape ({boxes.shape[0]},) to match boxes, got {names.shape}"
             )
-        object.__setattr__(self, "points", points.astype(np.float32, copy=False))
+        with np.errstate(over="ignore"):  # values beyond float32 become inf: validate_frame
+            object.__setattr__(self, "points", points.astype(np.float32, copy=False))
         object.__setattr__(self, "boxes", boxes)
         object.__setattr__(self, "names", names.astype(str, copy=False))
 
@@ -69,15 +71,9 @@ class Frame:
         return replace(self, **changes)
 
     def validate(self, source: str = "frame") -> Frame:
-        """Raise :class:`DataError` naming ``source`` on NaN/inf values or non-positive sizes."""
-        if not np.isfinite(self.points[:, :3]).all():
-            bad = int(np.flatnonzero(~np.isfinite(self.points[:, :3]).all(axis=1))[0])
-            raise DataError(f"{source}: point {bad} has a NaN or infinite coordinate")
-        if not np.isfinite(self.boxes).all():
-            raise DataError(f"{source}: a box holds NaN or infinite values")
-        if (self.boxes[:, 3:6] <= 0).any():
-            raise DataError(f"{source}: a box has a non-positive size (dx, dy, dz)")
-        return self
+        """This frame, after :func:`validate_frame` (raises :class:`DataError` naming
+        ``source``)."""
+        return validate_frame(self, source)
 
     # OpenPCDet data-dict interop -------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -92,10 +88,115 @@ class Frame:
         if "points" not in data:
             raise DataError("data dict has no 'points' key")
         metadata = {k: v for k, v in data.items() if k not in ("points", "gt_boxes", "gt_names")}
-        boxes = data.get("gt_boxes", np.zeros((0, 7)))
-        boxes = np.asarray(boxes, dtype=np.float64)
+        boxes = _real_array(data.get("gt_boxes", np.zeros((0, 7))), "gt_boxes")
+        boxes = boxes.astype(np.float64, copy=False)
         if boxes.ndim == 2 and boxes.shape[1] > 7:
             # OpenPCDet appends a class column to gt_boxes in some stages; keep the first seven.
             boxes = boxes[:, :7]
         names = data.get("gt_names", np.zeros(len(boxes), dtype="<U1"))
         return cls(points=data["points"], boxes=boxes, names=np.asarray(names), metadata=metadata)
+
+
+#: Largest coordinate (and box size) accepted, metres. LiDAR ranges stay below a few hundred
+#: metres; at a million metres float32 keeps about 6 cm of resolution, and the grids and
+#: squared ranges of the geometry kernels stay far from overflow.
+MAX_COORDINATE = 1e6
+
+#: Field names in messages, for a :class:`Frame` and for an OpenPCDet data dict.
+FRAME_FIELDS = ("points", "boxes", "names")
+DICT_FIELDS = ("points", "gt_boxes", "gt_names")
+
+
+def validate_frame(
+    frame: Frame, source: str = "frame", fields: tuple[str, str, str] = FRAME_FIELDS
+) -> Frame:
+    """Check a frame's values; return it unchanged or raise :class:`DataError`.
+
+    Shapes, dtypes and the names' length are checked when a :class:`Frame` is made; this adds
+    the values: every point value (x, y, z and features) and every box value finite, point
+    coordinates and box values within :data:`MAX_COORDINATE`, box sizes ``dx, dy, dz``
+    positive, and a road plane in ``metadata["plane"]`` (when not ``None``) four
+    finite numbers. The message names ``source``, the field (``fields``: the names of points,
+    boxes and names to use, e.g. :data:`DICT_FIELDS`), the first bad row and its values.
+
+    Cheap enough to run on every frame: whole-array checks first (one pass each), the row is
+    looked for only once one has failed.
+    """
+    points, boxes = frame.points, frame.boxes
+    # One compiled pass for the usual case: every value finite and within the limit.
+    if len(points) and not _all_within(points.reshape(-1), np.float32(MAX_COORDINATE)):
+        _check_rows(points, source, fields[0])
+    if len(boxes) and not np.abs(boxes).max() <= MAX_COORDINATE:
+        _check_rows(boxes, source, fields[1], boxes.shape[1])
+    if len(boxes) and not (boxes[:, 3:6] > 0).all():
+        row = int(np.flatnonzero(~(boxes[:, 3:6] > 0).all(axis=1))[0])
+        raise DataError(
+            f"{source}: {fields[1]} row {row} (class {str(frame.names[row])!r}) has a "
+            f"non-positive size (dx, dy, dz) = {boxes[row, 3:6].tolist()}"
+        )
+    plane = frame.metadata.get("plane")
+    if plane is not None:
+        _check_plane(plane, source)
+    return frame
+
+
+@nb.njit(cache=True, nogil=True)
+def _all_within(values, limit):  # pragma: no cover - numba
+    # |v| <= limit for every value (False for NaN and inf); no early exit, so the loop is
+    # vectorised: a 20,000-point frame takes a few microseconds.
+    ok = True
+    for i in range(values.shape[0]):
+        ok &= abs(values[i]) <= limit
+    return ok
+
+
+def _check_rows(values: np.ndarray, source: str, field: str, bounded: int = 3) -> None:
+    """The slow path of :func:`validate_frame`: raise on the first row of ``values`` holding a
+    NaN/inf value or, in its first ``bounded`` columns, a value beyond :data:`MAX_COORDINATE`
+    (point features may be large)."""
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        row = int(np.flatnonzero(~finite)[0])
+        raise DataError(
+            f"{source}: {field} row {row} holds a NaN or infinite value: {values[row].tolist()}"
+        )
+    near = (np.abs(values[:, :bounded]) <= MAX_COORDINATE).all(axis=1)
+    if not near.all():
+        row = int(np.flatnonzero(~near)[0])
+        raise DataError(
+            f"{source}: {field} row {row} holds a value beyond {MAX_COORDINATE:g} (metres): "
+            f"{values[row].tolist()}"
+        )
+
+
+def _real_array(values: Any, field: str) -> np.ndarray:
+    """``values`` as a numpy array of real numbers (integer or float), else :class:`DataError`
+    naming ``field`` (strings, objects, booleans and complex numbers are refused)."""
+    try:
+        array = np.asarray(values)
+    except (TypeError, ValueError) as exc:  # ragged nested lists
+        raise DataError(f"{field}: not a rectangular array of numbers ({exc})") from None
+    if array.dtype.kind not in "fiu":
+        raise DataError(f"{field}: must hold real numbers, got dtype {array.dtype}")
+    return array
+
+
+def _name_array(values: Any) -> np.ndarray:
+    """Class names as a numpy array of strings, else :class:`DataError`."""
+    try:
+        names = np.asarray(values)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"names: not a flat list of class names ({exc})") from None
+    if names.size and names.dtype.kind not in "US":
+        if names.dtype.kind != "O" or not all(isinstance(n, str) for n in names.ravel()):
+            raise DataError(f"names: must be strings, got dtype {names.dtype}")
+    return names
+
+
+def _check_plane(plane: Any, source: str) -> None:
+    try:
+        values = np.asarray(plane, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{source}: metadata plane must be 4 numbers, got {plane!r}") from None
+    if values.shape != (4,) or not np.isfinite(values).all():
+        raise DataError(f"{source}: metadata plane must be 4 finite numbers, got {plane!r}")

@@ -358,8 +358,15 @@ def build_index(
     config: IndexConfig | None = None,
     progress: Progress | None = None,
 ) -> CandidateIndex:
-    """Build the candidate index of ``database`` (see the module docstring for the method)."""
+    """Build the candidate index of ``database`` (see the module docstring for the method).
+
+    Raises :class:`DataError` before any work when the database's data does not match its
+    manifest checksum (:meth:`GroundTruthDatabase.verified_checksum`; a database opened with
+    ``verify=False`` is verified here): the index records that checksum, and must not vouch
+    for a modified database.
+    """
     config = config or IndexConfig()
+    checksum = database.verified_checksum()
     names = database.names
     present = set(names.tolist())
     classes = sorted(present if config.classes is None else present & set(config.classes))
@@ -396,9 +403,7 @@ def build_index(
             "mean_candidates": found / len(indexed) if len(indexed) else 0.0,
             "mode": mode,
         }
-    return CandidateIndex(
-        candidates, densities, grids, max_counts, config, database.checksum, stats
-    )
+    return CandidateIndex(candidates, densities, grids, max_counts, config, checksum, stats)
 
 
 def _check_table_fits(n: int, k: int, indexed: Mapping[str, int]) -> None:

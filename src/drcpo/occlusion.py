@@ -38,9 +38,14 @@ Methods (``method=``):
   whole set's (hidden in a subset implies hidden; visible needs a hull facet whose danger cone
   lies inside the sector), the rest go to ``"local"``.
 * ``"auto"`` (default): ``"reference"`` for small inputs (at most :data:`AUTO_REFERENCE_MAX`
-  points, such as one object for s-HPR) and when ``R`` is not far above the ranges (every
-  neighbourhood is then a wide cone and one hull is cheaper), unless ``R`` is too large for
-  the flipped coordinates; else ``"local"`` (e-HPR on whole frames).
+  points, such as one object for s-HPR), when ``R`` is not far above the ranges (every
+  neighbourhood is then a wide cone and one hull is cheaper) and when the points crowd the
+  per-point test's neighbourhoods (on average more than :data:`AUTO_CROWDED` points share a
+  point's grid cell, about a first neighbourhood wide: a dense object much smaller than its
+  neighbourhoods, or many copies of a point, which make that test quadratic; LiDAR frames
+  give 2-6), unless ``R`` is too large for the flipped coordinates (a crowded set is then
+  tested once per distinct point); else ``"local"`` (e-HPR on whole frames). The answer is
+  the same either way (see the methods' agreement above); only the time differs.
 
 Defined behaviour on awkward input (every method):
 
@@ -89,6 +94,7 @@ from drcpo.errors import ConfigError, DataError
 from drcpo.hull import hpr_hull_visible
 
 __all__ = [
+    "AUTO_CROWDED",
     "AUTO_REFERENCE_MAX",
     "HPR_METHODS",
     "HPR_PRESETS",
@@ -128,6 +134,11 @@ HPR_PRESETS: dict[str, HPRPreset] = {
 
 HPR_METHODS: tuple[str, ...] = ("auto", "local", "sectors", "reference")
 AUTO_REFERENCE_MAX = 2000  # "auto" runs one Qhull hull up to this many points
+# "auto" runs one hull when more points than this, on average, share a point's cell of the
+# per-point test's grid (cells about a first neighbourhood wide): that test's time grows with
+# the points per neighbourhood, a hull's does not. LiDAR frames (KITTI sample, e-HPR presets)
+# give 2-6; 30,000 points on a 0.1 m sphere 10 m away with R = 100 give 30,000.
+AUTO_CROWDED = 128
 HULL_KERNEL_MAX = 20000  # "reference" tries drcpo.hull's certified hull up to this many points
 _KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 MAX_RADIUS = 1e150  # keeps 2R (and R squared terms) finite in float64
@@ -203,11 +214,13 @@ def hidden_point_removal(
     if setup.size == 0:
         return visible
     wanted_hull = wanted[setup.index]
-    method = _resolve_method(method, setup)
-    if method == "reference":
+    chosen = _resolve_method(method, setup)
+    if chosen == "reference":
         decided = _reference(setup, wanted_hull)
-    elif method == "sectors":
+    elif chosen == "sectors":
         decided = _sectors(setup, wanted_hull, workers)
+    elif method == "auto":
+        decided = _auto_local(setup, wanted_hull, workers)
     else:
         decided = _local(setup, wanted_hull, workers)
     visible[setup.index] = decided | ~wanted_hull
@@ -261,7 +274,8 @@ def hidden_by_insertion(
     setup = _Setup.build(xyz, center, radius)
     if setup.size == 0:
         return removed
-    if _resolve_method(method, setup) == "local":
+    chosen = _resolve_method(method, setup)
+    if chosen == "local" and not (method == "auto" and _crowded(_local_grid(setup).starts, setup)):
         original = np.flatnonzero(~inserted)
 
         def behind_frame(removed_inserted: np.ndarray) -> np.ndarray:
@@ -703,7 +717,7 @@ def _resolve_method(method: str, setup: _Setup) -> str:
         return "reference"
     if method != "auto":
         return method
-    precise = setup.radius <= _QHULL_RATIO_MAX * float(setup.ranges.max())
+    precise = _precise(setup)
     if setup.size <= AUTO_REFERENCE_MAX and precise:
         return "reference"
     # With R not far above the ranges every point's neighbourhood is a wide cone and the
@@ -712,6 +726,48 @@ def _resolve_method(method: str, setup: _Setup) -> str:
     if spread > _LOCAL_MAX_CONE**2 * setup.radius and precise:
         return "reference"
     return "local"
+
+
+def _precise(setup: _Setup) -> bool:
+    """Whether ``R`` leaves the flipped coordinates enough bits of the ranges for Qhull."""
+    return setup.radius <= _QHULL_RATIO_MAX * float(setup.ranges.max())
+
+
+def _crowded(starts: np.ndarray, setup: _Setup) -> bool:
+    """Whether the set-up's points crowd the cells of its per-point test's grid (``starts``:
+    each cell's first sorted position): on average more than :data:`AUTO_CROWDED` points
+    share a point's cell."""
+    sizes = np.diff(starts).astype(np.float64)
+    return float(sizes @ sizes) > AUTO_CROWDED * max(setup.size, 1)
+
+
+def _local_grid(setup: _Setup) -> _Grid:
+    """The grid the per-point test sorts the set-up's points into (as :class:`_LocalState`)."""
+    r_min = float(setup.ranges.min())
+    return _build_grid(setup.rays, _first_cones(setup.ranges, r_min, 2.0 * setup.radius - r_min))
+
+
+def _auto_local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+    """``"auto"``'s verdicts where :func:`_resolve_method` chose ``"local"``: the per-point test,
+    unless the points crowd its neighbourhoods; then one hull, or (``R`` too large for one)
+    the per-point test on the distinct points (copies share a verdict and do not constrain
+    each other's planes, so the answer is the same)."""
+    state = _LocalState.build(setup)
+    if not _crowded(state.starts, setup):
+        return state.visible(wanted, workers)
+    if _precise(setup):
+        return _reference(setup, wanted)
+    return _distinct_local(setup, wanted, workers)
+
+
+def _distinct_local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+    """:func:`_local`'s verdicts, computed once per distinct point."""
+    distinct, inverse = setup.distinct()
+    if distinct is setup:
+        return _local(setup, wanted, workers)
+    wanted_distinct = np.zeros(distinct.size, dtype=bool)
+    wanted_distinct[inverse[wanted]] = True
+    return _local(distinct, wanted_distinct, workers)[inverse] & wanted
 
 
 # ----------------------------------------------------------------------------------------------
@@ -769,9 +825,10 @@ def _hull_vertices(flipped: np.ndarray) -> np.ndarray | None:
 
 
 def _degenerate_fallback(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
-    """Verdicts when Qhull cannot build the hull: "local", else joggled Qhull, else all."""
+    """Verdicts when Qhull cannot build the hull: "local" (once per distinct point: many
+    copies of one point would make it quadratic), else joggled Qhull, else all."""
     if setup.local_ok:
-        return _local(setup, wanted, 1)
+        return _distinct_local(setup, wanted, 1)
     distinct, inverse = setup.distinct()
     cloud = np.vstack([distinct.flipped(), np.zeros((1, 3))])
     try:
@@ -1150,6 +1207,11 @@ class _LocalState:
     @property
     def size(self) -> int:
         return len(self.order)
+
+    @property
+    def starts(self) -> np.ndarray:
+        """``(cells + 1,)`` first sorted position of each grid cell."""
+        return self.scene[6][0]
 
     @classmethod
     def build(cls, setup: _Setup) -> _LocalState:
@@ -1616,7 +1678,8 @@ class FrameGrid:
     def _local_applies(self, count: int, r_min: float, r_max: float, method: str) -> bool:
         """Whether :func:`hidden_point_removal` would take the per-point test for the frame
         with the objects, and the set without them (``count`` points, ranges within ``[r_min,
-        r_max]``), and no point sits at the viewpoint (see :func:`_resolve_method`)."""
+        r_max]``), and no point sits at the viewpoint (see :func:`_resolve_method`). Not
+        :data:`AUTO_CROWDED`'s test: a frame grid holds LiDAR frames, never that crowded."""
         if method not in ("auto", "local") or r_min <= _AT_VIEWPOINT * (1.0 + r_max):
             return False
         if not 2.0 * self.radius > r_max * (1.0 + 1e-12):

@@ -49,7 +49,7 @@ from drcpo.config import (
 )
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError, DataError
-from drcpo.frame import Frame
+from drcpo.frame import DICT_FIELDS, FRAME_FIELDS, Frame, validate_frame
 from drcpo.geometry import (
     bev_corners,
     box_holding,
@@ -171,6 +171,12 @@ def as_frame(data: FrameLike) -> tuple[Frame, bool]:
     raise TypeError(f"expected a Frame or an OpenPCDet data dict, got {type(data).__name__}")
 
 
+def _source(frame: Frame) -> str:
+    """How error messages name a frame: its id when it has one."""
+    frame_id = frame.metadata.get("frame_id")
+    return "frame" if frame_id is None else f"frame {frame_id}"
+
+
 def _check_rng(rng: Any) -> np.random.Generator:
     if not isinstance(rng, np.random.Generator):
         raise TypeError(
@@ -191,7 +197,14 @@ class Transform:
     config: Any
 
     def __call__(self, data: FrameLike, rng: np.random.Generator) -> FrameLike:
+        """Augment one frame (a :class:`Frame` or an OpenPCDet data dict, not modified).
+
+        Raises :class:`DataError` naming the field and the first bad row on invalid input
+        (:func:`drcpo.frame.validate_frame`: NaN/inf values, non-positive box sizes, bad
+        shapes, dtypes or names), before any work.
+        """
         frame, was_dict = as_frame(data)
+        validate_frame(frame, _source(frame), DICT_FIELDS if was_dict else FRAME_FIELDS)
         stats = Stats.of(frame)
         out = stats.attach(self.apply(frame, _check_rng(rng), stats))
         return out.to_dict() if was_dict else out

@@ -126,15 +126,17 @@ def read_points(path: str | os.PathLike, num_features: int = 4) -> np.ndarray:
     path = Path(path)
     row_bytes = 4 * num_features
     try:
-        raw = np.fromfile(path, dtype="<f4")
+        # Read as bytes: np.fromfile with a float32 dtype drops a partial last value silently,
+        # so a file 1-3 bytes past a whole point would pass a check on the value count.
+        raw = np.fromfile(path, dtype=np.uint8)
     except OSError as exc:
         raise DataError(f"{path}: cannot read point cloud ({exc.strerror or exc})") from exc
-    if raw.size * 4 % row_bytes:
+    if raw.size % row_bytes:
         raise DataError(
-            f"{path}: size {raw.size * 4} bytes is not a multiple of {row_bytes} "
+            f"{path}: size {raw.size} bytes is not a multiple of {row_bytes} "
             f"({num_features} float32 values per point); truncated or not a KITTI .bin"
         )
-    points = raw.reshape(-1, num_features).astype(np.float32, copy=False)
+    points = raw.view("<f4").reshape(-1, num_features).astype(np.float32, copy=False)
     finite = np.isfinite(points).all(axis=1)
     if not finite.all():
         bad = int(np.flatnonzero(~finite)[0])
