@@ -159,6 +159,16 @@ def test_cli_import_mmdet3d(kitti_sample, tmp_path):
     assert GroundTruthDatabase.open(tmp_path / "db").frame_ids[0] == "000000"
 
 
+def test_mmdet3d_import_checks_the_fields_as_the_openpcdet_one(kitti_sample, tmp_path):
+    root = _mmdet3d_layout(kitti_sample, tmp_path)
+    infos = safe_pickle.load(root / "kitti_dbinfos_train.pkl")
+    infos["Car"][1]["image_idx"] = True  # not a sample index
+    with open(root / "bad.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    with pytest.raises(DataError, match=r"bad.pkl: Car\[1\]: field 'image_idx' = True"):
+        import_mmdet3d(root / "bad.pkl", tmp_path / "db")
+
+
 def test_import_rejects_an_unknown_origin(kitti_sample, tmp_path):
     pkl = kitti_sample / "kitti_dbinfos_train.pkl"
     with pytest.raises(ConfigError, match="origin must be one of centre, bottom, got 'top'"):
