@@ -7,6 +7,7 @@ is called by the data pipeline, so a stand-in module whose every kernel raises i
 
 from __future__ import annotations
 
+import importlib.machinery
 import importlib.util
 import sys
 import types
@@ -39,6 +40,7 @@ def install() -> None:
     except ImportError:
         module = types.ModuleType("mmcv._ext")
         module.__getattr__ = _missing_kernel  # every kernel name resolves (PEP 562)
+        module.__spec__ = importlib.machinery.ModuleSpec("mmcv._ext", None)  # for pkgutil
         sys.modules["mmcv._ext"] = module
 
 

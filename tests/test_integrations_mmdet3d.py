@@ -360,3 +360,47 @@ def test_importing_registers_without_loading_mmdet3ds_datasets():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert run.stdout.split() == ["True", "True", "False"], run.stderr
+
+
+def test_fade_hook_in_mmengines_training_loop(drcpo_db, infos, tmp_path):
+    """A real mmengine Runner (3 epochs, 2 persistent workers) with the hook from the config:
+    drcpo adds objects in epochs 0 and 1, none in the last."""
+    from mmengine.model import BaseModel
+    from mmengine.runner import Runner
+
+    class Count(BaseModel):
+        """Records how many boxes each batch holds; its loss is a zero that can step."""
+
+        def __init__(self):
+            super().__init__()
+            self.weight = torch.nn.Parameter(torch.zeros(1))
+            self.boxes: list[int] = []
+
+        def forward(self, inputs, data_samples=None, mode="loss"):
+            self.boxes.append(sum(len(d.gt_instances_3d.labels_3d) for d in data_samples))
+            return {"loss": self.weight.sum() * 0.0}
+
+    model = Count()
+    runner = Runner(
+        model=model,
+        work_dir=str(tmp_path),
+        train_dataloader=dict(
+            dataset=support.dataset(infos, support.pipeline(_drcpo(drcpo_db))),
+            sampler=dict(type="DefaultSampler", shuffle=False),
+            batch_size=6,
+            num_workers=2,
+            persistent_workers=True,
+            collate_fn=dict(type="pseudo_collate"),
+        ),
+        train_cfg=dict(by_epoch=True, max_epochs=3),
+        optim_wrapper=dict(optimizer=dict(type="SGD", lr=0.0)),
+        custom_hooks=[dict(type="DRCPOFadeHook", num_last_epochs=1)],
+        default_hooks=dict(checkpoint=None, logger=None),
+        randomness=dict(seed=SEED),
+        default_scope="mmdet3d",
+    )
+    runner.train()
+    plain = support.dataset(infos, support.pipeline(dict(type="PointShuffle")))
+    original = sum(len(_arrays(plain[i])[2]) for i in range(len(plain)))
+    first, second, last = model.boxes
+    assert first > original and second > original and last == original
