@@ -18,6 +18,7 @@ from drcpo.database_build import (
     DEFAULT_CLASSES,
     build_database,
     frame_records,
+    import_mmdet3d,
     import_openpcdet,
     points_in_boxes_openpcdet,
 )
@@ -127,6 +128,51 @@ def test_import_gives_the_same_database(kitti_sample, built, tmp_path):
     np.testing.assert_array_equal(imported.offsets, built.offsets)
     np.testing.assert_allclose(imported.points, built.points, rtol=0, atol=1e-5)
     assert imported.manifest["parameters"]["source"] == "openpcdet"
+
+
+def _mmdet3d_layout(kitti_sample, tmp_path):
+    from mmdet3d_support import write_mmdet3d_dbinfos
+
+    return write_mmdet3d_dbinfos(kitti_sample, tmp_path / "mmdet3d").parent
+
+
+def test_mmdet3d_import_equals_the_openpcdet_import(kitti_sample, tmp_path):
+    root = _mmdet3d_layout(kitti_sample, tmp_path)
+    ours = import_mmdet3d(root / "kitti_dbinfos_train.pkl", tmp_path / "from_mmdet3d")
+    reference = import_openpcdet(kitti_sample / "kitti_dbinfos_train.pkl", tmp_path / "from_pcdet")
+    assert len(ours) == len(reference) == 10
+    for column in ("names", "frame_ids", "index_in_frame", "num_points", "difficulty", "occlusion"):
+        np.testing.assert_array_equal(getattr(ours, column), getattr(reference, column))
+    np.testing.assert_array_equal(ours.truncation, reference.truncation)
+    np.testing.assert_array_equal(ours.offsets, reference.offsets)
+    # Only float32 rounding of the shifted files separates them (a missed dz / 2 is metres).
+    np.testing.assert_allclose(ours.boxes, reference.boxes, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(ours.points, reference.points, rtol=0, atol=1e-6)
+    assert ours.manifest["parameters"]["source"] == "mmdet3d"
+
+
+def test_cli_import_mmdet3d(kitti_sample, tmp_path):
+    root = _mmdet3d_layout(kitti_sample, tmp_path)
+    pkl = str(root / "kitti_dbinfos_train.pkl")
+    result = CliRunner().invoke(app, ["import-mmdet3d", pkl, "--out", str(tmp_path / "db")])
+    assert result.exit_code == 0, result.output
+    assert GroundTruthDatabase.open(tmp_path / "db").frame_ids[0] == "000000"
+
+
+def test_mmdet3d_import_checks_the_fields_as_the_openpcdet_one(kitti_sample, tmp_path):
+    root = _mmdet3d_layout(kitti_sample, tmp_path)
+    infos = safe_pickle.load(root / "kitti_dbinfos_train.pkl")
+    infos["Car"][1]["image_idx"] = True  # not a sample index
+    with open(root / "bad.pkl", "wb") as f:
+        pickle.dump(infos, f)
+    with pytest.raises(DataError, match=r"bad.pkl: Car\[1\]: field 'image_idx' = True"):
+        import_mmdet3d(root / "bad.pkl", tmp_path / "db")
+
+
+def test_import_rejects_an_unknown_origin(kitti_sample, tmp_path):
+    pkl = kitti_sample / "kitti_dbinfos_train.pkl"
+    with pytest.raises(ConfigError, match="origin must be one of centre, bottom, got 'top'"):
+        import_openpcdet(pkl, tmp_path / "db", origin="top")
 
 
 def test_import_without_labels_leaves_occlusion_unknown(kitti_sample, tmp_path):

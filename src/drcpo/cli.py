@@ -1,4 +1,5 @@
-"""Command-line interface: build-db, import-openpcdet, info, index, augment, synth, evaluate, demo.
+"""Command-line interface: build-db, import-openpcdet, import-mmdet3d, info, index, augment,
+synth, evaluate, demo.
 
 Every command prints a summary at the end. On bad input it prints one line naming the culprit
 and exits with status 1: any :class:`drcpo.errors.DrcpoError`, out of memory, or an operating
@@ -190,6 +191,30 @@ def import_openpcdet_command(
     try:
         with progress_bar("objects") as progress:
             database = import_openpcdet(
+                dbinfos, out, root=root, overwrite=overwrite, progress=progress
+            )
+    except (DrcpoError, FileExistsError) as exc:
+        fail(str(exc))
+    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
+
+
+@app.command("import-mmdet3d")
+def import_mmdet3d_command(
+    dbinfos: Annotated[Path, typer.Argument(help="MMDetection3D *_dbinfos_*.pkl file.")],
+    out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
+    root: Annotated[
+        Path | None,
+        typer.Option(help="Data root the gt_database paths are relative to (default: the pkl's)."),
+    ] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
+) -> None:
+    """Convert an MMDetection3D ground-truth database (dbinfos pickle + *_gt_database/; boxes and
+    points relative to the bottom centre) to drcpo's."""
+    from drcpo.database_build import import_mmdet3d
+
+    try:
+        with progress_bar("objects") as progress:
+            database = import_mmdet3d(
                 dbinfos, out, root=root, overwrite=overwrite, progress=progress
             )
     except (DrcpoError, FileExistsError) as exc:

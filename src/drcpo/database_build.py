@@ -242,6 +242,7 @@ def import_openpcdet(
     overwrite: bool = False,
     num_features: int = 4,
     progress: Progress | None = None,
+    origin: str = "centre",
 ) -> GroundTruthDatabase:
     """Convert an OpenPCDet database (``*_dbinfos_*.pkl`` + ``gt_database/*.bin``) to ours.
 
@@ -253,6 +254,9 @@ def import_openpcdet(
         overwrite: replace an existing ``out``.
         num_features: float32 values per point in the ``.bin`` files.
         progress: optional ``progress(objects_done, objects_total)`` callback.
+        origin: where the infos' ``box3d_lidar`` z and the stored points refer to: ``"centre"``
+            (OpenPCDet) or ``"bottom"`` (MMDetection3D: z is the bottom centre's and the points
+            are relative to it; see :func:`import_mmdet3d`).
 
     OpenPCDet stores each object's points minus the box centre; they are rotated by the box's
     -heading into canonical pose. Objects are ordered by frame id, then index in frame, as a
@@ -265,18 +269,22 @@ def import_openpcdet(
     dbinfos_pkl = Path(dbinfos_pkl)
     out = Path(out)
     root = Path(root) if root is not None else dbinfos_pkl.parent
+    if origin not in _ORIGINS:
+        raise ConfigError(f"origin must be one of {', '.join(_ORIGINS)}, got {origin!r}")
     check_output(out, DATABASE_OUTPUT, overwrite, inputs=[dbinfos_pkl, root])
-    entries = sorted(_dbinfo_entries(dbinfos_pkl), key=lambda e: (e["image_idx"], e["gt_idx"]))
+    entries = sorted(
+        _dbinfo_entries(dbinfos_pkl, origin), key=lambda e: (e["image_idx"], e["gt_idx"])
+    )
     if not entries:
         raise DataError(f"{dbinfos_pkl}: holds no objects")
     labels = _LabelLookup(root / "training" / "label_2")
     records = []
     for done, entry in enumerate(entries, start=1):
-        records.append(_imported_record(entry, root, num_features, labels))
+        records.append(_imported_record(entry, root, num_features, labels, origin))
         if progress is not None:
             progress(done, len(entries))
     parameters = {
-        "source": "openpcdet",
+        "source": _ORIGINS[origin],
         "dbinfos": str(dbinfos_pkl.resolve()),
         "root": str(root.resolve()),
         "classes": sorted({entry["name"] for entry in entries}),
@@ -287,8 +295,53 @@ def import_openpcdet(
     return GroundTruthDatabase.open(out)
 
 
-def _dbinfo_entries(path: Path) -> list[dict[str, Any]]:
-    return validate_dbinfos(safe_pickle.load(path), str(path))
+def import_mmdet3d(
+    dbinfos_pkl: str | os.PathLike,
+    out: str | os.PathLike,
+    root: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    num_features: int = 4,
+    progress: Progress | None = None,
+) -> GroundTruthDatabase:
+    """Convert an MMDetection3D database (``kitti_dbinfos_train.pkl`` +
+    ``kitti_gt_database/*.bin``, from its ``create_data.py``) to ours.
+
+    The same layout as OpenPCDet's (:func:`import_openpcdet`, same arguments and checks) but for
+    the origin: MMDetection3D's ``box3d_lidar`` has z at the box's bottom centre and each object's
+    points are stored minus that bottom centre; both are moved to the centre. Integer
+    ``image_idx`` (its KITTI sample index) become KITTI's six-digit frame ids.
+    """
+    return import_openpcdet(
+        dbinfos_pkl, out, root, overwrite, num_features, progress, origin="bottom"
+    )
+
+
+#: ``origin`` of :func:`import_openpcdet` -> the database's ``source`` parameter.
+_ORIGINS = {"centre": "openpcdet", "bottom": "mmdet3d"}
+
+
+def _dbinfo_entries(path: Path, origin: str = "centre") -> list[dict[str, Any]]:
+    """The validated objects, boxes with z at the centre whatever ``origin`` the file uses."""
+    infos = safe_pickle.load(path)
+    if origin == "bottom":
+        _kitti_frame_ids(infos)
+    entries = validate_dbinfos(infos, str(path))
+    if origin == "bottom":
+        for entry in entries:
+            entry["box"][2] += entry["box"][5] / 2.0
+    return entries
+
+
+def _kitti_frame_ids(infos: Any) -> None:
+    """MMDetection3D's integer ``image_idx`` as KITTI's six-digit frame ids, in place (anything
+    else is left for :func:`validate_dbinfos` to judge)."""
+    for objects in infos.values() if isinstance(infos, dict) else ():
+        for info in objects if isinstance(objects, list) else ():
+            if (
+                isinstance(info, dict)
+                and _integer(info.get("image_idx"), 0, _MAX_INT32) is not None
+            ):
+                info["image_idx"] = f"{int(info['image_idx']):06d}"
 
 
 def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
@@ -427,10 +480,17 @@ class _LabelLookup:
 
 
 def _imported_record(
-    entry: dict[str, Any], root: Path, num_features: int, labels: _LabelLookup
+    entry: dict[str, Any],
+    root: Path,
+    num_features: int,
+    labels: _LabelLookup,
+    origin: str = "centre",
 ) -> ObjectRecord:
     path = root / entry["path"]
     relative = read_points(path, num_features)
+    if origin == "bottom":  # relative to the bottom centre: the centre is dz / 2 above it
+        relative = relative.astype(np.float64)
+        relative[:, 2] -= entry["box"][5] / 2.0
     if len(relative) != entry["num_points"]:
         raise DataError(
             f"{path}: holds {len(relative)} points, the infos say num_points_in_gt = "

@@ -239,7 +239,11 @@ class OpenPCDetAugmentor:
         seed = np.random.randint(0, 2**63 - 1, dtype=np.int64)  # noqa: NPY002
         return np.random.default_rng(seed)
 
-    def __call__(self, data_dict: dict[str, Any]) -> dict[str, Any]:
+    def __call__(
+        self, data_dict: dict[str, Any], rng: np.random.Generator | None = None
+    ) -> dict[str, Any]:
+        """The augmented data dict; ``rng``: the generator to use (default: :meth:`generator`,
+        which OpenPCDet's calls get)."""
         from drcpo.pipeline import STATS_KEY
 
         data_dict = dict(data_dict)
@@ -258,7 +262,7 @@ class OpenPCDetAugmentor:
         if self.use_road_plane and plane is not None and calib is not None:
             frame["calib"] = drcpo_calibration(calib)
             frame["plane"] = np.asarray(plane, dtype=np.float64)
-        out = self.pipeline(frame, self.generator())
+        out = self.pipeline(frame, self.generator() if rng is None else rng)
         stats = out.get(STATS_KEY, {}).get("stages", {})
         data_dict["points"] = out["points"].astype(data_dict["points"].dtype, copy=False)
         data_dict["gt_boxes"] = out["gt_boxes"].astype(boxes.dtype, copy=False)
