@@ -165,13 +165,10 @@ def build_db(
     from drcpo.database_build import build_database
 
     chosen = _class_list(classes, list(ctx.args))
-    try:
-        with progress_bar(f"frames of {split}") as progress:
-            database = build_database(
-                kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
-            )
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+    with progress_bar(f"frames of {split}") as progress:
+        database = build_database(
+            kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
+        )
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -188,13 +185,8 @@ def import_openpcdet_command(
     """Convert an OpenPCDet ground-truth database (dbinfos pickle + gt_database/) to drcpo's."""
     from drcpo.database_build import import_openpcdet
 
-    try:
-        with progress_bar("objects") as progress:
-            database = import_openpcdet(
-                dbinfos, out, root=root, overwrite=overwrite, progress=progress
-            )
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+    with progress_bar("objects") as progress:
+        database = import_openpcdet(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -212,13 +204,8 @@ def import_mmdet3d_command(
     points relative to the bottom centre) to drcpo's."""
     from drcpo.database_build import import_mmdet3d
 
-    try:
-        with progress_bar("objects") as progress:
-            database = import_mmdet3d(
-                dbinfos, out, root=root, overwrite=overwrite, progress=progress
-            )
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+    with progress_bar("objects") as progress:
+        database = import_mmdet3d(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -231,10 +218,7 @@ def info(
     """Describe a ground-truth database: objects and points per class."""
     from drcpo.database import GroundTruthDatabase
 
-    try:
-        database = GroundTruthDatabase.open(db, verify=verify)
-    except DrcpoError as exc:
-        fail(str(exc))
+    database = GroundTruthDatabase.open(db, verify=verify)
     summary = database.summary()
     if as_json:
         payload = {
@@ -280,31 +264,28 @@ def index(
     from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT, IndexConfig, build_index, indexed_mask
     from drcpo.outputs import check_output
 
-    try:
-        database = GroundTruthDatabase.open(db)
-        check_output(db / INDEX_DIRNAME, INDEX_OUTPUT, overwrite)  # before the long build
-        config = IndexConfig(
-            k=k,
-            alpha=alpha,
-            min_points=min_points,
-            exclude_difficulties=tuple(exclude_difficulty or ()),
-            approximate_above=approximate_above,
-            workers=workers,
-        )
-        total = int(indexed_mask(database, config).sum())
-        done: dict[str, int] = {}
-        start = time.perf_counter()
-        with progress_bar("indexing objects") as bar:
+    database = GroundTruthDatabase.open(db)
+    check_output(db / INDEX_DIRNAME, INDEX_OUTPUT, overwrite)  # before the long build
+    config = IndexConfig(
+        k=k,
+        alpha=alpha,
+        min_points=min_points,
+        exclude_difficulties=tuple(exclude_difficulty or ()),
+        approximate_above=approximate_above,
+        workers=workers,
+    )
+    total = int(indexed_mask(database, config).sum())
+    done: dict[str, int] = {}
+    start = time.perf_counter()
+    with progress_bar("indexing objects") as bar:
 
-            def progress(name: str, objects: int, _: int) -> None:
-                done[name] = objects
-                bar(sum(done.values()), total)
+        def progress(name: str, objects: int, _: int) -> None:
+            done[name] = objects
+            bar(sum(done.values()), total)
 
-            result = build_index(database, config, progress=progress)
-            path = result.save(db, overwrite=overwrite)
-        seconds = time.perf_counter() - start
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+        result = build_index(database, config, progress=progress)
+        path = result.save(db, overwrite=overwrite)
+    seconds = time.perf_counter() - start
     table = Table(title=f"{path} (K = {k}, {seconds:.1f} s)")
     for column in ("class", "objects", "indexed", "mean candidates", "first stage"):
         table.add_column(column, justify="left" if column == "class" else "right")
@@ -347,16 +328,13 @@ def augment(
     from drcpo.database import GroundTruthDatabase
     from drcpo.pipeline import augment_kitti, build_pipeline
 
-    try:
-        settings = load_config(config)
-        database = GroundTruthDatabase.open(db, verify=verify)
-        transform = build_pipeline(settings, database, kind=pipeline)
-        with progress_bar(f"frames of {split}") as progress:
-            summary = augment_kitti(
-                kitti, split, transform, out, frames, seed, fov, overwrite, progress, inputs=[db]
-            )
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+    settings = load_config(config)
+    database = GroundTruthDatabase.open(db, verify=verify)
+    transform = build_pipeline(settings, database, kind=pipeline)
+    with progress_bar(f"frames of {split}") as progress:
+        summary = augment_kitti(
+            kitti, split, transform, out, frames, seed, fov, overwrite, progress, inputs=[db]
+        )
     table = Table(title=f"{out}: {summary['frames']} frames, {summary['points']} points")
     table.add_column("class")
     table.add_column("boxes", justify="right")
@@ -393,15 +371,12 @@ def synth(
     """Generate a synthetic KITTI data set: a ray-cast HDL-64E in procedural streets."""
     from drcpo.synth import LidarConfig, WorldConfig, write_synthetic_kitti
 
-    try:
-        lidar = LidarConfig(azimuth_step_deg=azimuth_step)
-        world = None if street_angle is None else WorldConfig().with_street_angle(street_angle)
-        with progress_bar("synthetic frames") as progress:
-            summary = write_synthetic_kitti(
-                out, frames, seed, world, lidar, val_fraction, overwrite, progress
-            )
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+    lidar = LidarConfig(azimuth_step_deg=azimuth_step)
+    world = None if street_angle is None else WorldConfig().with_street_angle(street_angle)
+    with progress_bar("synthetic frames") as progress:
+        summary = write_synthetic_kitti(
+            out, frames, seed, world, lidar, val_fraction, overwrite, progress
+        )
     points = summary["points"]
     table = Table(title=f"{out}: {frames} frames")
     table.add_column("")
@@ -428,10 +403,7 @@ def demo(
     """Run every available stage on the built-in synthetic world; writes figures and a summary."""
     from drcpo.demo import run_demo
 
-    try:
-        run_demo(out, frames=frames, seed=seed, augment_frames=augment_frames)
-    except (DrcpoError, FileExistsError) as exc:
-        fail(str(exc))
+    run_demo(out, frames=frames, seed=seed, augment_frames=augment_frames)
 
 
 @app.command()
@@ -457,12 +429,9 @@ def evaluate(
     from drcpo.evaluation import evaluate_kitti_split
 
     names = [name.strip() for name in classes.split(",") if name.strip()]
-    try:
-        result = evaluate_kitti_split(
-            gt, split, pred, names, "loose" if loose else "strict", missing_empty
-        )
-    except DrcpoError as exc:
-        fail(str(exc))
+    result = evaluate_kitti_split(
+        gt, split, pred, names, "loose" if loose else "strict", missing_empty
+    )
     if as_json:
         typer.echo(json.dumps(result.to_dict()))
         return
