@@ -172,6 +172,13 @@ def build_db(
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
+def _import_database(importer, dbinfos: Path, out: Path, root: Path | None, overwrite: bool):
+    """Run a framework database importer with a progress bar and print what it made."""
+    with progress_bar("objects") as progress:
+        database = importer(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
+    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
+
+
 @app.command("import-openpcdet")
 def import_openpcdet_command(
     dbinfos: Annotated[Path, typer.Argument(help="OpenPCDet *_dbinfos_*.pkl file.")],
@@ -185,9 +192,7 @@ def import_openpcdet_command(
     """Convert an OpenPCDet ground-truth database (dbinfos pickle + gt_database/) to drcpo's."""
     from drcpo.database_build import import_openpcdet
 
-    with progress_bar("objects") as progress:
-        database = import_openpcdet(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
-    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
+    _import_database(import_openpcdet, dbinfos, out, root, overwrite)
 
 
 @app.command("import-mmdet3d")
@@ -204,9 +209,7 @@ def import_mmdet3d_command(
     points relative to the bottom centre) to drcpo's."""
     from drcpo.database_build import import_mmdet3d
 
-    with progress_bar("objects") as progress:
-        database = import_mmdet3d(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
-    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
+    _import_database(import_mmdet3d, dbinfos, out, root, overwrite)
 
 
 @app.command()
