@@ -172,7 +172,9 @@ def build_db(
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
-def _import_database(importer, dbinfos: Path, out: Path, root: Path | None, overwrite: bool):
+def _import_database(
+    importer: Callable[..., Any], dbinfos: Path, out: Path, root: Path | None, overwrite: bool
+) -> None:
     """Run a framework database importer with a progress bar and print what it made."""
     with progress_bar("objects") as progress:
         database = importer(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
