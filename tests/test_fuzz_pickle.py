@@ -22,6 +22,7 @@ from fuzz_settings import FUZZ
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from test_safe_pickle import assert_same_tree
 
 from drcpo import safe_pickle
 from drcpo.database_build import validate_dbinfos
@@ -150,29 +151,11 @@ payloads = st.recursive(
 )
 
 
-def _same(ours, theirs) -> None:
-    pending = [(ours, theirs)]
-    while pending:
-        a, b = pending.pop()
-        assert type(a) is type(b)
-        if isinstance(a, dict):
-            assert list(a) == list(b)
-            pending.extend((a[key], b[key]) for key in a)
-        elif isinstance(a, (list, tuple)):
-            assert len(a) == len(b)
-            pending.extend(zip(a, b, strict=True))
-        elif isinstance(a, (np.ndarray, np.generic)):
-            assert a.dtype == b.dtype and np.shape(a) == np.shape(b)
-            assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
-        else:
-            assert a == b or (a != a and b != b)
-
-
 @FUZZ
 @given(payload=payloads, protocol=st.integers(0, 5), data=st.data())
 def test_synthetic_pickles_round_trip_and_survive_mutation(payload, protocol, data):
     pickled = pickle.dumps(payload, protocol=protocol)
-    _same(safe_pickle.loads(pickled), pickle.loads(pickled))
+    assert_same_tree(safe_pickle.loads(pickled), pickle.loads(pickled))
     outcome("mutated synthetic", data.draw(mutated(pickled)))
 
 

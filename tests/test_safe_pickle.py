@@ -278,11 +278,11 @@ def assert_same_tree(ours, theirs):
         elif isinstance(a, (list, tuple)):
             assert len(a) == len(b)
             pending.extend(zip(a, b, strict=True))
-        elif isinstance(a, np.ndarray):
-            assert a.dtype == b.dtype and a.shape == b.shape
-            assert a.tobytes() == b.tobytes()
+        elif isinstance(a, (np.ndarray, np.generic)):
+            assert a.dtype == b.dtype and np.shape(a) == np.shape(b)
+            assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
         else:
-            assert a == b
+            assert a == b or (a != a and b != b)  # NaN equals NaN here
 
 
 @pytest.mark.parametrize("action", ["ignore", "error"])
