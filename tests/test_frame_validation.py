@@ -14,14 +14,8 @@ from test_pipeline import synthetic_database, synthetic_frame
 from drcpo.errors import DataError
 from drcpo.frame import DICT_FIELDS, Frame, validate_frame
 from drcpo.index import IndexConfig, build_index
-from drcpo.pipeline import (
-    DRCPO,
-    GlobalFlip,
-    GlobalRotation,
-    GlobalScaling,
-    GroundTruthSampling,
-    build_pipeline,
-)
+from drcpo.pipeline import build_pipeline
+from drcpo.transforms import DRCPO, GlobalFlip, GlobalRotation, GlobalScaling, GroundTruthSampling
 
 TESTS = Path(__file__).resolve().parent
 

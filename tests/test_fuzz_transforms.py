@@ -18,14 +18,8 @@ from test_pipeline import synthetic_database
 from drcpo.errors import DataError
 from drcpo.frame import MAX_COORDINATE, Frame
 from drcpo.index import IndexConfig, build_index
-from drcpo.pipeline import (
-    DRCPO,
-    GlobalFlip,
-    GlobalRotation,
-    GlobalScaling,
-    GroundTruthSampling,
-    build_pipeline,
-)
+from drcpo.pipeline import build_pipeline
+from drcpo.transforms import DRCPO, GlobalFlip, GlobalRotation, GlobalScaling, GroundTruthSampling
 
 NAMES = ("Car", "Pedestrian", "Cyclist", "Van", "DontCare", "")
 LAYOUTS = ("scene", "identical", "origin", "far", "line", "dense", "empty")

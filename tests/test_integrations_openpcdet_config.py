@@ -17,7 +17,7 @@ import pytest
 from drcpo.datasets.kitti import Calibration, read_calib
 from drcpo.errors import ConfigError, DataError
 from drcpo.integrations import openpcdet
-from drcpo.pipeline import GlobalFlip, GlobalRotation, GlobalScaling, Stats
+from drcpo.transforms import GlobalFlip, GlobalRotation, GlobalScaling, Stats
 from drcpo.warmup import warmup_frame
 
 

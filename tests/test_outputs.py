@@ -163,7 +163,8 @@ def test_build_db_overwrite_keeps_a_foreign_directory(tmp_path):
 
 
 def test_augment_refuses_to_write_over_its_inputs(tmp_path):
-    from drcpo.pipeline import GlobalFlip, augment_kitti
+    from drcpo.datasets.export import augment_kitti
+    from drcpo.transforms import GlobalFlip
 
     root = small_kitti(tmp_path / "kitti")
     before = sorted(p.name for p in (root / "training" / "velodyne").iterdir())

@@ -6,24 +6,20 @@ from drcpo.datasets.kitti import Calibration
 from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_overlap_area, box_corners, from_canonical, points_in_boxes
-from drcpo.pipeline import (
+from drcpo.pipeline import build_pipeline
+from drcpo.placement import OcclusionMap, _facing_samples, frame_ground
+from drcpo.transforms import (
     DRCPO,
-    BoxQuery,
     Compose,
     GlobalFlip,
     GlobalRotation,
     GlobalScaling,
     GroundTruthSampling,
-    OcclusionMap,
     Stats,
-    _facing_samples,
-    build_pipeline,
-    frame_ground,
-    match_features,
-    road_plane_heights,
     transform_from_config,
-    view_windows,
 )
+from drcpo.transforms.insertion import BoxQuery, match_features, road_plane_heights
+from drcpo.view_windows import view_windows
 
 SIZES = {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)}
 GROUND_Z = -1.73
@@ -390,13 +386,13 @@ def test_stats_accumulate_over_a_pipeline(small_db, rng):
 
 @pytest.mark.parametrize("dim", [3, 4, 6])
 def test_placed_object_is_from_canonical_bit_for_bit(dim, rng):
-    from drcpo.pipeline import _placed_object
+    from drcpo.transforms.insertion import placed_object
 
     canonical = (rng.normal(size=(300, 4)) * [2.0, 1.0, 0.8, 1.0]).astype(np.float32)
     for heading in (0.0, 1.0, -2.9, np.pi):
         box = np.array([31.7, -12.3, -0.9, 4.0, 1.7, 1.5, heading])
         expected = match_features(from_canonical(canonical, box), dim)
-        got = _placed_object(canonical, box, dim)
+        got = placed_object(canonical, box, dim)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, expected)
 
@@ -707,13 +703,13 @@ def test_determinism_across_runs_and_a_forked_worker(synthetic_world):
 def test_same_output_on_one_core_as_on_two(kitti_world, monkeypatch):
     # A data-loader worker pinned to one core runs every step on its own thread; the frame
     # must be the one two threads give.
-    import drcpo.pipeline as pipeline_module
+    import drcpo.transforms.drcpo as drcpo_module
     from drcpo import occlusion
 
     db, index, frames = kitti_world
     transform = DRCPO(db, index)
     two = [transform(frame, np.random.default_rng(30 + i)) for i, frame in enumerate(frames)]
-    monkeypatch.setattr(pipeline_module, "_spare_core", lambda: False)
+    monkeypatch.setattr(drcpo_module, "spare_core", lambda: False)
     monkeypatch.setattr(occlusion, "_check_workers", lambda workers: 1)
     for i, (frame, out) in enumerate(zip(frames, two, strict=True)):
         one = transform(frame, np.random.default_rng(30 + i))
@@ -914,8 +910,8 @@ def test_augment_cli_writes_kitti_layout_and_stats(kitti_world, kitti_sample, tm
 
 
 def test_augment_kitti_leaves_nothing_when_a_frame_fails(kitti_world, kitti_sample, tmp_path):
+    from drcpo.datasets.export import augment_kitti
     from drcpo.errors import DataError
-    from drcpo.pipeline import augment_kitti
 
     class Failing(GlobalFlip):
         def apply(self, frame, rng, stats):
@@ -990,7 +986,7 @@ def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
 
 @pytest.mark.parametrize("mode", ["hpr", "range_image"])
 def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode, rng):
-    from drcpo.pipeline import _Insertion
+    from drcpo.transforms.drcpo import _Insertion
 
     db, index, _ = synthetic_world
     transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})
@@ -1016,7 +1012,7 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
 
 @pytest.mark.parametrize("mode", ["hpr", "range_image"])
 def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, mode, rng):
-    from drcpo.pipeline import _Insertion
+    from drcpo.transforms.drcpo import _Insertion
 
     db, index, _ = synthetic_world
     transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})

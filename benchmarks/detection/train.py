@@ -21,7 +21,7 @@ import torch
 
 from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, KittiDataset, fov_mask
 from drcpo.frame import Frame
-from drcpo.pipeline import STATS_KEY
+from drcpo.transforms import STATS_KEY
 
 from .bev import Grid, bev_features
 from .heads import Detections, decode, encode_targets

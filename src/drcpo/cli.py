@@ -331,7 +331,8 @@ def augment(
     """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame."""
     from drcpo.config import load_config
     from drcpo.database import GroundTruthDatabase
-    from drcpo.pipeline import augment_kitti, build_pipeline
+    from drcpo.datasets.export import augment_kitti
+    from drcpo.pipeline import build_pipeline
 
     settings = load_config(config)
     database = GroundTruthDatabase.open(db, verify=verify)

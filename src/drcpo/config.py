@@ -762,11 +762,3 @@ def _build(data: dict[str, Any]) -> AugmentConfig:
     config = _merge(base, data, "")
     _check_classes(config)
     return config
-
-
-def build_pipeline(config: Any = None, database: Any = None, index: Any = None, kind=None):
-    """Shorthand for :func:`drcpo.pipeline.build_pipeline` (imported lazily: the pipeline
-    module builds on this one)."""
-    from drcpo.pipeline import build_pipeline as build
-
-    return build(config, database, index, kind)

@@ -29,7 +29,7 @@ def warmup_frame(database: Any = None, point_dim: int = 4) -> Frame:
     ground[:, 0], ground[:, 1], ground[:, 2] = x.ravel(), y.ravel(), _GROUND_Z
     if database is None or not len(database):
         return Frame(points=ground, metadata={"frame_id": "warmup"})
-    from drcpo.pipeline import _placed_objects
+    from drcpo.transforms.insertion import placed_objects
 
     names = database.names
     rows = np.array([np.flatnonzero(names == n)[0] for n in np.unique(names)], dtype=np.int64)
@@ -38,7 +38,7 @@ def warmup_frame(database: Any = None, point_dim: int = 4) -> Frame:
     boxes[:, 0] = 10.0 + 8.0 * np.arange(len(rows))
     boxes[:, 1] = 0.0
     boxes[:, 2] = _GROUND_Z + boxes[:, 5] / 2.0
-    objects = _placed_objects(database, rows, boxes, point_dim)
+    objects = placed_objects(database, rows, boxes, point_dim)
     return Frame(
         points=np.concatenate([ground, objects]),
         boxes=boxes,

@@ -244,7 +244,7 @@ class OpenPCDetAugmentor:
     ) -> dict[str, Any]:
         """The augmented data dict; ``rng``: the generator to use (default: :meth:`generator`,
         which OpenPCDet's calls get)."""
-        from drcpo.pipeline import STATS_KEY
+        from drcpo.transforms import STATS_KEY
 
         data_dict = dict(data_dict)
         context = data_dict.pop(CONTEXT_KEY, None) or {}

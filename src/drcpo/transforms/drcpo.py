@@ -1,0 +1,699 @@
+"""DR.CPO (Shin et al. 2023) as one transform: sample, place, construct, s-HPR, insert, e-HPR and
+settle the labels; each step's work lives in its own module (:mod:`drcpo.placement`,
+:mod:`drcpo.construction`, :mod:`drcpo.occlusion`), this one orders them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import cache, partial
+from typing import Any
+
+import numpy as np
+
+from drcpo import construction, occlusion, placement
+from drcpo.config import DRCPOConfig, from_dict, to_dict
+from drcpo.database import GroundTruthDatabase
+from drcpo.errors import ConfigError
+from drcpo.frame import Frame
+from drcpo.geometry import box_holding
+from drcpo.index import indexed_mask
+from drcpo.placement import OcclusionMap
+from drcpo.transforms.base import Stats, Transform, config_body, register
+from drcpo.transforms.insertion import (
+    BoxQuery,
+    placed_object,
+    sampling_pools,
+    take_rows,
+    update_box_metadata,
+)
+from drcpo.transforms.work_queue import WorkQueue, result_if_done, spare_core
+from drcpo.view_windows import box_windows, grown_boxes, in_windows, window_spans
+
+_CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
+_FIT_PAD = 1e-4  # metres between a label's moved face and the point beyond it (see box_holding)
+
+
+@dataclass(frozen=True, eq=False)
+class _Placed:
+    """What e-HPR needs of the placed boxes alone (worked out while the objects are built):
+    the boxes ``(A, 7)``; per frame point, the last box holding it (``int64 (N,)``, -1:
+    none); each box's source row; their view windows."""
+
+    boxes: np.ndarray
+    owners: np.ndarray
+    rows: np.ndarray  # each box's source row
+    windows: tuple[np.ndarray, ...]  # box_windows of the boxes grown by WINDOW_SLACK
+
+    def windows_of(self, insertions: Sequence[_Insertion]) -> tuple[np.ndarray, ...]:
+        """The view windows of the boxes of ``insertions``, some of the placed objects in their
+        order (a box's window does not depend on the others)."""
+        index, k = [], 0
+        for insertion in insertions:
+            while int(self.rows[k]) != insertion.row:
+                k += 1
+            index.append(k)
+            k += 1
+        return tuple(values[np.array(index, dtype=np.int64)] for values in self.windows)
+
+
+@dataclass(frozen=True, eq=False)
+class _Insertion:
+    """One object on its way into the frame: source row, class, placed box, its label (the
+    placed box grown to hold the points, see :meth:`DRCPO._object_s_hpr`), placed points."""
+
+    row: int
+    name: str
+    placed: np.ndarray
+    box: np.ndarray
+    points: np.ndarray
+
+
+@register
+class DRCPO(Transform):
+    """DR.CPO: iterative construction, random placement and HPR occlusion (Shin et al. 2023).
+
+    Per call:
+
+    1. **Sample** ``sample[class]`` source objects per class, without replacement, among the
+       objects that the candidate index covers and that have at least ``min_points`` points.
+    2. **Place** (``partition`` mode, before any construction, so that rejected objects cost
+       nothing): a random heading and position, the box bottom on the frame's ground estimate
+       (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
+       any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
+       the box); see :mod:`drcpo.placement`. Each footprint keeps :attr:`room` free around
+       it, as the object's label may grow by that much (step 4). A placed box is rejected
+       too (``occluded``) when e-HPR hides at least ``placement.occluded_fraction`` (default
+       1.0: all) of a 5 x 4 grid of samples on each of its sensor-facing faces behind the
+       frame's points, each sample decided exactly as a point added to them (with the
+       ``range_image`` mode: a z-buffer at the sensor's resolution). e-HPR would almost
+       always leave such an object too few points: on the KITTI sample and synthetic frames,
+       3 of 1,676 objects e-HPR kept were that hidden, against 4,182 of 4,673 it dropped (a
+       z-buffer test at 95 % caught 2,655 of them). So it is not built and hides nothing.
+       Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
+       ``whole`` mode the box grows during construction, so objects are constructed first
+       and placed with their final size.
+    3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
+    4. **s-HPR**: hidden point removal per object from the sensor origin with
+       ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
+       is dropped (``self_occlusion``). The object's label is its placed box with the faces
+       that points lie beyond moved out to hold them: construction keeps points up to
+       ``construction.margin`` outside the source box, and s-HPR keeps the outermost.
+    5. **Insert**: frame points within the accepted objects' room (their placed box grown by
+       :attr:`room`) are removed, the objects' points added.
+    6. **e-HPR** from the detector preset's viewpoint and radius. Scope ``frame`` (the paper)
+       removes every hidden point of the frame. Scope ``inserted`` (default) first removes the
+       inserted points that are hidden; an object then left with fewer than
+       ``min_points_after`` points in its box is dropped (see 7). It then removes the original
+       points that lie behind the box of an object kept, in its view window (the azimuth and
+       elevation it covers), and are hidden with the objects but visible without them.
+       Visibility is decided only for those points, each exactly against the whole frame (HPR
+       queries), so HPR's own errors never delete real, visible points and directions without
+       inserted objects cost nothing.
+    7. **Labels**: an object dropped by e-HPR goes with all its points (reason
+       ``external_occlusion``), and the frame points it displaced come back (with scope
+       ``inserted``, those it alone hid were never removed). An original box that lost points
+       and holds fewer than ``min_points_after`` is dropped, unless it already had fewer
+       before.
+
+    Args:
+        database: the ground-truth database (canonical points).
+        index: its :class:`~drcpo.index.CandidateIndex`.
+        config: a :class:`~drcpo.config.DRCPOConfig` (the paper defaults when ``None``) or a
+            mapping of its keys.
+
+    The transform holds only read-only state (database, index, config, per-class row pools),
+    so it is safe to share with forked workers.
+    """
+
+    name = "drcpo"
+
+    def __init__(
+        self,
+        database: GroundTruthDatabase,
+        index: Any,
+        config: DRCPOConfig | Mapping[str, Any] | None = None,
+    ) -> None:
+        if isinstance(config, Mapping) or config is None:
+            config = from_dict(DRCPOConfig, config, "drcpo")
+        if not isinstance(config, DRCPOConfig):
+            raise TypeError(f"config must be a DRCPOConfig or a mapping, got {type(config)}")
+        self.config: DRCPOConfig = config
+        self.database = database
+        self.index = index
+        self._construction = construction.ConstructionConfig(
+            mode=config.construction.mode,
+            coverage=config.construction.coverage,
+            max_iterations=config.construction.max_iterations,
+            margin=config.construction.margin,
+            mirrored_classes=tuple(config.construction.mirror),
+            grids={k: tuple(v) for k, v in config.construction.grids.items()},
+        )
+        self._placement = {fov: self._placement_config(fov) for fov in (False, True)}
+        classes = [name for name, count in config.sample.items() if count > 0]
+        self._check_index(classes)
+        indexed = indexed_mask(database, index.config)
+        self._pools = {
+            name: pool[indexed[pool]]
+            for name, pool in sampling_pools(
+                database, classes, config.min_points, config.exclude_difficulty
+            ).items()
+        }
+        for pool in self._pools.values():
+            pool.setflags(write=False)
+
+    def _placement_config(self, fov_only: bool) -> placement.PlacementConfig:
+        p = self.config.placement
+        return placement.PlacementConfig(
+            x_range=tuple(p.x_range),
+            y_range=tuple(p.y_range),
+            fov_only=fov_only,
+            height_mode=p.height,
+            max_nonground_points=p.max_non_ground_points,
+            ground_tolerance=p.ground_tolerance,
+            max_tries=p.attempts,
+            clearance=self.room,
+        )
+
+    @property
+    def room(self) -> float:
+        """Metres by which an object's label may exceed its placed box on any side: the
+        construction margin (``partition`` mode keeps points that far outside the source box)
+        and twice :data:`_FIT_PAD`. Placement keeps that much room free around each box, and
+        the frame's points within it make way for the object."""
+        margin = self.config.construction.margin if self._construction.mode == "partition" else 0
+        return float(margin) + 2.0 * _FIT_PAD
+
+    def _check_index(self, classes: Sequence[str]) -> None:
+        """The index must partition and mirror each class as construction does."""
+        if len(self.index.candidates) != len(self.database):
+            raise ConfigError(
+                f"the candidate index covers {len(self.index.candidates)} objects but the "
+                f"database has {len(self.database)}; rebuild it with `drcpo index`"
+            )
+        mirrored_in_index = set(self.index.config.mirrored)
+        for name in classes:
+            if name not in self.index.grids:
+                continue  # no indexed object of this class: it is never sampled
+            grid = self._construction.grid(name)
+            if tuple(self.index.grids[name]) != tuple(grid):
+                raise ConfigError(
+                    f"drcpo.construction.grids.{name} = {list(grid)} but the candidate index "
+                    f"was built with {list(self.index.grids[name])}; use the same grid"
+                )
+            if (name in self._construction.mirrored_classes) != (name in mirrored_in_index):
+                raise ConfigError(
+                    f"drcpo.construction.mirror and the candidate index disagree on whether "
+                    f"{name} is mirrored; use the same classes"
+                )
+
+    @classmethod
+    def from_config(
+        cls,
+        data: Mapping[str, Any],
+        database: GroundTruthDatabase | None = None,
+        index: Any = None,
+        **_: Any,
+    ) -> DRCPO:
+        if database is None or index is None:
+            raise ConfigError("DRCPO.from_config needs database=... and index=...")
+        body = config_body(data, cls.__name__)
+        body.pop("enabled", None)
+        return cls(database, index, from_dict(DRCPOConfig, body, "DRCPO"))
+
+    def to_config(self) -> dict[str, Any]:
+        body = to_dict(self.config)
+        body.pop("enabled")
+        return {"type": type(self).__name__, **body}
+
+    def __repr__(self) -> str:
+        c = self.config
+        return (
+            f"DRCPO({self.database!r}, sample={c.sample}, "
+            f"construction={c.construction.mode!r}, height={c.placement.height!r}, "
+            f"e_hpr={c.external_occlusion.mode}:{c.external_occlusion.preset}:"
+            f"{c.external_occlusion.scope})"
+        )
+
+    # The steps ------------------------------------------------------------------------------
+    def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
+        with stats.stage("drcpo.sample", len(frame)):
+            rows = self._sample(rng, stats)
+        objects: list[Any] = []
+        placed: Future | None = None  # of a _Placed
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            frame_grid = self._frame_grid(frame, rows, pool)
+            # s-HPR of each object, done by this thread and the pool's when it is free.
+            s_hpr = WorkQueue(pool if spare_core() else None)
+            if self.config.construction.mode == "partition":
+                with stats.stage("drcpo.placement", len(frame)):
+                    boxes, accepted, owners = self._place(
+                        frame, rows, None, rng, stats, frame_grid, pool
+                    )
+                    rows = rows[accepted]
+                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
+                # With placement first, objects go to s-HPR chunk by chunk as they are built
+                # (the answers do not depend on it); the construction stage's time then
+                # includes the s-HPR work done meanwhile.
+                with stats.stage("drcpo.construction", 0) as record:
+                    queue = partial(self._queue_s_hpr, s_hpr, boxes, frame.points.shape[1])
+                    objects = self._construct(rows, rng, stats, queue)
+                    record["points_out"] = sum(len(o.points) for o in objects)
+            else:  # whole: the box grows while constructing, so place with the final size
+                with stats.stage("drcpo.construction", 0) as record:
+                    objects = self._construct(rows, rng, stats)
+                    record["points_out"] = sum(len(o.points) for o in objects)
+                with stats.stage("drcpo.placement", len(frame)):
+                    dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
+                    boxes, accepted, owners = self._place(
+                        frame, rows, dims, rng, stats, frame_grid, pool
+                    )
+                    rows, objects = rows[accepted], [objects[i] for i in accepted]
+                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
+                self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], 0, objects)
+            points_in = sum(len(o.points) for o in objects)
+            with stats.stage("drcpo.self_occlusion", points_in) as record:
+                done = s_hpr.results()
+                visible = [done[k] for k in range(len(rows))]
+                insertions = self._insertions(rows, boxes, visible, stats)
+                record["points_out"] = sum(len(i.points) for i in insertions)
+            with stats.stage("drcpo.insert", len(frame)) as record:
+                points, owner, cleared_by = self._insert(frame, insertions, result_if_done(placed))
+                record["points_out"] = len(points)
+            with stats.stage("drcpo.external_occlusion", len(points)) as record:
+                grid = frame_grid() if frame_grid is not None and insertions else None
+                helper = pool if spare_core() else None
+                keep, dropped = self._external_occlusion(
+                    points, owner, insertions, grid, cleared_by, helper, result_if_done(placed)
+                )
+                record["points_out"] = int(keep.sum())
+            with stats.stage("drcpo.labels", int(keep.sum())) as record:
+                out = self._settle(
+                    frame, points, owner, keep, dropped, cleared_by, insertions, stats
+                )
+                record["points_out"] = len(out)
+        return out
+
+    def _frame_grid(
+        self, frame: Frame, rows: np.ndarray, pool: ThreadPoolExecutor
+    ) -> Callable[[], occlusion.FrameGrid] | None:
+        """e-HPR's grid of the frame's points (scope ``inserted``, and the ``occluded`` test
+        of placement), as a call that returns it: on two cores it is built on ``pool``
+        meanwhile (it does not depend on the objects), else when first asked for. ``None``
+        when nothing will need it."""
+        settings = self.config.external_occlusion
+        needed = settings.enabled and settings.mode == "hpr"
+        needed &= (
+            settings.scope == "inserted" or self.config.placement.occluded_fraction is not None
+        )
+        if not needed or len(rows) == 0:
+            return None
+        radius, viewpoint = self.e_hpr_setting()
+        # In this thread's memory, wherever built: the previous call's grid is done with.
+        memory = occlusion.thread_grid_memory()
+        build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius, memory=memory)
+        return pool.submit(build).result if spare_core() else cache(build)
+
+    def _placed_task(
+        self,
+        frame: Frame,
+        boxes: np.ndarray,
+        rows: np.ndarray,
+        owners: np.ndarray | None,
+        frame_grid: Callable[[], occlusion.FrameGrid] | None,
+        pool: ThreadPoolExecutor,
+    ) -> Future | None:
+        """On two cores, start on ``pool`` working out the :class:`_Placed` of the placed
+        ``boxes`` (of source ``rows``; ``owners``: the room each frame point lies in, if known)
+        while the objects are built; its future, or ``None`` when nothing is started."""
+        if frame_grid is None or len(boxes) == 0 or not spare_core():
+            return None
+        _, viewpoint = self.e_hpr_setting()
+
+        def place() -> _Placed:
+            rooms = owners if owners is not None else self._room_owners(frame, boxes)
+            return _Placed(boxes, rooms, rows, box_windows(grown_boxes(boxes), viewpoint))
+
+        return pool.submit(place)
+
+    def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
+        """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
+        chosen = []
+        for name, count in self.config.sample.items():
+            pool = self._pools.get(name)
+            size = min(int(count), 0 if pool is None else len(pool))
+            if size == 0:
+                continue
+            chosen.append(rng.choice(pool, size=size, replace=False))
+            stats.tried(self.name, name, size)
+        return np.concatenate(chosen).astype(np.int64) if chosen else np.zeros(0, np.int64)
+
+    def _place(
+        self,
+        frame: Frame,
+        rows: np.ndarray,
+        dims: np.ndarray | None,
+        rng: np.random.Generator,
+        stats: Stats,
+        frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
+        pool: ThreadPoolExecutor | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Placed boxes ``(A, 7)``, the indices (into ``rows``) of the placed objects and, when
+        worked out, the room (see :attr:`room`) each frame point lies in (``int64 (N,)``, -1:
+        none)."""
+        if len(rows) == 0:
+            return np.zeros((0, 7)), np.zeros(0, np.int64), None
+        source = np.asarray(self.database.boxes[rows], dtype=np.float64)
+        dims = source[:, 3:6] if dims is None else dims
+        camera = self.config.placement.camera_fov
+        fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
+        limit = self.config.placement.occluded_fraction
+        check = limit is not None and self.config.external_occlusion.enabled
+        last: list[tuple[int, np.ndarray, np.ndarray]] = []  # the occlusion test's last call
+
+        def occluded(boxes: np.ndarray, before: np.ndarray) -> np.ndarray:
+            everything = np.concatenate([before, boxes])
+            owners = self._room_owners(frame, everything)
+            hidden = self._occluded(frame, boxes, everything, owners, frame_grid, limit, pool)
+            last[:] = [(len(before), owners, hidden)]
+            return hidden
+
+        # No ground given: place_objects estimates it from the frame's points. (Estimating it
+        # on a second thread meanwhile measured slower on the shared cores.)
+        result = placement.place_objects(
+            frame, dims, source, rng, self._placement[fov], occluded=occluded if check else None
+        )
+        names = self.database.names[rows]
+        for i in np.flatnonzero(result.reasons != ""):
+            stats.rejected(self.name, names[i], str(result.reasons[i]))
+        boxes, accepted = result.boxes, result.accepted
+        if not last or not len(boxes):
+            return boxes, accepted, None
+        before, owners, hidden = last[0]
+        if before or len(boxes) != int((~hidden).sum()):  # placed over several tries
+            return boxes, accepted, self._room_owners(frame, boxes)
+        renumber = np.full(len(hidden) + 1, -1, dtype=np.int64)  # (index -1: no room)
+        renumber[np.flatnonzero(~hidden)] = np.arange(len(boxes))
+        return boxes, accepted, renumber[owners]
+
+    def _room_owners(self, frame: Frame, boxes: np.ndarray) -> np.ndarray:
+        """``int64 (N,)``: the placed box whose room (see :attr:`room`) holds each frame point
+        (-1: none; placement keeps the rooms apart)."""
+        return BoxQuery(frame.points).owners(grown_boxes(boxes, self.room))
+
+    def _occluded(
+        self,
+        frame: Frame,
+        boxes: np.ndarray,
+        everything: np.ndarray,
+        owners: np.ndarray,
+        frame_grid: Callable[[], occlusion.FrameGrid] | None,
+        limit: float,
+        pool: ThreadPoolExecutor | None = None,
+    ) -> np.ndarray:
+        """``bool (B,)``: ``boxes`` whose sensor-facing surface e-HPR would hide behind the
+        frame's points by at least ``limit``; the points in the rooms of ``everything`` placed
+        (``owners``, see :meth:`_room_owners`) make way for them and hide nothing. Mode
+        ``hpr``: surface samples decided exactly by HPR among the frame's points
+        (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden where that test
+        does not apply); ``range_image``: a z-buffer at the sensor's resolution
+        (:class:`~drcpo.placement.OcclusionMap`)."""
+        _, viewpoint = self.e_hpr_setting()
+        if frame_grid is not None:
+            samples, offsets = placement.surface_samples(boxes, viewpoint)
+            helper = pool if spare_core() else None
+            hidden = frame_grid().hidden_groups(samples, offsets, owners >= 0, limit, helper)
+            return hidden if hidden is not None else np.zeros(len(boxes), dtype=bool)
+        z_buffer = OcclusionMap(frame.points, viewpoint)
+        return z_buffer.occluded(boxes, cleared=everything) >= limit
+
+    def _construct(
+        self,
+        rows: np.ndarray,
+        rng: np.random.Generator,
+        stats: Stats,
+        on_chunk: Callable[[int, list[Any]], None] | None = None,
+    ) -> list[Any]:
+        """Constructed objects; with ``on_chunk``, built :data:`_CHUNK` at a time and handed to
+        it as they come (see :func:`~drcpo.construction.construct_objects`)."""
+        objects = construction.construct_objects(
+            self.database,
+            rows,
+            self.index.candidates[rows],
+            rng,
+            self._construction,
+            self.index.max_counts,
+            chunk=_CHUNK if on_chunk is not None else None,
+            on_chunk=on_chunk,
+        )
+        for name, built in zip(self.database.names[rows], objects, strict=True):
+            stats.construction(str(name), built.iterations)
+        return objects
+
+    def _queue_s_hpr(
+        self, work: WorkQueue, boxes: np.ndarray, dim: int, first: int, objects: Sequence[Any]
+    ) -> None:
+        """Queue on ``work`` the s-HPR of ``objects`` (numbers ``first``, ``first + 1``, ... of
+        ``boxes``), placed with the frame's ``dim`` columns."""
+        for k, built in enumerate(objects, first):
+            work.add(k, partial(self._object_s_hpr, built.points, boxes[k], dim))
+        work.start()
+
+    def _object_s_hpr(
+        self, canonical: np.ndarray, box: np.ndarray, dim: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull:
+        drcpo.hull's certified one, Qhull where it gives up; much faster than the per-point
+        method for objects), and its label: ``box`` with the faces that points lie beyond
+        (construction keeps points up to its margin outside; s-HPR keeps the outermost ones)
+        moved out to hold them, so that the label holds every point the object brings."""
+        points = placed_object(canonical, box, dim)
+        settings = self.config.self_occlusion
+        if settings.enabled and len(points):
+            visible = occlusion.self_occlusion(
+                points, box, settings.radius_factor, method="reference", workers=1
+            )
+            points = take_rows(points, visible)
+        return points, box_holding(box, points, _FIT_PAD)
+
+    def _insertions(
+        self,
+        rows: np.ndarray,
+        boxes: np.ndarray,
+        visible: Sequence[tuple[np.ndarray, np.ndarray]],
+        stats: Stats,
+    ) -> list[_Insertion]:
+        """The objects left with at least ``self_occlusion.min_points`` points after s-HPR
+        (``visible``: each object's placed points left and its label), the others rejected."""
+        minimum = self.config.self_occlusion.min_points
+        insertions = []
+        for row, box, (points, label) in zip(rows, boxes, visible, strict=True):
+            name = str(self.database.names[row])
+            if len(points) < minimum:
+                stats.rejected(self.name, name, "self_occlusion")
+                continue
+            insertions.append(_Insertion(int(row), name, box, label, points))
+        return insertions
+
+    def _insert(
+        self, frame: Frame, insertions: Sequence[_Insertion], placed: _Placed | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Points after insertion (the frame's points outside the objects' room, see
+        :attr:`room`, then the objects'), each point's owner (-1: an original point, else the
+        insertion's number) and, per frame point, the insertion it had to make room for (-1:
+        none). ``placed``: see :meth:`_placed_task`; its owners are reused when every placed
+        object is inserted."""
+        cleared_by = np.full(len(frame), -1, dtype=np.int64)
+        if not insertions:
+            return frame.points, cleared_by.copy(), cleared_by
+        if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
+            cleared_by = placed.owners
+        else:
+            cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
+        original = cleared_by < 0
+        points = np.concatenate(
+            [take_rows(frame.points, original), *(i.points for i in insertions)]
+        )
+        owner = np.concatenate(
+            [np.full(int(original.sum()), -1)]
+            + [np.full(len(i.points), j) for j, i in enumerate(insertions)]
+        ).astype(np.int64)
+        return points, owner, cleared_by
+
+    def _external_occlusion(
+        self,
+        points: np.ndarray,
+        owner: np.ndarray,
+        insertions: Sequence[_Insertion],
+        grid: occlusion.FrameGrid | None = None,
+        cleared_by: np.ndarray | None = None,
+        pool: ThreadPoolExecutor | None = None,
+        placed: _Placed | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
+        and the insertions left with too few points in their box, ``bool (len(insertions),)``.
+
+        Scope ``frame``: every hidden point goes. Scope ``inserted``: the inserted points are
+        decided first, each exactly against the whole frame, and hidden ones go; then, for the
+        original points behind the boxes of the objects that keep enough points, in their view
+        windows (the directions they cover), those hidden with the objects but visible without
+        them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
+        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again; ``pool``
+        may lend a thread; ``placed``: see :meth:`_placed_task`.
+        """
+        settings = self.config.external_occlusion
+        inserted = owner >= 0
+        keep = np.ones(len(points), dtype=bool)
+        if settings.enabled and len(points) and settings.scope == "frame":
+            keep = self._visible(points)
+        if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
+            return keep, self._dropped(points, owner, insertions, keep)
+        _, viewpoint = self.e_hpr_setting()
+        first = int(np.count_nonzero(~inserted))  # the original points come first
+        known = placed.windows_of(insertions) if placed is not None else None
+        found: dict[str, np.ndarray] = {}
+
+        def behind_kept(removed_inserted: np.ndarray, frame_points: np.ndarray) -> np.ndarray:
+            # ``frame_points``: in the grid's order and number, or the original points'.
+            found["dropped"] = dropped = self._dropped(
+                points[first:], owner[first:], insertions, ~removed_inserted
+            )
+            kept = np.flatnonzero(~dropped)
+            grown = grown_boxes([insertions[k].placed for k in kept])
+            windows = window_spans(
+                grown, viewpoint, True, None if known is None else [w[kept] for w in known]
+            )
+            if grid is not None and len(frame_points) == grid.size:
+                return grid.in_windows(windows) if windows is not None else frame_points.copy()
+            return in_windows(frame_points, windows, viewpoint)
+
+        if settings.mode == "hpr" and grid is not None and cleared_by is not None:
+            cleared = cleared_by >= 0
+            result = grid.hidden_by_insertion(
+                cleared,
+                points[first:],
+                lambda removed: behind_kept(removed, ~cleared),
+                pool=pool,
+            )
+            if result is not None:
+                keep = ~np.concatenate([result[0][~cleared], result[1]])
+                return keep, found["dropped"]
+        if settings.mode == "hpr":
+            radius, _ = self.e_hpr_setting()
+            removed = occlusion.hidden_by_insertion(
+                points,
+                inserted,
+                lambda gone: np.append(behind_kept(gone[first:], points[:first]), inserted[first:]),
+                viewpoint,
+                radius,
+            )
+            return ~removed, found["dropped"]
+        visible = self._visible(points)
+        keep[inserted & ~visible] = False
+        behind = behind_kept(~keep[first:], points[:first])
+        suspects = np.flatnonzero(behind & ~visible[:first])
+        if len(suspects):
+            wanted = np.zeros(first, dtype=bool)
+            wanted[suspects] = True
+            # Only points visible without the inserted objects go; those hidden even without
+            # them stay: HPR's own errors must not delete real points.
+            before = self._visible(points[:first], query=wanted)
+            keep[:first][wanted & before] = False
+        return keep, found["dropped"]
+
+    def _dropped(
+        self,
+        points: np.ndarray,
+        owner: np.ndarray,
+        insertions: Sequence[_Insertion],
+        keep: np.ndarray,
+    ) -> np.ndarray:
+        """``bool (len(insertions),)``: objects with fewer than ``min_points_after`` of their
+        points that ``keep`` (``bool (N,)``) holds in their own box (construction may leave
+        some a few cm outside it)."""
+        if not insertions:
+            return np.zeros(0, dtype=bool)
+        survivors = BoxQuery(points).own_counts(owner, [i.box for i in insertions], keep)
+        return survivors < self.config.min_points_after
+
+    def e_hpr_setting(self) -> tuple[float, np.ndarray]:
+        """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
+        settings = self.config.external_occlusion
+        preset = occlusion.HPR_PRESETS[settings.preset]
+        radius = settings.radius if settings.radius is not None else preset.radius
+        height = settings.viewpoint_z if settings.viewpoint_z is not None else preset.viewpoint_z
+        return float(radius), np.array([0.0, 0.0, float(height)])
+
+    def _visible(self, points: np.ndarray, query: np.ndarray | None = None) -> np.ndarray:
+        """``bool (N,)`` visibility from the e-HPR viewpoint (``True`` outside ``query``)."""
+        radius, viewpoint = self.e_hpr_setting()
+        if self.config.external_occlusion.mode == "range_image":
+            visible = occlusion.range_image_occlusion(points, viewpoint)
+            return visible if query is None else visible | ~query
+        return occlusion.hidden_point_removal(points, viewpoint, radius, query=query)
+
+    def _settle(
+        self,
+        frame: Frame,
+        points: np.ndarray,
+        owner: np.ndarray,
+        keep: np.ndarray,
+        dropped: np.ndarray,
+        cleared_by: np.ndarray,
+        insertions: Sequence[_Insertion],
+        stats: Stats,
+    ) -> Frame:
+        """The output frame: drop inserted objects and original boxes left with too few points.
+
+        An inserted object of ``dropped`` goes with all its points, and the frame points it
+        displaced come back (e-HPR removed frame points only behind the objects kept), so it
+        leaves no trace. An original box is dropped when it lost points and is left with fewer
+        than ``min_points_after``, unless it had fewer already.
+        """
+        original_rows = np.flatnonzero(cleared_by < 0)  # frame row of each original point
+        removed = cleared_by >= 0
+        if dropped.any():
+            removed &= ~np.append(dropped, False)[cleared_by]  # (index -1: the frame's own)
+        removed[original_rows[~keep[: len(original_rows)]]] = True
+        for insertion, gone in zip(insertions, dropped, strict=True):
+            if gone:
+                stats.rejected(self.name, insertion.name, "external_occlusion")
+            else:
+                stats.added(self.name, insertion.name)
+        kept = [i for i, gone in zip(insertions, dropped, strict=True) if not gone]
+        drop_original = self._sparse_originals(frame, removed)
+        for name in frame.names[drop_original]:
+            stats.label_dropped(str(name))
+        inserted_keep = keep & ~np.append(dropped, True)[owner]  # (index -1: not inserted)
+        kept_boxes = np.flatnonzero(~drop_original)
+        return frame.replace(
+            points=np.concatenate(
+                [take_rows(frame.points, ~removed), take_rows(points, inserted_keep)]
+            ),
+            boxes=np.concatenate(
+                [frame.boxes[kept_boxes], grown_boxes([i.box for i in kept], 0.0)]
+            ),
+            names=np.concatenate([frame.names[kept_boxes], [i.name for i in kept]]),
+            metadata=update_box_metadata(
+                frame.metadata,
+                len(frame.boxes),
+                keep=kept_boxes if drop_original.any() else None,
+                added=len(kept),
+            ),
+        )
+
+    def _sparse_originals(self, frame: Frame, removed: np.ndarray) -> np.ndarray:
+        """``bool (M,)``: frame boxes that lost points and now hold fewer than the minimum,
+        having held at least the minimum before. Only boxes holding removed points can have
+        lost any, so only those are counted."""
+        minimum = self.config.min_points_after
+        drop = np.zeros(len(frame.boxes), dtype=bool)
+        if not removed.any() or len(frame.boxes) == 0:
+            return drop
+        lost = BoxQuery(take_rows(frame.points, removed)).counts(frame.boxes)
+        touched = np.flatnonzero(lost)
+        if len(touched):
+            had = BoxQuery(frame.points).counts(frame.boxes[touched])
+            drop[touched] = (had >= minimum) & (had - lost[touched] < minimum)
+        return drop
