@@ -9,7 +9,7 @@ Pedestrian and Cyclist 0.5; 3D and BEV).
 Data, made as a user would: ``write_synthetic_kitti`` (the KITTI layout ``drcpo synth`` writes)
 with streets up to ``--street-angle`` degrees from the sensor axis for both the training pool and
 the validation set; per training subset (the first N frames of the pool, nested), a ground-truth
-database (``drcpo.database_build.build_database``) and candidate index
+database (``drcpo.database.build.build_database``) and candidate index
 (``drcpo.index.build_index``) built from exactly that subset. Frames are cut to the camera's
 field of view, as OpenPCDet trains KITTI.
 
@@ -104,7 +104,7 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
     """Synthesise the training pool and the validation set (in parallel), write the subset
     splits, and build each subset's database (and index, when a DR.CPO arm runs). Timings
     (``*_s``) are CPU seconds."""
-    from drcpo.database_build import build_database
+    from drcpo.database.build import build_database
     from drcpo.datasets.kitti import read_split
     from drcpo.datasets.kitti_writer import write_image_sets
     from drcpo.index import IndexConfig, build_index

@@ -31,7 +31,7 @@ import openpcdet_support as support
 
 
 def _build_db(out: Path) -> Path:
-    from drcpo.database_build import import_openpcdet
+    from drcpo.database.build import import_openpcdet
     from drcpo.index import IndexConfig, build_index
 
     database = import_openpcdet(support.KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)

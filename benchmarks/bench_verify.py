@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench_verify_") as scratch:
         if (KITTI_SAMPLE / "training" / "velodyne").is_dir():
-            from drcpo.database_build import build_database
+            from drcpo.database.build import build_database
 
             build_database(KITTI_SAMPLE, "train", Path(scratch) / "kitti")
             report("KITTI sample", Path(scratch) / "kitti", args.repeats)

@@ -53,7 +53,7 @@ def write_mmdet3d_dbinfos(kitti_sample: Path, root: Path) -> Path:
 
     import numpy as np
 
-    from drcpo import safe_pickle
+    from drcpo.database import safe_pickle
 
     (root / "kitti_gt_database").mkdir(parents=True)
     (root / "training").mkdir(exist_ok=True)

@@ -11,10 +11,9 @@ import pytest
 from conftest import random_boxes
 from typer.testing import CliRunner
 
-from drcpo import safe_pickle
 from drcpo.cli import app
-from drcpo.database import GroundTruthDatabase
-from drcpo.database_build import (
+from drcpo.database import GroundTruthDatabase, safe_pickle
+from drcpo.database.build import (
     DEFAULT_CLASSES,
     build_database,
     frame_records,

@@ -50,7 +50,7 @@ frame = Frame(np.column_stack([xyz, rng.uniform(0, 1, 5000)]).astype(np.float32)
 """
 
 KITTI_SETUP = """
-from drcpo.database_build import build_database
+from drcpo.database.build import build_database
 from drcpo.datasets.kitti import KittiDataset
 from drcpo.index import IndexConfig, build_index
 root, out = sys.argv[1], sys.argv[2]

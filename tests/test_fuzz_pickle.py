@@ -24,8 +24,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from test_safe_pickle import assert_same_tree
 
-from drcpo import safe_pickle
-from drcpo.database_build import validate_dbinfos
+from drcpo.database import safe_pickle
+from drcpo.database.build import validate_dbinfos
 from drcpo.errors import DataError
 
 SOURCE = "fuzz.pkl"

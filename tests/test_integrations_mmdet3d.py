@@ -57,7 +57,7 @@ DefaultScope.get_instance("drcpo-mmdet3d-tests", scope_name="mmdet3d")
 @pytest.fixture(scope="module")
 def drcpo_db(tmp_path_factory):
     """drcpo's database of the sample, from its OpenPCDet dbinfos, indexed with a small K."""
-    from drcpo.database_build import import_openpcdet
+    from drcpo.database.build import import_openpcdet
     from drcpo.index import IndexConfig, build_index
 
     out = tmp_path_factory.mktemp("mm") / "drcpo_db"

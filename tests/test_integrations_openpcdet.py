@@ -59,7 +59,7 @@ SEED = 666
 @pytest.fixture(scope="module")
 def drcpo_db(tmp_path_factory):
     """drcpo's database of the sample, from OpenPCDet's own dbinfos (as the README says)."""
-    from drcpo.database_build import import_openpcdet
+    from drcpo.database.build import import_openpcdet
     from drcpo.index import IndexConfig, build_index
 
     out = tmp_path_factory.mktemp("pcdet") / "drcpo_db"

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from drcpo import safe_pickle
+from drcpo.database import safe_pickle
 from drcpo.datasets.kitti import (
     DEFAULT_IMAGE_SHAPE,
     Calibration,

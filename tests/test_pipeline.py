@@ -486,7 +486,7 @@ _KITTI_CACHE: dict = {}
 def kitti_world(kitti_sample, tmp_path_factory):
     """The database built from the real KITTI sample, its index, and its frames (camera FOV)."""
     if not _KITTI_CACHE:
-        from drcpo.database_build import build_database
+        from drcpo.database.build import build_database
         from drcpo.datasets.kitti import KittiDataset, fov_mask
         from drcpo.index import IndexConfig, build_index
 

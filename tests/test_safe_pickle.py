@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drcpo import safe_pickle
+from drcpo.database import safe_pickle
 from drcpo.errors import DataError
 
 
@@ -133,7 +133,7 @@ BYTEARRAY_BOMB = b"c__builtin__\nbytearray\n(\x8a\x05\x00\x00\x00\x80\x00tR."
 
 _ISOLATED = """
 import resource, sys
-from drcpo import safe_pickle
+from drcpo.database import safe_pickle
 from drcpo.errors import DataError
 
 if sys.argv[2] != "0":  # cap the address space: an allocation bomb fails instead of swapping

@@ -138,7 +138,7 @@ def _class_list(classes: list[str] | None, extra: list[str]) -> list[str] | str:
     if extra and not classes:
         fail(f"unexpected argument(s): {' '.join(extra)}")
     if not classes:
-        from drcpo.database_build import DEFAULT_CLASSES
+        from drcpo.database.build import DEFAULT_CLASSES
 
         return list(DEFAULT_CLASSES)
     names = [name for item in [*classes, *extra] for name in item.split(",") if name]
@@ -162,7 +162,7 @@ def build_db(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
 ) -> None:
     """Build a ground-truth database from a KITTI split."""
-    from drcpo.database_build import build_database
+    from drcpo.database.build import build_database
 
     chosen = _class_list(classes, list(ctx.args))
     with progress_bar(f"frames of {split}") as progress:
@@ -192,7 +192,7 @@ def import_openpcdet_command(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
 ) -> None:
     """Convert an OpenPCDet ground-truth database (dbinfos pickle + gt_database/) to drcpo's."""
-    from drcpo.database_build import import_openpcdet
+    from drcpo.database.build import import_openpcdet
 
     _import_database(import_openpcdet, dbinfos, out, root, overwrite)
 
@@ -209,7 +209,7 @@ def import_mmdet3d_command(
 ) -> None:
     """Convert an MMDetection3D ground-truth database (dbinfos pickle + *_gt_database/; boxes and
     points relative to the bottom centre) to drcpo's."""
-    from drcpo.database_build import import_mmdet3d
+    from drcpo.database.build import import_mmdet3d
 
     _import_database(import_mmdet3d, dbinfos, out, root, overwrite)
 

@@ -156,7 +156,7 @@ def _synthetic_data(run: _Run, root: Path, frames: int, seed: int) -> Path:
 
 
 def _database(run: _Run, root: Path, path: Path) -> GroundTruthDatabase:
-    build, reason = optional("drcpo.database_build", "build_database")
+    build, reason = optional("drcpo.database.build", "build_database")
     with run.stage("database", f"building the ground-truth database {path}"):
         if build is not None:
             return build(root, "train", path, overwrite=True)

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from drcpo import safe_pickle
-from drcpo.database import DATABASE_OUTPUT, GroundTruthDatabase, ObjectRecord
+from drcpo.database import safe_pickle
+from drcpo.database.store import DATABASE_OUTPUT, GroundTruthDatabase, ObjectRecord
 from drcpo.datasets.kitti import (
     DONT_CARE,
     FRAME_ID,
@@ -248,7 +248,7 @@ def import_openpcdet(
 
     Args:
         dbinfos_pkl: OpenPCDet's ``kitti_dbinfos_<split>.pkl``, read through
-            :mod:`drcpo.safe_pickle` (only numpy arrays/scalars/dtypes and builtins).
+            :mod:`drcpo.database.safe_pickle` (only numpy arrays/scalars/dtypes and builtins).
         out: database directory to create (atomically).
         root: data root the ``path`` entries are relative to; default: the pickle's directory.
         overwrite: replace an existing ``out``.
