@@ -65,6 +65,7 @@ def _assert_not_blank(path: Path) -> None:
     assert (grey < 0.5).mean() > 0.001, path
 
 
+# Runs the demo twice, about 10 s on 2 cores: the tests using it are marked slow.
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory):
     base = tmp_path_factory.mktemp("demo")
@@ -74,6 +75,7 @@ def demo_run(tmp_path_factory):
     return base / "out", first, second
 
 
+@pytest.mark.slow
 def test_demo_runs_every_stage_and_writes_non_blank_figures(demo_run):
     out, first, _ = demo_run
     assert first.returncode == 0, first.stdout + first.stderr
@@ -94,6 +96,7 @@ def test_demo_runs_every_stage_and_writes_non_blank_figures(demo_run):
         assert ms[f"{name} per frame"] == pytest.approx(ms[name] / frames)
 
 
+@pytest.mark.slow
 def test_demo_reuses_its_synthetic_frames(demo_run):
     _, first, second = demo_run
     assert second.returncode == 0, second.stdout + second.stderr
@@ -101,6 +104,7 @@ def test_demo_reuses_its_synthetic_frames(demo_run):
     assert "reusing" not in first.stderr
 
 
+@pytest.mark.slow
 def test_a_failing_stage_fails_the_demo_naming_it(demo_run, tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("injected failure")
