@@ -12,9 +12,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 from matplotlib.image import imread
+from typer.testing import CliRunner
 
-from drcpo.demo import inserted_mask, optional
+import drcpo.demo
+from drcpo.cli import app
+from drcpo.demo import inserted_mask
 from drcpo.frame import Frame
+
+#: Every stage of the demo, in order: all of them must run.
+STAGES = [
+    "synthetic world",
+    "database",
+    "candidate index",
+    "ground-truth sampling first call",
+    "ground-truth sampling",
+    "DR.CPO first call",
+    "DR.CPO",
+    "figures",
+    "construction figure",
+]
 
 
 def _drcpo_command() -> list[str]:
@@ -49,6 +65,7 @@ def _assert_not_blank(path: Path) -> None:
     assert (grey < 0.5).mean() > 0.001, path
 
 
+# Runs the demo twice, about 10 s on 2 cores: the tests using it are marked slow.
 @pytest.fixture(scope="module")
 def demo_run(tmp_path_factory):
     base = tmp_path_factory.mktemp("demo")
@@ -58,28 +75,28 @@ def demo_run(tmp_path_factory):
     return base / "out", first, second
 
 
-def test_demo_writes_non_blank_figures(demo_run):
+@pytest.mark.slow
+def test_demo_runs_every_stage_and_writes_non_blank_figures(demo_run):
     out, first, _ = demo_run
     assert first.returncode == 0, first.stdout + first.stderr
     summary = json.loads((out / "summary.json").read_text())
-    assert {"bev", "density"} <= set(summary["figures"])
+    assert summary["stages"] == STAGES
+    assert set(summary["figures"]) == {"bev", "density", "construction"}
     for path in summary["figures"].values():
         _assert_not_blank(Path(path))
     assert "points per frame" in first.stdout and "milliseconds per stage" in first.stdout
-    for stage, reason in summary["skipped"].items():
-        assert "not available" in reason or "skipped" in reason, (stage, reason)
-        assert f"skipped {stage}" in first.stderr.replace("\n", " ")
     assert summary["points_per_frame"]["original"] > 1000
+    assert set(summary["points_per_frame"]) == {"original", "gt sampling", "dr.cpo"}
     assert (out / "kitti" / "training" / "velodyne" / "000001.bin").is_file()
     # the first call (kernels loaded or compiled) is timed apart from the per-frame figures
     ms = summary["ms"]
     for name in ("ground-truth sampling", "DR.CPO"):
-        if name not in summary["skipped"]:
-            frames = summary["augmented_frames"]
-            assert ms[f"{name} first call"] > 0
-            assert ms[f"{name} per frame"] == pytest.approx(ms[name] / frames)
+        frames = summary["augmented_frames"]
+        assert ms[f"{name} first call"] > 0
+        assert ms[f"{name} per frame"] == pytest.approx(ms[name] / frames)
 
 
+@pytest.mark.slow
 def test_demo_reuses_its_synthetic_frames(demo_run):
     _, first, second = demo_run
     assert second.returncode == 0, second.stdout + second.stderr
@@ -87,13 +104,25 @@ def test_demo_reuses_its_synthetic_frames(demo_run):
     assert "reusing" not in first.stderr
 
 
-def test_optional_reports_what_is_missing():
-    value, reason = optional("drcpo.geometry", "box_corners")
-    assert callable(value) and reason is None
-    value, reason = optional("drcpo.geometry", "no_such_function")
-    assert value is None and "no_such_function" in reason
-    value, reason = optional("drcpo.no_such_module", "anything")
-    assert value is None and "drcpo.no_such_module" in reason
+@pytest.mark.slow
+def test_a_failing_stage_fails_the_demo_naming_it(demo_run, tmp_path, monkeypatch):
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected failure")
+
+    monkeypatch.setattr(drcpo.demo.DRCPO, "apply", broken)
+    out = tmp_path / "out"
+    shutil.copytree(demo_run[0] / "kitti", out / "kitti")  # reused: no ray-casting
+    args = ["demo", "--out", str(out), "--frames", "2", "--augment-frames", "1"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 1, result.output
+    text = result.output.strip()
+    assert "Traceback" not in text and isinstance(result.exception, SystemExit), text
+    # one line, last, naming the stage and the cause
+    errors = [line for line in text.splitlines() if line.startswith("error:")]
+    assert errors == [text.splitlines()[-1]], text
+    assert "demo stage 'DR.CPO first call' failed: RuntimeError: injected failure" in errors[0]
+    assert "reusing synthetic frames" in text and "augmenting 1 frames with ground-truth" in text
+    assert not (out / "summary.json").exists()
 
 
 def test_inserted_mask_finds_new_boxes():

@@ -46,6 +46,8 @@ INVALID = (
 )
 VALID = ("float64_points", "int_points", "float16_points", "boxes_8_columns", "big_features")
 TRANSFORMS = ("flip", "rotation", "scaling", "gt_sampling", "drcpo", "cda", "drcpo_pipeline")
+#: Seconds for their 200 cases on 2 cores: left out of the quick subset (``-m "not slow"``).
+SLOW = ("drcpo", "drcpo_pipeline")
 
 
 @pytest.fixture(scope="module")
@@ -192,7 +194,9 @@ def _check_outcome(transform, case, seed: int) -> None:
     assert frame.names.shape == (len(frame.boxes),)
 
 
-@pytest.mark.parametrize("name", TRANSFORMS)
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW else n for n in TRANSFORMS]
+)
 def test_transform_returns_a_valid_frame_or_a_data_error(transforms, name):
     @FUZZ
     @given(case=frames(), seed=st.integers(0, 2**16))

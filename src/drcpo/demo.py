@@ -2,8 +2,9 @@
 
 Stages: synthetic KITTI data (cached under ``OUT/kitti``, reused while its parameters match) ->
 ground-truth database -> candidate index -> augmentation with the conventional baseline
-(ground-truth sampling) and with DR.CPO -> figures and a summary. A stage whose code is not in
-this installation is skipped with a line saying so; nothing else is ever skipped silently.
+(ground-truth sampling) and with DR.CPO -> figures and a summary. Every stage is mandatory: one
+that fails stops the demo with a :class:`DemoError` naming it (``drcpo demo``: one line, exit
+status 1), and the summary's ``stages`` lists the stages that ran, in order.
 
 Figures written under ``OUT``: ``bev.png`` (original / after ground-truth sampling / after
 DR.CPO), ``construction.png`` (one object's iterative construction), ``density.png`` (points
@@ -12,10 +13,9 @@ per object against distance, real against inserted), plus ``summary.json``.
 
 from __future__ import annotations
 
-import importlib
 import json
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -25,15 +25,19 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from drcpo.database import GroundTruthDatabase, ObjectRecord
+from drcpo.construction import ConstructionConfig, construct_object
+from drcpo.database import GroundTruthDatabase, build_database
 from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.errors import DrcpoError
 from drcpo.frame import Frame
-from drcpo.geometry import points_in_boxes, to_canonical
+from drcpo.geometry import points_in_boxes
+from drcpo.index import CandidateIndex, build_index
 from drcpo.outputs import atomic_write_bytes
 from drcpo.partitions import partition_counts
 from drcpo.synth.dataset import matches, synth_parameters, write_synthetic_kitti
 from drcpo.synth.sensor import LidarConfig
 from drcpo.synth.world import WorldConfig
+from drcpo.transforms import DRCPO, GroundTruthSampling, Transform
 from drcpo.viz import (
     BevPanel,
     ConstructionStep,
@@ -49,36 +53,33 @@ MAX_CONSTRUCTION_PANELS = 8
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 
-def optional(module: str, attribute: str) -> tuple[Any, str | None]:
-    """``(module.attribute, None)`` when this installation has it, else ``(None, reason)``."""
-    try:
-        return getattr(importlib.import_module(module), attribute), None
-    except ImportError as exc:
-        return None, f"{module} is not available ({exc})"
-    except AttributeError:
-        return None, f"{module}.{attribute} is not available yet"
+class DemoError(DrcpoError):
+    """A stage of the demo failed; the message names the stage and the cause."""
 
 
 class _Run:
-    """Timings, skipped stages and console output of one demo run."""
+    """Timings, stages run and console output of one demo run."""
 
     def __init__(self, console: Console) -> None:
         self.console = console
         self.ms: dict[str, float] = {}
-        self.skipped: dict[str, str] = {}
+        self.ran: list[str] = []
         self.step = 0
 
     @contextmanager
     def stage(self, name: str, what: str) -> Iterator[None]:
+        """Time stage ``name``; any exception in it becomes a :class:`DemoError` naming it (a
+        bug too: the demo is the end-to-end check, so it must not look like a success)."""
         self.step += 1
         self.console.print(f"[bold cyan][{self.step}][/] {what} ...")
         start = time.perf_counter()
-        yield
+        try:
+            yield
+        except Exception as exc:
+            cause = str(exc) if isinstance(exc, DrcpoError) else f"{type(exc).__name__}: {exc}"
+            raise DemoError(f"demo stage {name!r} failed: {cause}") from exc
         self.ms[name] = self.ms.get(name, 0.0) + (time.perf_counter() - start) * 1e3
-
-    def skip(self, name: str, reason: str) -> None:
-        self.skipped[name] = reason
-        self.console.print(f"[yellow]skipped {name}[/]: {reason}")
+        self.ran.append(name)
 
     def progress(self) -> Progress:
         return Progress(
@@ -115,7 +116,7 @@ def run_demo(
         "seed": seed,
         "augmented_frames": len(originals),
         "ms": run.ms,
-        "skipped": run.skipped,
+        "stages": run.ran,
         "figures": {k: str(v) for k, v in figures.items()},
         "database": database.summary(),
         "points_per_frame": {
@@ -137,8 +138,9 @@ def run_demo(
 def _synthetic_data(run: _Run, root: Path, frames: int, seed: int) -> Path:
     parameters = synth_parameters(frames, seed, WorldConfig(), LidarConfig(), 0.0)
     if matches(root, parameters):
-        run.console.print(f"[bold cyan][{run.step + 1}][/] reusing synthetic frames in {root}")
         run.step += 1
+        run.console.print(f"[bold cyan][{run.step}][/] reusing synthetic frames in {root}")
+        run.ran.append("synthetic world")
         return root
     with run.stage("synthetic world", f"ray-casting {frames} synthetic frames into {root}"):
         with run.progress() as bar:
@@ -156,42 +158,14 @@ def _synthetic_data(run: _Run, root: Path, frames: int, seed: int) -> Path:
 
 
 def _database(run: _Run, root: Path, path: Path) -> GroundTruthDatabase:
-    build, reason = optional("drcpo.database.build", "build_database")
     with run.stage("database", f"building the ground-truth database {path}"):
-        if build is not None:
-            return build(root, "train", path, overwrite=True)
-        run.console.print(f"    ({reason}; cutting objects with points_in_boxes instead)")
-        records = []
-        for frame in KittiDataset(root, "train"):
-            inside = points_in_boxes(frame.points, frame.boxes)
-            for i, (box, name) in enumerate(zip(frame.boxes, frame.names, strict=True)):
-                records.append(
-                    ObjectRecord(
-                        to_canonical(frame.points[inside[:, i]], box),
-                        str(name),
-                        box,
-                        frame.frame_id or "",
-                        i,
-                        int(frame.metadata["difficulty"][i]),
-                        int(frame.metadata["occlusion"][i]),
-                        float(frame.metadata["truncation"][i]),
-                    )
-                )
-        GroundTruthDatabase.from_records(records).save(
-            path, parameters={"source": "drcpo demo (synthetic)"}, overwrite=True
-        )
-        return GroundTruthDatabase.open(path)
+        return build_database(root, "train", path, overwrite=True)
 
 
-def _index(run: _Run, database: GroundTruthDatabase) -> Any:
-    build, reason = optional("drcpo.index", "build_index")
-    if build is None:
-        run.skip("candidate index", reason or "")
-        return None
+def _index(run: _Run, database: GroundTruthDatabase) -> CandidateIndex:
     with run.stage("candidate index", "indexing candidates (DR.CPO pre-processing)"):
-        index = build(database)
-        if database.path is not None and hasattr(index, "save"):
-            index.save(database.path, overwrite=True)
+        index = build_index(database)
+        index.save(database.path, overwrite=True)
     return index
 
 
@@ -203,51 +177,24 @@ def _fov_frame(dataset: KittiDataset, i: int) -> Frame:
 
 
 def _augment(
-    run: _Run, database: GroundTruthDatabase, index: Any, frames: list[Frame], seed: int
+    run: _Run, database: GroundTruthDatabase, index: CandidateIndex, frames: list[Frame], seed: int
 ) -> dict[str, list[Frame]]:
-    results: dict[str, list[Frame]] = {}
-    sampling, reason = optional("drcpo.pipeline", "GroundTruthSampling")
-    if sampling is None:
-        run.skip("ground-truth sampling", reason or "")
-    else:
-        _try_apply(
-            run,
-            results,
-            "gt sampling",
-            "ground-truth sampling",
-            sampling(database),
-            frames,
-            seed,
-            1,
-        )
-    drcpo, reason = optional("drcpo.pipeline", "DRCPO")
-    if drcpo is None:
-        run.skip("DR.CPO", reason or "")
-    elif index is None:
-        run.skip("DR.CPO", "needs the candidate index, which was skipped")
-    else:
-        _try_apply(run, results, "dr.cpo", "DR.CPO", drcpo(database, index), frames, seed, 2)
-    return results
-
-
-def _try_apply(run: _Run, results: dict, key: str, name: str, transform, frames, seed, stream):
-    """Apply a transform; a module it needs that is not in this installation skips it."""
-    try:
-        results[key] = _apply(run, name, transform, frames, seed, stream)
-    except ImportError as exc:
-        run.ms.pop(name, None)
-        run.skip(name, f"a module it needs is not available yet ({exc})")
+    return {
+        "gt sampling": _apply(
+            run, "ground-truth sampling", GroundTruthSampling(database), frames, seed, 1
+        ),
+        "dr.cpo": _apply(run, "DR.CPO", DRCPO(database, index), frames, seed, 2),
+    }
 
 
 def _apply(
-    run: _Run, name: str, transform: Callable, frames: list[Frame], seed: int, stream: int
+    run: _Run, name: str, transform: Transform, frames: list[Frame], seed: int, stream: int
 ) -> list[Frame]:
     augmented = []
-    if frames:  # loads (or compiles) the kernels and touches the database: timed on its own
-        with run.stage(f"{name} first call", f"warming up {name} (its compiled kernels)"):
-            transform(
-                frames[0], np.random.default_rng(np.random.SeedSequence([seed, stream, 1, 0]))
-            )
+    # Loads (or compiles) the kernels and touches the database: timed on its own. (The demo
+    # always has a frame: KittiDataset refuses an empty split and --augment-frames is >= 1.)
+    with run.stage(f"{name} first call", f"warming up {name} (its compiled kernels)"):
+        transform(frames[0], np.random.default_rng(np.random.SeedSequence([seed, stream, 1, 0])))
     with run.stage(name, f"augmenting {len(frames)} frames with {name}"):
         with run.progress() as bar:
             task = bar.add_task("frames", total=len(frames))
@@ -284,7 +231,7 @@ def _figures(
     run: _Run,
     out: Path,
     database: GroundTruthDatabase,
-    index: Any,
+    index: CandidateIndex,
     originals: list[Frame],
     results: dict[str, list[Frame]],
     seed: int,
@@ -311,19 +258,14 @@ def _figures(
         figures["density"] = density_figure(
             _density_series(database, originals, results), out / "density.png"
         )
-        try:
-            steps = _construction_steps(run, database, index, seed)
-        except ImportError as exc:
-            run.skip("construction figure", f"a module it needs is not available yet ({exc})")
-            steps = None
-        if steps:
-            name, row, steps = steps
-            title = (
-                f"iterative construction of database object {row} ({name}), seen from above\n"
-                "blue: its own points (mirrored); orange: points added from candidates; "
-                "green: share of each column's partitions above the density threshold"
-            )
-            figures["construction"] = construction_figure(steps, out / "construction.png", title)
+    with run.stage("construction figure", "drawing one object's iterative construction"):
+        name, row, steps = _construction_steps(database, index, seed)
+        title = (
+            f"iterative construction of database object {row} ({name}), seen from above\n"
+            "blue: its own points (mirrored); orange: points added from candidates; "
+            "green: share of each column's partitions above the density threshold"
+        )
+        figures["construction"] = construction_figure(steps, out / "construction.png", title)
     for path in figures.values():
         run.console.print(f"    wrote {path}")
     return figures
@@ -367,16 +309,13 @@ def _density_series(
     return series
 
 
-def _construction_steps(run: _Run, database: GroundTruthDatabase, index: Any, seed: int):
-    construct, reason = optional("drcpo.construction", "construct_object")
-    if construct is None or index is None:
-        run.skip("construction figure", reason or "needs the candidate index, which was skipped")
-        return None
-    config_cls, _ = optional("drcpo.construction", "ConstructionConfig")
+def _construction_steps(
+    database: GroundTruthDatabase, index: CandidateIndex, seed: int
+) -> tuple[str, int, list[ConstructionStep]]:
+    """``(class, database row, steps)`` of the construction of one sparse indexed Car."""
     rows = [r for r in database.rows_of_class("Car") if len(index.candidates_of(int(r)))]
-    if not rows or config_cls is None:
-        run.skip("construction figure", "no indexed Car with candidates")
-        return None
+    if not rows:
+        raise DemoError("no Car of the database has candidates in the index (more --frames?)")
     # A sparse (far or occluded) but not empty car shows the filling best.
     rows = sorted(rows, key=lambda r: database.num_points[r])
     sparse = [r for r in rows if database.num_points[r] >= 30] or rows
@@ -386,9 +325,13 @@ def _construction_steps(run: _Run, database: GroundTruthDatabase, index: Any, se
     grid = tuple(index.grids[name])
 
     def build(iterations: int | None):
-        config = config_cls() if iterations is None else config_cls(max_iterations=iterations)
+        config = (
+            ConstructionConfig()
+            if iterations is None
+            else ConstructionConfig(max_iterations=iterations)
+        )
         rng = np.random.default_rng(seed)  # same draws each time: runs share their prefix
-        return construct(database, row, index.candidates_of(row), rng, config, max_counts)
+        return construct_object(database, row, index.candidates_of(row), rng, config, max_counts)
 
     total = build(None).iterations
     shown = np.unique(np.round(np.linspace(0, total, min(total + 1, MAX_CONSTRUCTION_PANELS))))
@@ -446,6 +389,4 @@ def _print_summary(console: Console, summary: dict[str, Any], results: dict) -> 
     for name, row in summary["database"].items():
         database.add_row(name, str(row["objects"]), str(row["points"]))
     out.print(database)
-    for stage, reason in summary["skipped"].items():
-        out.print(f"[yellow]skipped[/] {stage}: {reason}")
     out.print(f"figures: {', '.join(summary['figures'].values())}")
