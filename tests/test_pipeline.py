@@ -708,13 +708,14 @@ def test_same_output_on_one_core_as_on_two(kitti_world, monkeypatch):
     # A data-loader worker pinned to one core runs every step on its own thread; the frame
     # must be the one two threads give.
     import drcpo.pipeline as pipeline_module
-    from drcpo import occlusion
+    from drcpo.occlusion import frame_grid, hpr, scopes
 
     db, index, frames = kitti_world
     transform = DRCPO(db, index)
     two = [transform(frame, np.random.default_rng(30 + i)) for i, frame in enumerate(frames)]
     monkeypatch.setattr(pipeline_module, "_spare_core", lambda: False)
-    monkeypatch.setattr(occlusion, "_check_workers", lambda workers: 1)
+    for module in (hpr, frame_grid, scopes):  # each checks its own workers argument
+        monkeypatch.setattr(module, "_check_workers", lambda workers: 1)
     for i, (frame, out) in enumerate(zip(frames, two, strict=True)):
         one = transform(frame, np.random.default_rng(30 + i))
         np.testing.assert_array_equal(one.points, out.points)
