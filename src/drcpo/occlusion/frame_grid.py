@@ -38,8 +38,8 @@ from drcpo.occlusion.grid import (
     _sort_cells,
 )
 from drcpo.occlusion.hpr import _LOCAL_MAX_CONE, AUTO_REFERENCE_MAX, hidden_point_removal
-from drcpo.occlusion.kernels import _BRUTE_BUDGET, _GROUP_BRUTE_BUDGET
-from drcpo.occlusion.local import _PARALLEL_MIN, _first_cones
+from drcpo.occlusion.kernels import _BRUTE_BUDGET, _GROUP_BRUTE_BUDGET, Scene
+from drcpo.occlusion.local import _NONE_ABSENT, _PARALLEL_MIN, _first_cones
 from drcpo.occlusion.threads import _shared_chunks
 
 __all__ = ["FrameGrid"]
@@ -176,15 +176,7 @@ class FrameGrid:
         inside = np.zeros(self.size, dtype=bool)
         if self.size and len(windows):
             found = np.zeros(self.size, dtype=bool)
-            _window_members(
-                windows,
-                self._azimuth,
-                self._elevation,
-                self._ranges,
-                self._starts,
-                *self._geometry,
-                found,
-            )
+            _window_members(windows, self._scene(self.size, _NONE_ABSENT, self._r_min), found)
             inside[self._order] = found
         return inside
 
@@ -235,14 +227,7 @@ class FrameGrid:
         positions = self._add(rel, ranges)
         absent = np.zeros(n + k, dtype=bool)
         absent[:n] = cleared[self._order]
-        decide = partial(
-            self._verdicts,
-            self._scene(n + k, absent),
-            r_min,
-            2.0 * self.radius - r_min,
-            workers,
-            pool,
-        )
+        decide = partial(self._verdicts, self._scene(n + k, absent, r_min), workers, pool)
         verdicts = decide(n + np.arange(k))
         removed_inserted[positions] = verdicts == _VERDICT_REMOVE
         undecided = positions[verdicts == _VERDICT_UNDECIDED_WITH]
@@ -322,7 +307,7 @@ class FrameGrid:
         cones = _first_cones(ranges, r_min, rho_max)
         sizes = np.diff(offsets)
         allowed = sizes - np.ceil(share * sizes - 1e-9).astype(np.int64)  # visible ones allowed
-        scene = self._scene(n + len(xyz), absent)
+        scene = self._scene(n + len(xyz), absent, r_min)
 
         def kernel(part: np.ndarray) -> None:
             lo, hi = part[0], part[-1] + 1
@@ -331,10 +316,7 @@ class FrameGrid:
                 cones,
                 offsets[lo : hi + 1],
                 allowed[lo:hi],
-                self.radius,
-                *scene,
-                r_min,
-                rho_max,
+                scene,
                 _GROUP_BRUTE_BUDGET,
                 hidden[lo:hi],
             )
@@ -345,9 +327,7 @@ class FrameGrid:
 
     def _verdicts(
         self,
-        scene: tuple,
-        r_min: float,
-        rho_max: float,
+        scene: Scene,
         workers: int,
         pool: ThreadPoolExecutor | None,
         queries: np.ndarray,
@@ -355,39 +335,38 @@ class FrameGrid:
         """:func:`_insertion_verdicts` of the sorted ``queries``, on two threads when worth it."""
         if not len(queries):
             return np.zeros(0, dtype=np.int8)
-        cones = _first_cones(self._ranges[queries], r_min, rho_max)
+        cones = _first_cones(self._ranges[queries], scene.r_min, scene.rho_max)
         parallel = workers > 1 and len(queries) >= (
             _FRAME_PARALLEL_MIN if pool is not None else _PARALLEL_MIN
         )
         parts = np.array_split(np.arange(len(queries)), _FRAME_CHUNKS if parallel else 1)
 
         def kernel(part: np.ndarray) -> np.ndarray:
-            return _insertion_verdicts(
-                queries[part],
-                cones[part],
-                self.size,
-                self.radius,
-                *scene,
-                r_min,
-                rho_max,
-                _BRUTE_BUDGET,
-            )
+            return _insertion_verdicts(queries[part], cones[part], self.size, scene, _BRUTE_BUDGET)
 
         return np.concatenate(_shared_chunks(kernel, parts, pool, start=parallel))
 
-    def _scene(self, count: int, absent: np.ndarray) -> tuple:
-        """The kernels' view of the first ``count`` sorted points, ``absent`` ones skipped."""
+    def _scene(self, count: int, absent: np.ndarray, r_min: float) -> Scene:
+        """The kernels' view of the first ``count`` sorted points, ``absent`` ones skipped;
+        ``r_min``: the least range among them (metres)."""
         used = slice(0, count)
-        return (
-            self._rays[used],
-            self._rel[used],
-            self._ranges[used],
-            self._rho[used],
-            self._elevation[used],
-            self._azimuth[used],
-            self._starts,
-            absent,
-            *self._geometry,
+        origin, size, rows, columns = self._geometry
+        return Scene(
+            rays=self._rays[used],
+            rel=self._rel[used],
+            ranges=self._ranges[used],
+            rho=self._rho[used],
+            elevation=self._elevation[used],
+            azimuth=self._azimuth[used],
+            starts=self._starts,
+            absent=absent,
+            origin=origin,
+            size=size,
+            rows=rows,
+            columns=columns,
+            radius=self.radius,
+            r_min=r_min,
+            rho_max=2.0 * self.radius - r_min,
         )
 
     def _local_applies(self, count: int, r_min: float, r_max: float, method: str) -> bool:

@@ -29,75 +29,14 @@ _WITHOUT_CLEAR, _WITHOUT_HIDDEN, _WITHOUT_VISIBLE, _WITHOUT_UNRESOLVED = range(1
 
 
 @nb.njit(cache=True, nogil=True)
-def _without_state(
-    i,
-    cone,
-    radius,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    r_min,
-    rho_max,
-    s1,
-    s2,
-    t,
-    brutes,
-    brute_budget,
-):
+def _without_state(i, cone, scene, s1, s2, t, brutes, brute_budget):
     """State of sorted frame point ``i`` among the frame's points (first cone ``cone``):
     clear (the plane normal to its ray), hidden, visible (a tilted plane) or unresolved; with
     the full scans made so far and the buffers, as :func:`_decide`."""
-    if _radial_clear(
-        i,
-        cone,
-        _ORIGINALS,
-        radius,
-        rays,
-        rel,
-        ranges,
-        rho,
-        elevation,
-        azimuth,
-        starts,
-        absent,
-        origin,
-        size,
-        rows,
-        columns,
-    ):
+    if _radial_clear(i, cone, _ORIGINALS, scene):
         return _WITHOUT_CLEAR, brutes, s1, s2, t
     state, brutes, s1, s2, t = _decide(
-        i,
-        cone,
-        _ORIGINALS | _CERTIFY,
-        rays,
-        rel,
-        ranges,
-        rho,
-        elevation,
-        azimuth,
-        starts,
-        absent,
-        origin,
-        size,
-        rows,
-        columns,
-        r_min,
-        rho_max,
-        s1,
-        s2,
-        t,
-        brutes,
-        brute_budget,
+        i, cone, _ORIGINALS | _CERTIFY, scene, s1, s2, t, brutes, brute_budget
     )
     if state == _STATE_HIDDEN:
         return _WITHOUT_HIDDEN, brutes, s1, s2, t
@@ -107,33 +46,12 @@ def _without_state(
 
 
 @nb.njit(cache=True, nogil=True)
-def _insertion_verdicts(
-    queries,
-    cones,
-    n_original,
-    radius,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    r_min,
-    rho_max,
-    brute_budget,
-):
-    """e-HPR's inserted scope for the sorted points ``queries`` (first cones ``cones``) on a
-    grid whose cells are sorted by range (``radius``: ``R``): the frame's
-    points (positions below ``n_original``) go when visible without the inserted ones and
-    hidden with them, inserted points when hidden. Per query: keep 0, remove 1, or which
-    verdict it could not settle within ``brute_budget`` full scans: without the inserted
-    points 2, with them 3.
+def _insertion_verdicts(queries, cones, n_original, scene, brute_budget):
+    """e-HPR's inserted scope for the sorted points ``queries`` (first cones ``cones``) of
+    ``scene``, whose cells are sorted by range: the frame's points (positions below
+    ``n_original``) go when visible without the inserted ones and hidden with them, inserted
+    points when hidden. Per query: keep 0, remove 1, or which verdict it could not settle
+    within ``brute_budget`` full scans: without the inserted points 2, with them 3.
 
     A frame point's plane normal to its ray is checked against the frame's points and the
     inserted ones separately, so that one scan of each decides both sets when it fits;
@@ -149,28 +67,7 @@ def _insertion_verdicts(
         cone = cones[slot]
         if i < n_original:
             state, brutes, s1, s2, t = _without_state(
-                i,
-                cone,
-                radius,
-                rays,
-                rel,
-                ranges,
-                rho,
-                elevation,
-                azimuth,
-                starts,
-                absent,
-                origin,
-                size,
-                rows,
-                columns,
-                r_min,
-                rho_max,
-                s1,
-                s2,
-                t,
-                brutes,
-                brute_budget,
+                i, cone, scene, s1, s2, t, brutes, brute_budget
             )
             if state == _WITHOUT_HIDDEN:
                 verdicts[slot] = _VERDICT_KEEP
@@ -179,69 +76,14 @@ def _insertion_verdicts(
                 verdicts[slot] = _VERDICT_UNDECIDED_WITHOUT
                 continue
             # visible without the inserted points: by the radial plane unless they block it
-            if state == _WITHOUT_CLEAR and _radial_clear(
-                i,
-                cone,
-                _INSERTED,
-                radius,
-                rays,
-                rel,
-                ranges,
-                rho,
-                elevation,
-                azimuth,
-                starts,
-                absent,
-                origin,
-                size,
-                rows,
-                columns,
-            ):
+            if state == _WITHOUT_CLEAR and _radial_clear(i, cone, _INSERTED, scene):
                 verdicts[slot] = _VERDICT_KEEP
                 continue
-        elif _radial_clear(
-            i,
-            cone,
-            _BOTH,
-            radius,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-        ):
+        elif _radial_clear(i, cone, _BOTH, scene):
             verdicts[slot] = _VERDICT_KEEP
             continue
         state, brutes, s1, s2, t = _decide(
-            i,
-            cone,
-            _BOTH | _CERTIFY,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            r_min,
-            rho_max,
-            s1,
-            s2,
-            t,
-            brutes,
-            brute_budget,
+            i, cone, _BOTH | _CERTIFY, scene, s1, s2, t, brutes, brute_budget
         )
         if state == _STATE_HIDDEN:
             verdicts[slot] = _VERDICT_REMOVE
@@ -254,27 +96,7 @@ def _insertion_verdicts(
 
 @nb.njit(cache=True, nogil=True)
 def _hidden_groups(
-    position,
-    cones,
-    offsets,
-    allowed,
-    radius,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    r_min,
-    rho_max,
-    brute_budget,
-    hidden,
+    position, cones, offsets, allowed, scene, brute_budget, hidden
 ):  # pragma: no cover - numba
     # FrameGrid.hidden_groups: per group, the samples' radial planes first (cheap, and one
     # visible sample more than ``allowed`` settles the group), then the full test.
@@ -290,24 +112,7 @@ def _hidden_groups(
         blocked = np.empty(hi - lo, dtype=np.int64)
         n_blocked = 0
         for k in range(lo, hi):
-            if _radial_clear(
-                position[k],
-                cones[k],
-                _ORIGINALS,
-                radius,
-                rays,
-                rel,
-                ranges,
-                rho,
-                elevation,
-                azimuth,
-                starts,
-                absent,
-                origin,
-                size,
-                rows,
-                columns,
-            ):
+            if _radial_clear(position[k], cones[k], _ORIGINALS, scene):
                 visible += 1
                 if visible > allowed[m]:
                     break
@@ -319,28 +124,7 @@ def _hidden_groups(
         for b in range(n_blocked):
             k = blocked[b]
             state, brutes, s1, s2, t = _decide(
-                position[k],
-                cones[k],
-                _ORIGINALS | _CERTIFY,
-                rays,
-                rel,
-                ranges,
-                rho,
-                elevation,
-                azimuth,
-                starts,
-                absent,
-                origin,
-                size,
-                rows,
-                columns,
-                r_min,
-                rho_max,
-                s1,
-                s2,
-                t,
-                brutes,
-                brute_budget,
+                position[k], cones[k], _ORIGINALS | _CERTIFY, scene, s1, s2, t, brutes, brute_budget
             )
             if state != _STATE_HIDDEN:
                 visible += 1
@@ -350,13 +134,13 @@ def _hidden_groups(
 
 
 @nb.njit(cache=True, nogil=True)
-def _window_members(
-    windows, azimuth, elevation, ranges, starts, origin, height, rows, columns, out
-):
-    """Mark in ``out`` the sorted points of member set 0 inside any of ``windows`` (see
-    :meth:`FrameGrid.in_windows`; distance: ``ranges``), visiting only the cells each window
-    overlaps, and one more on every side so that rounding in the cell numbers cannot miss a
-    point."""
+def _window_members(windows, scene, out):
+    """Mark in ``out`` the sorted points of member set 0 of ``scene`` inside any of ``windows``
+    (see :meth:`FrameGrid.in_windows`; distance: ``ranges``), visiting only the cells each
+    window overlaps, and one more on every side so that rounding in the cell numbers cannot
+    miss a point."""
+    azimuth, elevation, ranges, starts = scene.azimuth, scene.elevation, scene.ranges, scene.starts
+    origin, height, rows, columns = scene.origin, scene.size, scene.rows, scene.columns
     step = 2.0 * math.pi / columns
     for w in range(windows.shape[0]):
         az0, az1, el0, el1, near = windows[w]

@@ -8,6 +8,7 @@ Imports nothing from drcpo.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -33,6 +34,47 @@ _CERTIFY = 4
 _NO_PLANE = -2
 
 
+class Scene(NamedTuple):
+    """The kernels' view of a point set sorted into a grid of (elevation, azimuth) cells, by cell
+    and, within a cell, by range (one structure instead of a long argument list; numba takes it
+    as a tuple, so its field types must not change between callers).
+
+    Attributes:
+        rays: ``(M, 3)`` unit vectors from the viewpoint, sorted.
+        rel: ``(M, 3)`` coordinates relative to the viewpoint, metres.
+        ranges: ``(M,)`` distances from the viewpoint, metres.
+        rho: ``(M,)`` flipped ranges ``2R - r``, metres.
+        elevation: ``(M,)`` radians.
+        azimuth: ``(M,)`` radians.
+        starts: ``int64 (S, cells + 1)`` first sorted position of each cell, one row per member
+            set (the set itself, or the frame's points then the inserted ones).
+        absent: ``bool (M,)`` points to skip, or empty: none.
+        origin: elevation of the first row's lower edge, radians.
+        size: row height, radians.
+        rows: number of grid rows.
+        columns: number of grid columns (cells ``2 pi / columns`` wide in azimuth).
+        radius: ``R``, metres.
+        r_min: a lower bound of the ranges that may take part, metres.
+        rho_max: ``2R - r_min``, the largest flipped range, metres.
+    """
+
+    rays: np.ndarray
+    rel: np.ndarray
+    ranges: np.ndarray
+    rho: np.ndarray
+    elevation: np.ndarray
+    azimuth: np.ndarray
+    starts: np.ndarray
+    absent: np.ndarray
+    origin: float
+    size: float
+    rows: int
+    columns: int
+    radius: float
+    r_min: float
+    rho_max: float
+
+
 @nb.njit(cache=True, nogil=True)
 def _tangent_basis(ux: float, uy: float, uz: float) -> tuple:
     """Two unit vectors completing the ray ``u`` to an orthonormal basis."""
@@ -48,8 +90,10 @@ def _tangent_basis(ux: float, uy: float, uz: float) -> tuple:
 @nb.njit(cache=True, nogil=True)
 def _cell_range(el, az, reach, origin, size, rows, columns):
     """Grid rows ``row_lo..row_hi`` and ``col_n`` columns from ``col_lo`` (cyclic) holding
-    every ray within ``reach`` radians of the ray at elevation ``el``, azimuth ``az``. Rows are
-    clamped both ways, as points beyond the grid's rows are stored in its edge rows."""
+    every ray within ``reach`` radians of the ray at elevation ``el``, azimuth ``az`` (a
+    scene's grid: ``origin``, ``size``, ``rows``, ``columns``; scalars, not the scene, as its
+    arrays would be reference-counted on every call). Rows are clamped both ways, as points
+    beyond the grid's rows are stored in its edge rows."""
     if reach >= _BRUTE_ANGLE:
         return 0, rows - 1, 0, columns
     row_lo = min(rows - 1, max(0, math.floor((el - reach - origin) / size)))
@@ -81,75 +125,20 @@ def _row_runs(starts, member, row, col_lo, col_n, columns):
 
 
 @nb.njit(cache=True, nogil=True)
-def _radial_pass(
-    todo,
-    first_cone,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-):
+def _radial_pass(todo, first_cone, scene):
     """``bool`` per point of ``todo``: visible by the plane normal to its ray (the pre-filter);
     ``False`` means undecided."""
     empty = np.empty(0)
     settled = np.empty(todo.shape[0], dtype=np.bool_)
     for slot in range(todo.shape[0]):
         i = todo[slot]
-        found = _gather(
-            i,
-            first_cone[i],
-            True,
-            _ORIGINALS,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            empty,
-            empty,
-            empty,
-        )
+        found = _gather(i, first_cone[i], True, _ORIGINALS, scene, empty, empty, empty)
         settled[slot] = found >= 0
     return settled
 
 
 @nb.njit(cache=True, nogil=True)
-def _gather(
-    i,
-    cone,
-    radial_only,
-    members,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    out_s1,
-    out_s2,
-    out_t,
-):
+def _gather(i, cone, radial_only, members, scene, out_s1, out_s2, out_t):
     """Constraints from the points within ``cone`` radians of point ``i``'s ray.
 
     A plane through flipped point ``i`` with normal ``u_i + a e1 + b e2`` has flipped point
@@ -164,30 +153,36 @@ def _gather(
     sum to zero with positive weights while their ``t_j - slack`` do not, so no ``(a, b)``
     meets all constraints (Farkas) and the point is hidden.
     """
-    ux, uy, uz = rays[i, 0], rays[i, 1], rays[i, 2]
+    ux, uy, uz = scene.rays[i, 0], scene.rays[i, 1], scene.rays[i, 2]
     e1x, e1y, e1z, e2x, e2y, e2z = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     if not radial_only:
         e1x, e1y, e1z, e2x, e2y, e2z = _tangent_basis(ux, uy, uz)
-    ri = ranges[i]
+    ri = scene.ranges[i]
     reach = min(cone * (1.0 + 1e-9) + 1e-12, math.pi)
     half = math.sin(reach / 2.0)
     chord2 = 4.0 * half * half * (1.0 + 1e-12) + 1e-300
     if reach >= math.pi:
         chord2 = 5.0
-    masked = absent.shape[0] > 0
+    masked = scene.absent.shape[0] > 0
     near = np.empty(64, dtype=np.int64)
     certify = members & _CERTIFY != 0
     quadrants = 0
     capacity = out_t.shape[0]
     count = 0
     row_lo, row_hi, col_lo, col_n = _cell_range(
-        elevation[i], azimuth[i], reach, origin, size, rows, columns
+        scene.elevation[i],
+        scene.azimuth[i],
+        reach,
+        scene.origin,
+        scene.size,
+        scene.rows,
+        scene.columns,
     )
-    for member in range(starts.shape[0]):
+    for member in range(scene.starts.shape[0]):
         if not members & (1 << member):
             continue
         for row in range(row_lo, row_hi + 1):
-            lo0, hi0, lo1, hi1 = _row_runs(starts, member, row, col_lo, col_n, columns)
+            lo0, hi0, lo1, hi1 = _row_runs(scene.starts, member, row, col_lo, col_n, scene.columns)
             for run in range(2):
                 lo, hi = (lo0, hi0) if run == 0 else (lo1, hi1)
                 if hi - lo > near.shape[0]:
@@ -196,27 +191,27 @@ def _gather(
                 # only those.
                 found = 0
                 for j in range(lo, hi):
-                    dx = rays[j, 0] - ux
-                    dy = rays[j, 1] - uy
-                    dz = rays[j, 2] - uz
+                    dx = scene.rays[j, 0] - ux
+                    dy = scene.rays[j, 1] - uy
+                    dz = scene.rays[j, 2] - uz
                     near[found] = j
                     found += dx * dx + dy * dy + dz * dz <= chord2
                 for f in range(found):
                     j = near[f]
-                    if j == i or (masked and absent[j]):
+                    if j == i or (masked and scene.absent[j]):
                         continue
-                    dx = rays[j, 0] - ux
-                    dy = rays[j, 1] - uy
-                    dz = rays[j, 2] - uz
+                    dx = scene.rays[j, 0] - ux
+                    dy = scene.rays[j, 1] - uy
+                    dz = scene.rays[j, 2] - uz
                     d2 = dx * dx + dy * dy + dz * dz
                     if (
                         d2 == 0.0
-                        and rel[j, 0] == rel[i, 0]
-                        and rel[j, 1] == rel[i, 1]
-                        and rel[j, 2] == rel[i, 2]
+                        and scene.rel[j, 0] == scene.rel[i, 0]
+                        and scene.rel[j, 1] == scene.rel[i, 1]
+                        and scene.rel[j, 2] == scene.rel[i, 2]
                     ):
                         continue  # an exact duplicate (equal points have equal rays)
-                    t = 0.5 * d2 - (ri - ranges[j]) / rho[j]
+                    t = 0.5 * d2 - (ri - scene.ranges[j]) / scene.rho[j]
                     if radial_only:
                         if t <= _SLACK:
                             return -1
@@ -248,50 +243,11 @@ def _quadrant(s1, s2):
 
 
 @nb.njit(cache=True, nogil=True)
-def _gather_grown(
-    i,
-    cone,
-    members,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    s1,
-    s2,
-    t,
-):
+def _gather_grown(i, cone, members, scene, s1, s2, t):
     """:func:`_gather` into buffers that are replaced by larger ones until every constraint
     fits; returns the count and the (possibly new) buffers."""
     while True:
-        count = _gather(
-            i,
-            cone,
-            False,
-            members,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            s1,
-            s2,
-            t,
-        )
+        count = _gather(i, cone, False, members, scene, s1, s2, t)
         if count <= t.shape[0]:
             return count, s1, s2, t
         s1 = np.empty(2 * count)
@@ -376,30 +332,7 @@ def _danger_cone(alpha_tan, ri, r_min, rho_max):
 
 
 @nb.njit(cache=True, nogil=True)
-def _decide(
-    i,
-    first_cone,
-    members,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    r_min,
-    rho_max,
-    s1,
-    s2,
-    t,
-    brutes,
-    brute_budget,
-):
+def _decide(i, first_cone, members, scene, s1, s2, t, brutes, brute_budget):
     """State (hidden 0, visible 1, unresolved 2) of sorted point ``i`` among the member sets
     ``members``, which the plane normal to its ray leaves undecided (see :func:`_radial_pass`).
     Returns it with the full scans made so far and the (possibly grown) buffers.
@@ -408,32 +341,13 @@ def _decide(
     hidden); visible by the least tilted plane whose danger cone the neighbourhood covers.
     ``members`` may hold the :data:`_CERTIFY` bit (see :func:`_gather`).
     """
-    ri = ranges[i]
+    ri = scene.ranges[i]
     cone = max(_FIRST_WIDENING * first_cone, 1e-6)
     # A narrow neighbourhood first: the points hiding a hidden point are usually its
     # nearest, and the full one can hold many times more.
     probe = _PROBE_NARROWING * first_cone
     if probe > 1e-6:
-        count, s1, s2, t = _gather_grown(
-            i,
-            probe,
-            members,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            s1,
-            s2,
-            t,
-        )
+        count, s1, s2, t = _gather_grown(i, probe, members, scene, s1, s2, t)
         if count == _NO_PLANE or _min_tilt(s1, s2, t, count)[0] == 0:
             return _STATE_HIDDEN, brutes, s1, s2, t
     while True:
@@ -443,26 +357,7 @@ def _decide(
                 return _STATE_UNRESOLVED, brutes, s1, s2, t
             brutes += 1
             cone = math.pi
-        count, s1, s2, t = _gather_grown(
-            i,
-            cone,
-            members,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            s1,
-            s2,
-            t,
-        )
+        count, s1, s2, t = _gather_grown(i, cone, members, scene, s1, s2, t)
         if count == _NO_PLANE:
             return _STATE_HIDDEN, brutes, s1, s2, t
         status, a, b = _min_tilt(s1, s2, t, count)
@@ -470,32 +365,14 @@ def _decide(
             return _STATE_HIDDEN, brutes, s1, s2, t
         if everything:
             return _STATE_VISIBLE, brutes, s1, s2, t
-        alpha, gamma = _danger_cone(math.sqrt(a * a + b * b), ri, r_min, rho_max)
+        alpha, gamma = _danger_cone(math.sqrt(a * a + b * b), ri, scene.r_min, scene.rho_max)
         if alpha + gamma <= cone * (1.0 - 1e-9):
             return _STATE_VISIBLE, brutes, s1, s2, t
         cone = max(2.0 * cone, 1.05 * (alpha + gamma))
 
 
 @nb.njit(cache=True, nogil=True)
-def _classify(
-    todo,
-    first_cone,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-    r_min,
-    rho_max,
-    brute_budget,
-):
+def _classify(todo, first_cone, scene, brute_budget):
     """States (hidden 0, visible 1, unresolved 2) of the sorted points ``todo``, which the
     plane normal to their ray leaves undecided (see :func:`_radial_pass`); at most
     ``brute_budget`` full scans, the points that need more are left unresolved."""
@@ -507,79 +384,48 @@ def _classify(
     for slot in range(todo.shape[0]):
         i = todo[slot]
         state[slot], brutes, s1, s2, t = _decide(
-            i,
-            first_cone[i],
-            _ORIGINALS,
-            rays,
-            rel,
-            ranges,
-            rho,
-            elevation,
-            azimuth,
-            starts,
-            absent,
-            origin,
-            size,
-            rows,
-            columns,
-            r_min,
-            rho_max,
-            s1,
-            s2,
-            t,
-            brutes,
-            brute_budget,
+            i, first_cone[i], _ORIGINALS, scene, s1, s2, t, brutes, brute_budget
         )
     return state
 
 
 @nb.njit(cache=True, nogil=True)
-def _radial_clear(
-    i,
-    cone,
-    members,
-    radius,
-    rays,
-    rel,
-    ranges,
-    rho,
-    elevation,
-    azimuth,
-    starts,
-    absent,
-    origin,
-    size,
-    rows,
-    columns,
-):
+def _radial_clear(i, cone, members, scene):
     """Whether no point of the member sets blocks the plane through sorted point ``i`` normal
-    to its ray, within its first cone ``cone`` (:func:`_gather`'s radial test; ``radius``:
-    ``R``), on cells sorted by range.
+    to its ray, within its first cone ``cone`` (:func:`_gather`'s radial test), on cells
+    sorted by range.
 
     A point ``j`` blocks it when ``2 sin^2(theta / 2) <= (r_i - r_j) / (2R - r_j) + slack``
     (``theta``: the angle between the rays), so none farther than ``r_i + 4 slack R`` does:
     each cell is read only up to the first such point.
     """
-    ux, uy, uz = rays[i, 0], rays[i, 1], rays[i, 2]
-    ri = ranges[i]
-    limit = ri + 4.0 * _SLACK * radius
+    ux, uy, uz = scene.rays[i, 0], scene.rays[i, 1], scene.rays[i, 2]
+    ri = scene.ranges[i]
+    limit = ri + 4.0 * _SLACK * scene.radius
     reach = min(cone * (1.0 + 1e-9) + 1e-12, math.pi)
     half = math.sin(reach / 2.0)
     chord2 = 4.0 * half * half * (1.0 + 1e-12) + 1e-300
     if reach >= math.pi:
         chord2 = 5.0
     row_lo, row_hi, col_lo, col_n = _cell_range(
-        elevation[i], azimuth[i], reach, origin, size, rows, columns
+        scene.elevation[i],
+        scene.azimuth[i],
+        reach,
+        scene.origin,
+        scene.size,
+        scene.rows,
+        scene.columns,
     )
-    first = (col_lo % columns + columns) % columns
-    masked = absent.shape[0] > 0
+    first = (col_lo % scene.columns + scene.columns) % scene.columns
+    masked = scene.absent.shape[0] > 0
     # Cells from the query's own outwards: a blocker, when there is one, usually lies right
     # next to the query's ray, and the answer does not depend on the order.
     n_rows = row_hi - row_lo + 1
-    own_row = min(max(math.floor((elevation[i] - origin) / size), row_lo), row_hi) - row_lo
-    own_k = math.floor((azimuth[i] + math.pi) / (2.0 * math.pi / columns)) - col_lo
+    own_row = math.floor((scene.elevation[i] - scene.origin) / scene.size)
+    own_row = min(max(own_row, row_lo), row_hi) - row_lo
+    own_k = math.floor((scene.azimuth[i] + math.pi) / (2.0 * math.pi / scene.columns)) - col_lo
     own_k = min(max(own_k, 0), col_n - 1)
-    for member in range(starts.shape[0]):
+    for member in range(scene.starts.shape[0]):
         if not members & (1 << member):
             continue
         for a in range(2 * n_rows):
@@ -592,27 +438,27 @@ def _radial_clear(
                 if k < 0 or k >= col_n:
                     continue
                 column = first + k
-                if column >= columns:
-                    column -= columns
-                cell = row * columns + column
-                for j in range(starts[member, cell], starts[member, cell + 1]):
-                    if ranges[j] > limit:
+                if column >= scene.columns:
+                    column -= scene.columns
+                cell = row * scene.columns + column
+                for j in range(scene.starts[member, cell], scene.starts[member, cell + 1]):
+                    if scene.ranges[j] > limit:
                         break
                     if j == i:
                         continue
-                    dx = rays[j, 0] - ux
-                    dy = rays[j, 1] - uy
-                    dz = rays[j, 2] - uz
+                    dx = scene.rays[j, 0] - ux
+                    dy = scene.rays[j, 1] - uy
+                    dz = scene.rays[j, 2] - uz
                     d2 = dx * dx + dy * dy + dz * dz
-                    if d2 > chord2 or (masked and absent[j]):
+                    if d2 > chord2 or (masked and scene.absent[j]):
                         continue
                     if (
                         d2 == 0.0
-                        and rel[j, 0] == rel[i, 0]
-                        and rel[j, 1] == rel[i, 1]
-                        and rel[j, 2] == rel[i, 2]
+                        and scene.rel[j, 0] == scene.rel[i, 0]
+                        and scene.rel[j, 1] == scene.rel[i, 1]
+                        and scene.rel[j, 2] == scene.rel[i, 2]
                     ):
                         continue  # an exact duplicate
-                    if 0.5 * d2 - (ri - ranges[j]) / rho[j] <= _SLACK:
+                    if 0.5 * d2 - (ri - scene.ranges[j]) / scene.rho[j] <= _SLACK:
                         return False
     return True

@@ -15,6 +15,7 @@ from drcpo.occlusion.kernels import (
     _STATE_HIDDEN,
     _STATE_UNRESOLVED,
     _STATE_VISIBLE,
+    Scene,
     _classify,
     _radial_pass,
 )
@@ -50,11 +51,7 @@ def _local_grid(setup: _Setup) -> _Grid:
     return _build_grid(setup.rays, _first_cones(setup.ranges, r_min, 2.0 * setup.radius - r_min))
 
 
-# The kernels' view of a point set, ``scene``: sorted rays, rel, ranges, flipped ranges,
-# elevation, azimuth, ``starts`` (one row of cell starts per member set: the set itself, or the
-# frame's points then inserted ones) and ``absent`` (points to skip; empty: none), then the
-# grid geometry (origin, row height, rows, columns).
-_NONE_ABSENT = np.zeros(0, dtype=bool)
+_NONE_ABSENT = np.zeros(0, dtype=bool)  # a Scene's ``absent`` when no point is skipped
 
 
 class _LocalState:
@@ -64,18 +61,16 @@ class _LocalState:
         setup: the set-up.
         order: ``(M,)`` set-up index of each sorted position.
         first_cone: ``(M,)`` sorted first cones, radians.
-        scene: the kernels' view of the sorted points (see ``_NONE_ABSENT``).
-        bounds: ``(r_min, rho_max)``.
+        scene: the kernels' view of the sorted points.
     """
 
     def __init__(
-        self, setup: _Setup, order: np.ndarray, first_cone: np.ndarray, scene: tuple, bounds
+        self, setup: _Setup, order: np.ndarray, first_cone: np.ndarray, scene: Scene
     ) -> None:
         self.setup = setup
         self.order = order
         self.first_cone = first_cone
         self.scene = scene
-        self.bounds = bounds
 
     @property
     def size(self) -> int:
@@ -84,7 +79,7 @@ class _LocalState:
     @property
     def starts(self) -> np.ndarray:
         """``(cells + 1,)`` first sorted position of each grid cell."""
-        return self.scene[6][0]
+        return self.scene.starts[0]
 
     @classmethod
     def build(cls, setup: _Setup) -> _LocalState:
@@ -95,39 +90,38 @@ class _LocalState:
         grid = _build_grid(setup.rays, first_cone)
         order = grid.order
         sorted_ranges = np.ascontiguousarray(ranges[order])
-        scene = (
-            setup.rays.take(order, axis=0),  # take: much faster than fancy indexing of rows
-            setup.rel.take(order, axis=0),
-            sorted_ranges,
-            2.0 * radius - sorted_ranges,
-            grid.elevation,
-            grid.azimuth,
-            grid.starts[None],
-            _NONE_ABSENT,
-            grid.origin,
-            grid.size,
-            grid.rows,
-            grid.columns,
+        scene = Scene(
+            rays=setup.rays.take(order, axis=0),  # take: much faster than fancy indexing
+            rel=setup.rel.take(order, axis=0),
+            ranges=sorted_ranges,
+            rho=2.0 * radius - sorted_ranges,
+            elevation=grid.elevation,
+            azimuth=grid.azimuth,
+            starts=grid.starts[None],
+            absent=_NONE_ABSENT,
+            origin=grid.origin,
+            size=grid.size,
+            rows=grid.rows,
+            columns=grid.columns,
+            radius=radius,
+            r_min=r_min,
+            rho_max=rho_max,
         )
-        return cls(setup, order, first_cone[order], scene, (r_min, rho_max))
+        return cls(setup, order, first_cone[order], scene)
 
     def visible(self, wanted: np.ndarray, workers: int) -> np.ndarray:
         """Visible flags ``(M,)`` of the set-up's points (``False`` where not wanted)."""
         order, scene, cones = self.order, self.scene, self.first_cone
         todo = np.flatnonzero(wanted[order])
         parts = workers if len(todo) >= _PARALLEL_MIN else 1
-        settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, cones, *scene), todo, parts))
+        settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, cones, scene), todo, parts))
         pending = todo[~settled]
         visible_sorted = np.zeros(self.size, dtype=bool)
         visible_sorted[todo[settled]] = True
         if len(pending):
             parts = workers if len(pending) >= _PARALLEL_MIN // 8 else 1
             state = np.concatenate(
-                _in_threads(
-                    lambda c: _classify(c, cones, *scene, *self.bounds, _BRUTE_BUDGET),
-                    pending,
-                    parts,
-                )
+                _in_threads(lambda c: _classify(c, cones, scene, _BRUTE_BUDGET), pending, parts)
             )
             unresolved = state == _STATE_UNRESOLVED
             if unresolved.any():
@@ -143,9 +137,7 @@ def _resolve_unresolved(unresolved: np.ndarray, state: _LocalState) -> np.ndarra
     they are few, else (and for any the scan cannot settle) one reference hull."""
     verdicts = np.full(len(unresolved), _STATE_UNRESOLVED, dtype=np.int64)
     if len(unresolved) <= 4 * _BRUTE_BUDGET:
-        verdicts = _classify(
-            unresolved, state.first_cone, *state.scene, *state.bounds, len(unresolved) + 1
-        )
+        verdicts = _classify(unresolved, state.first_cone, state.scene, len(unresolved) + 1)
     left = verdicts == _STATE_UNRESOLVED
     if left.any():
         distinct, inverse = state.setup.distinct()
