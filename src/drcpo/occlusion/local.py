@@ -33,8 +33,9 @@ def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
 
 def _first_cones(ranges: np.ndarray, r_min: float, rho_max: float) -> np.ndarray:
     """Radius (radians) of the neighbourhood that can cross the plane normal to the ray of a
-    point at each of ``ranges`` (module doc), for any set whose ranges are at least ``r_min``
-    (a lower ``r_min`` only widens the cones). In place: no temporary per step."""
+    point at each of ``ranges`` (see :mod:`~drcpo.occlusion.hpr`), for any set whose ranges are
+    at least ``r_min`` (a lower ``r_min`` only widens the cones). In place: no temporary per
+    step."""
     cone = np.subtract(ranges, r_min)
     cone /= rho_max
     np.clip(cone, 0, 2, out=cone)
