@@ -13,9 +13,9 @@ and, for the record, each of our methods on its own (``reference`` = one Qhull h
 (Jaccard index). Without the fixtures it runs on a sweep of drcpo's synthetic LiDAR world.
 
 Objects (s-HPR): on the object fixtures (``object*.npz``, else synthetic box-shaped objects) it
-times ``method="reference"`` as s-HPR runs it (:mod:`drcpo.hull`'s certified hull) against the
-plain Qhull hull, interleaved, in CPU milliseconds per object, and checks that both give the
-same points (and the fixture's).
+times ``method="reference"`` as s-HPR runs it (:mod:`drcpo.occlusion.hull`'s certified hull)
+against the plain Qhull hull, interleaved, in CPU milliseconds per object, and checks that both
+give the same points (and the fixture's).
 
 Usage::
 
@@ -39,8 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drcpo import occlusion
-from drcpo.occlusion import hidden_point_removal
+from drcpo.occlusion import hidden_point_removal, hpr
 
 DEFAULT_FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "hpr"
 VARIANTS = {
@@ -209,18 +208,18 @@ def bench_objects(objects: list[dict], repeats: int) -> dict:
             for o in objects
         ]
 
-    kernel_max = occlusion.HULL_KERNEL_MAX
+    kernel_max = hpr.HULL_KERNEL_MAX
     samples: dict[str, list[float]] = {"certified": [], "qhull": []}
     answers = {}
     try:
         for _ in range(repeats):  # interleaved, so both see the same machine load
             for label, limit in (("certified", kernel_max), ("qhull", 0)):
-                occlusion.HULL_KERNEL_MAX = limit
+                hpr.HULL_KERNEL_MAX = limit
                 start = time.process_time()
                 answers[label] = run_all()
                 samples[label].append((time.process_time() - start) * 1e3 / len(objects))
     finally:
-        occlusion.HULL_KERNEL_MAX = kernel_max
+        hpr.HULL_KERNEL_MAX = kernel_max
     certified, qhull = (statistics.median(samples[k]) for k in ("certified", "qhull"))
     return {
         "objects": len(objects),

@@ -1,5 +1,5 @@
-"""Tests for drcpo.hull: the certified HPR hull against Qhull (and Open3D's fixtures), its
-handling of copies, and the inputs it leaves to the general path."""
+"""Tests for drcpo.occlusion.hull: the certified HPR hull against Qhull (and Open3D's
+fixtures), its handling of copies, and the inputs it leaves to the general path."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, QhullError
 
-from drcpo.hull import hpr_hull_visible
+from drcpo.occlusion.hull import hpr_hull_visible
 
 ORIGIN = np.zeros(3)
 

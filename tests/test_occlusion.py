@@ -1,5 +1,6 @@
-"""Tests for drcpo.occlusion: HPR against Open3D's answers, the fast paths against the plain
-one, awkward inputs, forked workers, s-HPR / e-HPR presets and the range-image mode."""
+"""Tests for drcpo.occlusion (hpr, scopes, frame_grid, zbuffer's range image): HPR against
+Open3D's answers, the fast paths against the plain one, awkward inputs, forked workers, s-HPR /
+e-HPR presets and the range-image mode."""
 
 from __future__ import annotations
 
@@ -21,7 +22,10 @@ from drcpo.occlusion import (
     HPR_PRESETS,
     azimuth_focus,
     external_occlusion,
+    frame_grid,
     hidden_point_removal,
+    hpr,
+    local,
     range_image_occlusion,
     self_occlusion,
 )
@@ -112,7 +116,7 @@ def test_frame_fixture_through_external_occlusion_preset(hpr_fixtures):
 @pytest.mark.parametrize("seed", range(6))
 def test_fast_paths_equal_reference_on_random_scenes(seed, monkeypatch):
     # small sectors, so that scenes of a few thousand points are split into many
-    monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 300)
+    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)
     rng = np.random.default_rng(seed)
     points = street_scene(rng, int(rng.integers(1500, 4000)), fov=[None, 0.8][seed % 2])
     radius = [1e3, 1e4, 1e5, 3e5, 1e6, 1e9][seed]
@@ -143,7 +147,7 @@ def test_local_equals_reference_on_random_clouds(seed, count, log_ratio):
 @pytest.mark.parametrize("seed", range(4))
 def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
     # integer lattices: duplicates, points on one ray, many coplanar quadruples
-    monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 60)
+    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 60)
     rng = np.random.default_rng(100 + seed)
     for trial in range(25):
         points = rng.integers(-6, 7, size=(int(rng.integers(4, 400)), 3)).astype(float)
@@ -160,7 +164,7 @@ def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
 
 @pytest.mark.parametrize("method", ALL_METHODS)
 def test_invariant_to_point_order(method, monkeypatch):
-    monkeypatch.setattr(occlusion, "_SECTOR_POINTS", 300)
+    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)
     rng = np.random.default_rng(7)
     points = street_scene(rng, 3000)
     first = hidden_point_removal(points, (0, 0, 1.0), 3e5, method=method)
@@ -350,16 +354,16 @@ def test_objects_take_the_certified_hull_with_qhull_s_answer(method, monkeypatch
         copies = points[rng.integers(0, len(points), 5)]  # exact duplicates
         jobs.append((np.vstack([points, copies]).astype(np.float32), box))
     answered = []
-    real = occlusion.hpr_hull_visible
+    real = hpr.hpr_hull_visible
 
     def spy(*args, **kwargs):
         answered.append(real(*args, **kwargs) is not None)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(occlusion, "hpr_hull_visible", spy)
+    monkeypatch.setattr(hpr, "hpr_hull_visible", spy)
     got = [self_occlusion(points, box, method=method) for points, box in jobs]
     assert len(answered) == len(jobs) and sum(answered) >= len(jobs) - 1
-    monkeypatch.setattr(occlusion, "hpr_hull_visible", lambda *args, **kwargs: None)
+    monkeypatch.setattr(hpr, "hpr_hull_visible", lambda *args, **kwargs: None)
     for (points, box), mask in zip(jobs, got, strict=True):
         np.testing.assert_array_equal(mask, self_occlusion(points, box, method=method))
 
@@ -453,7 +457,7 @@ def test_range_image_beams_and_modes():
 
 
 def test_counting_sort_is_the_stable_argsort(rng):
-    from drcpo.occlusion import _counting_sort
+    from drcpo.occlusion.grid import _counting_sort
 
     for size, cells in ((0, 3), (1, 1), (500, 7), (5000, 900)):
         cell = rng.integers(0, cells, size)
@@ -463,7 +467,7 @@ def test_counting_sort_is_the_stable_argsort(rng):
 
 
 def test_distinct_without_duplicates_is_the_same_setup(rng):
-    from drcpo.occlusion import _Setup
+    from drcpo.occlusion.flip import _Setup
 
     xyz = rng.normal(size=(200, 3)) + 5.0
     setup = _Setup.build(xyz, np.zeros(3), 1000.0)
@@ -749,7 +753,8 @@ def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
     is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
     behind_points = np.concatenate([behind[~cleared], np.zeros(len(inserted), bool)])
     expected = _two_passes(points, is_inserted, behind_points, np.zeros(3), radius)
-    monkeypatch.setattr(occlusion, "_BRUTE_BUDGET", 0)  # every full scan is refused
+    for module in (frame_grid, local):  # every full scan is refused
+        monkeypatch.setattr(module, "_BRUTE_BUDGET", 0)
     settled = []
     undecided = FrameGrid._undecided
     monkeypatch.setattr(FrameGrid, "_undecided", lambda *a: settled.append(1) or undecided(*a))
@@ -815,14 +820,14 @@ def _tiny_sphere(rng: np.random.Generator, count: int, radius: float = 0.1) -> n
 def _no_per_point_test(monkeypatch) -> None:
     """Fail if the per-point test runs on more than a few points (a degenerate hull's
     fallback may run it on the distinct points)."""
-    original = occlusion._LocalState.visible
+    original = hpr._LocalState.visible
 
     def refuse(self, *args):
         if self.size > 100:
             raise AssertionError(f"the per-point test ran on {self.size} crowded points")
         return original(self, *args)
 
-    monkeypatch.setattr(occlusion._LocalState, "visible", refuse)
+    monkeypatch.setattr(hpr._LocalState, "visible", refuse)
 
 
 @pytest.mark.parametrize(
@@ -862,9 +867,9 @@ def test_auto_keeps_the_per_point_test_on_lidar_like_frames(rng, monkeypatch):
         ]
     )
     calls = []
-    original = occlusion._LocalState.visible
+    original = hpr._LocalState.visible
     monkeypatch.setattr(
-        occlusion._LocalState,
+        hpr._LocalState,
         "visible",
         lambda self, *args: calls.append(self.size) or original(self, *args),
     )
@@ -876,9 +881,9 @@ def test_copies_under_a_radius_too_large_for_a_hull_are_decided_once_each(monkey
     # R / range above 1e7: no hull; the per-point test runs on the one distinct point.
     copies = np.tile(np.float32([[10.0, 2.0, -1.0]]), (5000, 1))
     sizes = []
-    original = occlusion._local
+    original = hpr._local
     monkeypatch.setattr(
-        occlusion,
+        hpr,
         "_local",
         lambda setup, *args: sizes.append(setup.size) or original(setup, *args),
     )

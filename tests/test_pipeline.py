@@ -6,8 +6,10 @@ from drcpo.datasets.kitti import Calibration
 from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_overlap_area, box_corners, from_canonical, points_in_boxes
+from drcpo.occlusion.view_windows import view_windows
+from drcpo.occlusion.zbuffer import OcclusionMap, _facing_samples
 from drcpo.pipeline import build_pipeline
-from drcpo.placement import OcclusionMap, _facing_samples, frame_ground
+from drcpo.placement import frame_ground
 from drcpo.transforms import (
     DRCPO,
     Compose,
@@ -19,7 +21,6 @@ from drcpo.transforms import (
     transform_from_config,
 )
 from drcpo.transforms.insertion import BoxQuery, match_features, road_plane_heights
-from drcpo.view_windows import view_windows
 
 SIZES = {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)}
 GROUND_Z = -1.73
@@ -704,13 +705,14 @@ def test_same_output_on_one_core_as_on_two(kitti_world, monkeypatch):
     # A data-loader worker pinned to one core runs every step on its own thread; the frame
     # must be the one two threads give.
     import drcpo.transforms.drcpo as drcpo_module
-    from drcpo import occlusion
+    from drcpo.occlusion import frame_grid, hpr, scopes
 
     db, index, frames = kitti_world
     transform = DRCPO(db, index)
     two = [transform(frame, np.random.default_rng(30 + i)) for i, frame in enumerate(frames)]
     monkeypatch.setattr(drcpo_module, "spare_core", lambda: False)
-    monkeypatch.setattr(occlusion, "_check_workers", lambda workers: 1)
+    for module in (hpr, frame_grid, scopes):  # each checks its own workers argument
+        monkeypatch.setattr(module, "_check_workers", lambda workers: 1)
     for i, (frame, out) in enumerate(zip(frames, two, strict=True)):
         one = transform(frame, np.random.default_rng(30 + i))
         np.testing.assert_array_equal(one.points, out.points)

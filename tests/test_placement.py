@@ -9,21 +9,23 @@ from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_corners, bev_overlap_area, points_in_boxes
 from drcpo.ground import GroundModel
-from drcpo.placement import (
+from drcpo.occlusion.zbuffer import (
     _DIRECTIONS,
-    REASONS,
     OcclusionMap,
-    PlacementConfig,
     _cell_of,
     _cells,
     _facing_samples,
+    surface_samples,
+)
+from drcpo.placement import (
+    REASONS,
+    PlacementConfig,
     _in_fov,
     _Obstacles,
     bev_collisions,
     box_members,
     place_objects,
     sample_poses,
-    surface_samples,
 )
 
 AREA = PlacementConfig()

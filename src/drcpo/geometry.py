@@ -148,6 +148,30 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) 
     return out
 
 
+def heading_terms(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """numpy's cos and sin ``(M,)`` of the headings of ``(M, 7)`` boxes, for the kernels that
+    test points against boxes (they must not use libm's, which may differ in the last bit)."""
+    heading = np.ascontiguousarray(boxes[:, 6])
+    return np.cos(heading), np.sin(heading)
+
+
+# Scalars only: arrays passed to an inlined helper are reference-counted on every call, which
+# costs more than the arithmetic in hot loops.
+@nb.njit(cache=True, nogil=True, inline="always")
+def inside_box(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma: no cover - numba
+    """:func:`points_in_boxes`' test for one point and one box, operation for operation
+    (float64, closed box, half sizes grown by ``margin``), for numba kernels; ``cos``, ``sin``:
+    :func:`heading_terms` of the box."""
+    ox, oy, oz = px - cx, py - cy, pz - cz
+    local_x = ox * cos + oy * sin
+    local_y = -ox * sin + oy * cos
+    return (
+        abs(local_x) <= dx / 2.0 + margin
+        and abs(local_y) <= dy / 2.0 + margin
+        and abs(oz) <= dz / 2.0 + margin
+    )
+
+
 def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.ndarray:
     """The ``(7,)`` box, same heading, that holds ``box`` and every one of ``points``.
 

@@ -19,7 +19,8 @@ from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
-from drcpo.placement import OcclusionMap
+from drcpo.occlusion.view_windows import box_windows, grown_boxes, in_windows, window_spans
+from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.insertion import (
     BoxQuery,
@@ -29,7 +30,6 @@ from drcpo.transforms.insertion import (
     update_box_metadata,
 )
 from drcpo.transforms.work_queue import WorkQueue, result_if_done, spare_core
-from drcpo.view_windows import box_windows, grown_boxes, in_windows, window_spans
 
 _CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
 _FIT_PAD = 1e-4  # metres between a label's moved face and the point beyond it (see box_holding)
@@ -418,10 +418,10 @@ class DRCPO(Transform):
         ``hpr``: surface samples decided exactly by HPR among the frame's points
         (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden where that test
         does not apply); ``range_image``: a z-buffer at the sensor's resolution
-        (:class:`~drcpo.placement.OcclusionMap`)."""
+        (:class:`~drcpo.occlusion.zbuffer.OcclusionMap`)."""
         _, viewpoint = self.e_hpr_setting()
         if frame_grid is not None:
-            samples, offsets = placement.surface_samples(boxes, viewpoint)
+            samples, offsets = surface_samples(boxes, viewpoint)
             helper = pool if spare_core() else None
             hidden = frame_grid().hidden_groups(samples, offsets, owners >= 0, limit, helper)
             return hidden if hidden is not None else np.zeros(len(boxes), dtype=bool)
@@ -464,8 +464,8 @@ class DRCPO(Transform):
         self, canonical: np.ndarray, box: np.ndarray, dim: int
     ) -> tuple[np.ndarray, np.ndarray]:
         """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull:
-        drcpo.hull's certified one, Qhull where it gives up; much faster than the per-point
-        method for objects), and its label: ``box`` with the faces that points lie beyond
+        the certified hull of drcpo.occlusion.hull, Qhull where it gives up; much faster than the
+        per-point method for objects), and its label: ``box`` with the faces that points lie beyond
         (construction keeps points up to its margin outside; s-HPR keeps the outermost ones)
         moved out to hold them, so that the label holds every point the object brings."""
         points = placed_object(canonical, box, dim)

@@ -1,0 +1,75 @@
+"""Occlusion (DR.CPO, step 5): Katz et al.'s hidden point removal (HPR), the paper's s-HPR and
+e-HPR, and two z-buffers.
+
+The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
+diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
+the viewpoint height from :data:`HPR_PRESETS`); :func:`hidden_by_insertion` is e-HPR's
+``inserted`` scope. :func:`range_image_occlusion` is a z-buffer alternative that is *not* the
+paper's method; :class:`OcclusionMap` is the z-buffer that rejects placements hidden behind the
+frame before anything is built.
+
+Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
+:mod:`drcpo.geometry`), never anything above (:mod:`drcpo.placement`, :mod:`drcpo.transforms`):
+
+* :mod:`~drcpo.occlusion.presets`: the paper's ``(R, z)`` per detector.
+* :mod:`~drcpo.occlusion.checks`: input checks.
+* :mod:`~drcpo.occlusion.threads`: work over threads that no fork inherits.
+* :mod:`~drcpo.occlusion.grid`: points sorted into direction cells (numba), :class:`GridMemory`.
+* :mod:`~drcpo.occlusion.hull`: the certified hull of small clouds (numba).
+* :mod:`~drcpo.occlusion.kernels`: the per-point supporting-plane test (numba).
+* :mod:`~drcpo.occlusion.frame_kernels`: :class:`FrameGrid`'s kernels (numba).
+* :mod:`~drcpo.occlusion.flip`: the spherical flip's set-up and one Qhull hull of it.
+* :mod:`~drcpo.occlusion.local`: the ``"local"`` method's driver.
+* :mod:`~drcpo.occlusion.hpr`: :func:`hidden_point_removal` (methods and awkward inputs there).
+* :mod:`~drcpo.occlusion.frame_grid`: :class:`FrameGrid`, a frame sorted once for e-HPR.
+* :mod:`~drcpo.occlusion.zbuffer`: :func:`range_image_occlusion` and :class:`OcclusionMap`.
+* :mod:`~drcpo.occlusion.view_windows`: the directions boxes cover, seen from the viewpoint.
+* :mod:`~drcpo.occlusion.scopes`: s-HPR, e-HPR and its scopes.
+
+Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
+pool outlives a call, and numba kernels are compiled without a threading layer.
+"""
+
+from __future__ import annotations
+
+from drcpo.occlusion.checks import MAX_RADIUS
+from drcpo.occlusion.frame_grid import FrameGrid
+from drcpo.occlusion.grid import GridMemory, thread_grid_memory
+from drcpo.occlusion.hpr import (
+    AUTO_CROWDED,
+    AUTO_REFERENCE_MAX,
+    HPR_METHODS,
+    HULL_KERNEL_MAX,
+    hidden_point_removal,
+)
+from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
+from drcpo.occlusion.scopes import (
+    azimuth_focus,
+    external_occlusion,
+    hidden_by_insertion,
+    self_occlusion,
+    self_occlusion_many,
+)
+from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
+
+__all__ = [
+    "AUTO_CROWDED",
+    "AUTO_REFERENCE_MAX",
+    "HPR_METHODS",
+    "HPR_PRESETS",
+    "HULL_KERNEL_MAX",
+    "MAX_RADIUS",
+    "FrameGrid",
+    "GridMemory",
+    "HPRPreset",
+    "OcclusionMap",
+    "azimuth_focus",
+    "external_occlusion",
+    "hidden_by_insertion",
+    "hidden_point_removal",
+    "range_image_occlusion",
+    "self_occlusion",
+    "self_occlusion_many",
+    "surface_samples",
+    "thread_grid_memory",
+]
