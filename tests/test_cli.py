@@ -129,7 +129,7 @@ def test_index_with_an_absurd_k_is_refused_before_allocating(tmp_path):
     db = _database(tmp_path / "db")
     result = runner.invoke(app, ["index", str(db), "--k", str(10**12)])
     assert result.exit_code == 1
-    _one_line_error(result, "k = 1000000000000 is out of range (allowed: 1 .. 100000)")
+    _one_line_error(result, "'index.k' = 1000000000000 is out of range; allowed range: [1, 100000]")
     assert not (db / "index").exists()
 
 
