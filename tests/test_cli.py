@@ -230,3 +230,11 @@ def test_installed_entry_point_prints_one_line_and_exits_1(tmp_path):
         f"error: {db / 'names.npy'}: names must be strings, got int64 "
         "(a drcpo database stores names as text, e.g. 'Car')"
     ]
+
+
+def test_index_help_says_an_explicit_option_wins_over_the_config():
+    result = runner.invoke(app, ["index", "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0
+    text = " ".join(result.output.split())
+    assert "--config" in text and "an option given explicitly wins over the config" in text
+    assert "default: index.k of --config, 400" in text

@@ -252,26 +252,35 @@ def index(
     db: Annotated[Path, typer.Argument(help="Database directory (the index goes to DB/index/).")],
     config: Annotated[str | None, typer.Option(help=INDEX_CONFIG_HELP)] = None,
     k: Annotated[
-        int | None, typer.Option("--k", min=1, help="Candidates per object [config: 400].")
+        int | None,
+        typer.Option(
+            "--k", min=1, help="Candidates per object (default: index.k of --config, 400)."
+        ),
     ] = None,
     alpha: Annotated[
         float | None,
-        typer.Option(min=0.0, help="Low-density partitions: below alpha x mean [config: 0.8]."),
+        typer.Option(
+            min=0.0, help="Low-density partitions: below alpha x mean (default: index.alpha, 0.8)."
+        ),
     ] = None,
     min_points: Annotated[
         int | None,
-        typer.Option(min=0, help="Objects with fewer points are not indexed [config: 5]."),
+        typer.Option(
+            min=0, help="Objects with fewer points are not indexed (default: index.min_points, 5)."
+        ),
     ] = None,
     exclude_difficulty: Annotated[
         list[int] | None,
         typer.Option(
-            help="Difficulty code never indexed (repeatable; -1 = unknown) [config: none]."
+            help="Difficulty code never indexed (repeatable; -1 = unknown; "
+            "default: index.exclude_difficulty, none)."
         ),
     ] = None,
     approximate_above: Annotated[
         int | None,
         typer.Option(
-            help="Approximate first stage for classes with more indexed objects [config: never]."
+            help="Approximate first stage for classes with more indexed objects "
+            "(default: index.approximate_above, never)."
         ),
     ] = None,
     workers: Annotated[
@@ -281,8 +290,9 @@ def index(
 ) -> None:
     """Index every object's K best candidates (DR.CPO pre-processing).
 
-    The values in [config: ...] are the paper defaults, used unless --config or the option
-    sets them.
+    With --config, the index that config's DR.CPO needs (its index section, its construction
+    grids and mirrored classes); an option given explicitly wins over the config; without
+    either, the paper defaults.
     """
     import dataclasses
     import time
