@@ -129,7 +129,7 @@ def test_index_with_an_absurd_k_is_refused_before_allocating(tmp_path):
     db = _database(tmp_path / "db")
     result = runner.invoke(app, ["index", str(db), "--k", str(10**12)])
     assert result.exit_code == 1
-    _one_line_error(result, "k = 1000000000000 is out of range (allowed: 1 .. 100000)")
+    _one_line_error(result, "'index.k' = 1000000000000 is out of range; allowed range: [1, 100000]")
     assert not (db / "index").exists()
 
 
@@ -230,3 +230,11 @@ def test_installed_entry_point_prints_one_line_and_exits_1(tmp_path):
         f"error: {db / 'names.npy'}: names must be strings, got int64 "
         "(a drcpo database stores names as text, e.g. 'Car')"
     ]
+
+
+def test_index_help_says_an_explicit_option_wins_over_the_config():
+    result = runner.invoke(app, ["index", "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0
+    text = " ".join(result.output.split())
+    assert "--config" in text and "an option given explicitly wins over the config" in text
+    assert "default: index.k of --config, 400" in text

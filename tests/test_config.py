@@ -5,14 +5,20 @@ import pytest
 import yaml
 
 from drcpo.config import (
+    DETECTOR_PRESETS,
     PRESETS,
     AugmentConfig,
     DRCPOConfig,
+    ExternalOcclusionConfig,
     load_config,
     per_class,
     preset_path,
 )
+from drcpo.config_fields import key_fields
+from drcpo.construction import ConstructionConfig
 from drcpo.errors import ConfigError
+from drcpo.index import IndexConfig
+from drcpo.placement import PlacementConfig
 
 
 def test_default_yaml_spells_out_the_dataclass_defaults():
@@ -315,6 +321,13 @@ BAD_VALUES = {
     "global_augmentation.flip.axes": ["x", "x"],
     "global_augmentation.rotation.range": [0, 7],
     "global_augmentation.scaling.range": [0.5, 1e300],
+    "index.k": 0,
+    "index.alpha": 0,
+    "index.min_points": -1,
+    "index.exclude_difficulty": [7],
+    "index.classes": ["Cars"],
+    "index.approximate_above": -1,
+    "index.approx_factor": 0.5,
 }
 MORE_BAD_VALUES = [
     ("known_classes", ["Car", "Car"]),
@@ -334,6 +347,9 @@ MORE_BAD_VALUES = [
     ("drcpo.external_occlusion.radius", -1.0),
     ("drcpo.external_occlusion.viewpoint_z", "high"),
     ("gt_sampling.exclude_difficulty", [1.5]),
+    ("index.k", 100_001),
+    ("index.classes", "Car"),
+    ("index.exclude_difficulty", -1),
 ]
 
 
@@ -346,7 +362,7 @@ def _nest(path: str, value):
 
 
 def _leaf_keys(config, prefix=""):
-    for f in dataclasses.fields(config):
+    for f in key_fields(config):
         value = getattr(config, f.name)
         if dataclasses.is_dataclass(value):
             yield from _leaf_keys(value, f"{prefix}{f.name}.")
@@ -444,3 +460,127 @@ def test_values_pyyaml_cannot_construct_are_config_errors(tmp_path, text):
 def test_integer_past_the_digit_limit_is_named_not_printed():
     with pytest.raises(ConfigError, match=r"min_points_after' = <an int of \d+ bits> is out"):
         load_config({"drcpo": {"min_points_after": 10**5000}})
+
+
+# One class per stage, composed -------------------------------------------------------------
+def test_the_stage_sections_are_the_stage_modules_classes():
+    config = AugmentConfig()
+    assert type(config.drcpo.construction) is ConstructionConfig
+    assert type(config.drcpo.placement) is PlacementConfig
+    assert type(config.index) is IndexConfig
+    assert config.index == IndexConfig()  # the paper defaults of `drcpo index`
+
+
+def test_a_stage_config_built_in_code_is_checked_as_a_file_would_be():
+    with pytest.raises(ConfigError, match=r"'drcpo\.construction\.coverage' = 2 is out of range"):
+        ConstructionConfig(coverage=2)
+    with pytest.raises(ConfigError, match=r"'drcpo\.placement\.attempts' = 0 is out of range"):
+        PlacementConfig(attempts=0)
+    with pytest.raises(ConfigError, match=r"'index\.k' = 0 is out of range; allowed range: \[1,"):
+        IndexConfig(k=0)
+    # Normalised as a file's values: lists, floats.
+    assert PlacementConfig(x_range=(0, 12)).x_range == [0.0, 12.0]
+    assert ConstructionConfig(mirror=("Car",)).mirror == ["Car"]
+
+
+def test_index_section_round_trips_through_yaml(tmp_path):
+    path = tmp_path / "index.yaml"
+    path.write_text(
+        "index:\n  k: 32\n  alpha: 0.5\n  min_points: 9\n  exclude_difficulty: [-1]\n"
+        "  classes: [Car, Pedestrian]\n  approximate_above: 1000\n  approx_factor: 2\n"
+    )
+    config = load_config(path)
+    assert config.index == IndexConfig(
+        k=32,
+        alpha=0.5,
+        min_points=9,
+        exclude_difficulty=[-1],
+        classes=["Car", "Pedestrian"],
+        approximate_above=1000,
+        approx_factor=2.0,
+    )
+    again = tmp_path / "again.yaml"
+    again.write_text(config.to_yaml())
+    assert load_config(again) == config
+    assert yaml.safe_load(config.to_yaml())["index"] == {
+        "k": 32,
+        "alpha": 0.5,
+        "min_points": 9,
+        "exclude_difficulty": [-1],
+        "classes": ["Car", "Pedestrian"],
+        "approximate_above": 1000,
+        "approx_factor": 2.0,
+    }
+
+
+def test_the_index_takes_construction_grids_and_mirror():
+    config = load_config(
+        {"drcpo": {"construction": {"grids": {"Car": [5, 2, 3]}, "mirror": ["Cyclist"]}}}
+    )
+    assert config.index.grids == {"Car": [5, 2, 3]} and config.index.mirror == ["Cyclist"]
+    assert config.index.grid("Car") == config.drcpo.construction.grid("Car") == (5, 2, 3)
+    # Also when the tree is built in code.
+    built = AugmentConfig(
+        drcpo=DRCPOConfig(construction=ConstructionConfig(grids={"Van": [2, 2, 2]}, mirror=[]))
+    )
+    assert built.index.grids == {"Van": [2, 2, 2]} and built.index.mirror == []
+
+
+@pytest.mark.parametrize(
+    ("key", "source"),
+    [("grids", "drcpo.construction.grids"), ("mirror", "drcpo.construction.mirror")],
+)
+def test_index_grids_and_mirror_are_not_keys_of_their_own(key, source):
+    with pytest.raises(ConfigError) as info:
+        load_config({"index": {key: {"Car": [5, 2, 3]} if key == "grids" else ["Car"]}})
+    message = str(info.value)
+    assert f"'index.{key}' is not set in a config file" in message and source in message
+
+
+def test_a_wrong_index_key_names_the_file_and_the_key(tmp_path):
+    path = tmp_path / "my.yaml"
+    path.write_text("index:\n  kk: 20\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and "unknown config key 'index.kk'" in message
+    assert "approx_factor, approximate_above, classes, exclude_difficulty, k," in message
+    path.write_text("index:\n  k: 0\n")
+    with pytest.raises(ConfigError, match=r"my\.yaml: config key 'index\.k' = 0 is out of range"):
+        load_config(path)
+
+
+def test_per_call_placement_fields_are_not_config_keys():
+    with pytest.raises(ConfigError, match=r"'drcpo\.placement\.fov_only' is not set in a config"):
+        load_config({"drcpo": {"placement": {"fov_only": True}}})
+    assert "clearance" not in AugmentConfig().to_dict()["drcpo"]["placement"]
+
+
+# Detector presets ------------------------------------------------------------------------------
+def test_detector_presets_hold_the_papers_e_hpr_settings():
+    assert PRESETS == tuple(DETECTOR_PRESETS)
+    assert {k: (v.radius, v.viewpoint_z) for k, v in DETECTOR_PRESETS.items()} == {
+        "second": (300000.0, 2.0),
+        "pointrcnn": (300000.0, 1.0),
+        "pv_rcnn": (100000.0, 0.0),
+        "pv_rcnn_plusplus": (100000.0, 0.0),
+    }
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_a_loaded_preset_resolves_its_radius_and_viewpoint(name):
+    setting = load_config(name).drcpo.external_occlusion.setting
+    assert setting == DETECTOR_PRESETS[name]
+    # The overrides win; a later preset key switches both numbers.
+    own = ExternalOcclusionConfig(preset=name, radius=5.0, viewpoint_z=-1.0).setting
+    assert (own.radius, own.viewpoint_z) == (5.0, -1.0)
+    switched = load_config({"preset": name, "drcpo": {"external_occlusion": {"preset": "second"}}})
+    assert switched.drcpo.external_occlusion.setting == DETECTOR_PRESETS["second"]
+
+
+def test_configs_are_hashable_and_equal_by_value():
+    a = load_config({"drcpo": {"sample": {"Car": 1, "Cyclist": 2}}})
+    b = load_config({"drcpo": {"sample": {"Cyclist": 2, "Car": 1}}})
+    assert a == b and hash(a) == hash(b) and len({a, b, AugmentConfig()}) == 2
+    assert a != AugmentConfig() and a.drcpo != a  # another class is never equal
+    assert hash(ConstructionConfig(grids={"Car": [4, 2, 2]})) != hash(ConstructionConfig())

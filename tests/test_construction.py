@@ -126,7 +126,7 @@ def test_only_mirrored_classes_are_mirrored(database, rng):
     assert len(car_out.points) == 2 * database.num_points[car]
     ped_out = construct_object(database, pedestrian, [], rng, config)
     np.testing.assert_array_equal(ped_out.points, database.object_points(pedestrian))
-    unmirrored = ConstructionConfig(max_iterations=0, mirrored_classes=())
+    unmirrored = ConstructionConfig(max_iterations=0, mirror=())
     assert (
         len(construct_object(database, car, [], rng, unmirrored).points)
         == (database.num_points[car])
@@ -299,7 +299,7 @@ def reference_construct(database, row, candidate_rows, rng, config, class_max_co
     dims = np.asarray(database.boxes[row, 3:6], dtype=np.float64)
     candidates = np.asarray(candidate_rows).reshape(-1)
     candidates = candidates[candidates >= 0].astype(np.int64)
-    mirror = name in config.mirrored_classes
+    mirror = name in config.mirror
     grid = config.grid(name)
     source = np.asarray(database.object_points(row))
     source = mirror_points(source) if mirror else source.copy()
@@ -393,13 +393,13 @@ def assert_same_as_reference(out, expected):
 
 REFERENCE_CONFIGS = [
     ConstructionConfig(),
-    ConstructionConfig(mirrored_classes=()),
+    ConstructionConfig(mirror=()),
     ConstructionConfig(coverage=1.0, max_iterations=4),
     ConstructionConfig(max_iterations=0),
     # 160 partitions: the threshold's mean is summed in numpy's pairwise order beyond 128.
     ConstructionConfig(margin=0.0, grids={"Car": (10, 4, 4), "Pedestrian": (1, 1, 1)}),
     ConstructionConfig(mode="whole"),
-    ConstructionConfig(mode="whole", mirrored_classes=("Pedestrian",)),
+    ConstructionConfig(mode="whole", mirror=("Pedestrian",)),
     ConstructionConfig(mode="whole", coverage=1.0, max_iterations=3),
     ConstructionConfig(mode="whole", max_iterations=0),
 ]
@@ -419,7 +419,7 @@ def reference_case(database, config, seed, count=24):
             line = np.concatenate([line, [-1] * 5])
         candidates.append(line if rng.uniform() > 0.1 else [-1, -1])
         name = str(database.names[row])
-        mirrored = name in config.mirrored_classes
+        mirrored = name in config.mirror
         scale = class_max_counts_for(database, name, config.grid(name), mirrored)
         kind = rng.integers(0, 4)
         if kind == 1:

@@ -20,6 +20,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from drcpo.config import KITTI_CLASSES, PRESETS, AugmentConfig, load_config
+from drcpo.config_fields import key_fields
 from drcpo.errors import ConfigError
 
 DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
@@ -28,7 +29,7 @@ DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 def _key_paths(config: Any, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
     """Every section and leaf key of the config tree, as tuples of names."""
     paths = []
-    for f in dataclasses.fields(config):
+    for f in key_fields(config):
         path = (*prefix, f.name)
         paths.append(path)
         value = getattr(config, f.name)

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import numpy as np
@@ -53,7 +54,7 @@ def reference_index(db, config):
         name = str(db.names[i])
         grid = grid_for(name, config.grids)
         pts = db.object_points(i)
-        if name in config.mirrored:
+        if name in config.mirror:
             pts = mirror_points(pts)
         counts[i, : num_partitions(grid)] = partition_counts(pts, db.boxes[i, 3:6], grid)
     densities = np.zeros((n, p_max), np.float32)
@@ -84,9 +85,9 @@ def reference_index(db, config):
     ("seed", "n", "k", "extra"),
     [
         (0, 300, 5, {}),
-        (1, 400, 40, {"exclude_difficulties": (-1,), "min_points": 10}),
+        (1, 400, 40, {"exclude_difficulty": (-1,), "min_points": 10}),
         (2, 250, 400, {}),  # every class smaller than K: all candidates
-        (3, 500, 12, {"grids": {"Van": (3, 3, 2)}, "mirrored": ("Pedestrian",), "alpha": 1.0}),
+        (3, 500, 12, {"grids": {"Van": (3, 3, 2)}, "mirror": ("Pedestrian",), "alpha": 1.0}),
     ],
 )
 def test_matches_brute_force(seed, n, k, extra):
@@ -143,7 +144,7 @@ def test_workers_and_blocks_do_not_change_the_result():
 
 def test_objects_below_min_points_or_excluded_are_never_candidates():
     db = random_database(np.random.default_rng(5), 400)
-    config = IndexConfig(k=50, min_points=20, exclude_difficulties=(0,))
+    config = IndexConfig(k=50, min_points=20, exclude_difficulty=(0,))
     index = build_index(db, config)
     keep = indexed_mask(db, config)
     assert (index.candidates[~keep] == -1).all()
@@ -299,10 +300,108 @@ def test_bad_config_is_refused(bad):
 
 
 def test_config_round_trip():
-    config = IndexConfig(k=7, grids={"Van": (1, 2, 3)}, classes=("Car",), exclude_difficulties=[2])
+    config = IndexConfig(k=7, grids={"Van": (1, 2, 3)}, classes=("Car",), exclude_difficulty=[2])
     assert IndexConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
     with pytest.raises(ConfigError, match="unknown"):
         IndexConfig.from_dict({"kk": 3})
+
+
+def test_an_index_saved_with_the_old_parameter_names_still_loads(tmp_path):
+    db = random_database(np.random.default_rng(21), 60)
+    db.save(tmp_path / "db")
+    opened = GroundTruthDatabase.open(tmp_path / "db")
+    config = IndexConfig(k=5, mirror=["Pedestrian"], exclude_difficulty=[-1])
+    build_index(opened, config).save(tmp_path / "db")
+    manifest_path = tmp_path / "db" / "index" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    params = manifest["parameters"]
+    # What drcpo wrote before the index section joined the YAML config.
+    params["mirrored"] = params.pop("mirror")
+    params["exclude_difficulties"] = params.pop("exclude_difficulty")
+    params.update(workers=None, block_size=512)
+    manifest_path.write_text(json.dumps(manifest))
+    assert load_index(opened).config == config
+    params["kk"] = 1
+    manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(
+        DataError, match=r"manifest\.json: malformed.*unknown index parameters \['kk'\]"
+    ):
+        load_index(opened)
+
+
+CUSTOM_YAML = (
+    "drcpo:\n  construction:\n    grids: {Car: [5, 2, 3]}\n    mirror: [Cyclist]\n"
+    "index:\n  k: 6\n  min_points: 2\n"
+)
+
+
+def test_cli_index_with_a_config_builds_the_index_that_config_needs(tmp_path):
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+    from drcpo.config import load_config
+    from drcpo.transforms import DRCPO
+
+    db = random_database(np.random.default_rng(22), 150)
+    db.save(tmp_path / "db")
+    opened = GroundTruthDatabase.open(tmp_path / "db")
+    yaml_path = tmp_path / "my.yaml"
+    yaml_path.write_text(CUSTOM_YAML)
+    config = load_config(yaml_path)
+    runner = CliRunner()
+    args = ["index", str(tmp_path / "db"), "--workers", "1"]
+
+    # Without --config: the paper defaults, which DR.CPO with this config refuses, saying how.
+    assert runner.invoke(app, args).exit_code == 0
+    with pytest.raises(ConfigError) as info:
+        DRCPO(opened, load_index(opened), config.drcpo)
+    message = str(info.value)
+    assert "drcpo.construction.grids.Car = [5, 2, 3]" in message and "[10, 4, 3]" in message
+    assert f"drcpo index {tmp_path / 'db'} --config <your config.yaml> --overwrite" in message
+
+    result = runner.invoke(app, [*args, "--config", str(yaml_path), "--overwrite"])
+    assert result.exit_code == 0, result.output
+    index = load_index(opened)
+    assert index.k == 6 and index.grids["Car"] == (5, 2, 3)
+    assert index.config == dataclasses.replace(config.index, workers=None)
+    np.testing.assert_array_equal(index.candidates, build_index(opened, config.index).candidates)
+    DRCPO(opened, index, config.drcpo)  # accepted
+
+    # An option given explicitly wins over the config; the grids stay the config's.
+    result = runner.invoke(
+        app, [*args, "--config", str(yaml_path), "--k", "3", "--min-points", "0", "--overwrite"]
+    )
+    assert result.exit_code == 0, result.output
+    index = load_index(opened)
+    assert (index.k, index.config.min_points, index.grids["Car"]) == (3, 0, (5, 2, 3))
+    DRCPO(opened, index, config.drcpo)
+
+
+def test_drcpo_refuses_an_index_mirroring_other_classes(tmp_path):
+    from drcpo.config import load_config
+    from drcpo.transforms import DRCPO
+
+    db = random_database(np.random.default_rng(23), 80)
+    config = load_config({"drcpo": {"construction": {"mirror": ["Car"]}}})
+    with pytest.raises(ConfigError, match="disagree on whether Cyclist is mirrored.*--config"):
+        DRCPO(db, build_index(db, IndexConfig(k=4)), config.drcpo)
+    DRCPO(db, build_index(db, dataclasses.replace(config.index, k=4)), config.drcpo)
+
+
+def test_cli_index_config_errors_name_the_file_and_key(tmp_path):
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+
+    db = random_database(np.random.default_rng(24), 20)
+    db.save(tmp_path / "db")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("index:\n  grids: {Car: [5, 2, 3]}\n")
+    result = CliRunner().invoke(app, ["index", str(tmp_path / "db"), "--config", str(bad)])
+    assert result.exit_code == 1
+    assert "bad.yaml" in result.output and "'index.grids' is not set in a config" in result.output
+    assert "drcpo.construction.grids" in result.output
+    assert not (tmp_path / "db" / "index").exists()
 
 
 def test_cli_index_builds_saves_and_refuses_to_overwrite(tmp_path):
@@ -352,7 +451,9 @@ def test_progress_reaches_every_indexed_object():
 
 @pytest.mark.parametrize("k", [10**12, 100_001])
 def test_k_above_the_bound_is_refused(k):
-    with pytest.raises(ConfigError, match=rf"k = {k} is out of range \(allowed: 1 \.\. 100000\)"):
+    with pytest.raises(
+        ConfigError, match=rf"'index\.k' = {k} is out of range; allowed range: \[1, 100000\]"
+    ):
         IndexConfig(k=k)
 
 

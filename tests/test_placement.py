@@ -76,7 +76,7 @@ def nonground_counts(frame, ground, boxes, tolerance=0.2):
 
 def test_no_two_boxes_overlap_and_footprints_stay_in_the_area(rng):
     frame = scene(rng, existing_boxes())
-    config = PlacementConfig(max_tries=3)
+    config = PlacementConfig(attempts=3)
     result = place_objects(frame, sizes(60), None, rng, config)
     assert len(result.accepted) >= 30
     everything = np.concatenate([frame.boxes, result.boxes])
@@ -100,7 +100,7 @@ def test_clearance_keeps_room_around_each_placed_footprint(rng):
         overlap[:, : len(room)][np.diag_indices(len(room))] = 0
         return (overlap > 0).any()
 
-    crowded = {"x_range": (0, 30), "y_range": (-15, 15), "max_tries": 4}
+    crowded = {"x_range": (0, 30), "y_range": (-15, 15), "attempts": 4}
     result = place_objects(frame, sizes(60), None, rng, PlacementConfig(clearance=0.3, **crowded))
     assert len(result.accepted) >= 10
     np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(60)[result.accepted])
@@ -126,7 +126,7 @@ def test_occluded_placements_are_tried_again(rng):
         calls.append((boxes.copy(), before.copy()))
         return boxes[:, 0] < 35.0  # say the near half of the area is hidden
 
-    config = PlacementConfig(max_tries=6)
+    config = PlacementConfig(attempts=6)
     result = place_objects(frame, sizes(20), None, rng, config, occluded=occluded)
     assert len(result.accepted) >= 10 and (result.boxes[:, 0] >= 35.0).all()
     np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(20)[result.accepted])
@@ -177,7 +177,7 @@ def test_no_box_holds_more_than_the_allowed_nonground_points(rng):
     frame = scene(rng, extra=blocks)
     ground = GroundModel.from_points(frame.points)
     for limit in (0, 10):
-        config = PlacementConfig(max_nonground_points=limit, max_tries=2)
+        config = PlacementConfig(max_non_ground_points=limit, attempts=2)
         result = place_objects(frame, sizes(40), None, rng, config, ground)
         assert result.rejected["obstacle"] > 0
         assert len(result.accepted) > 0
@@ -226,7 +226,7 @@ def test_retries_place_more_objects_and_count_attempts(rng):
     frame = scene(rng)
     config = PlacementConfig(x_range=(0, 15), y_range=(-8, 8))
     once = place_objects(frame, sizes(30), None, np.random.default_rng(3), config)
-    tries = PlacementConfig(x_range=(0, 15), y_range=(-8, 8), max_tries=6)
+    tries = PlacementConfig(x_range=(0, 15), y_range=(-8, 8), attempts=6)
     more = place_objects(frame, sizes(30), None, np.random.default_rng(3), tries)
     assert len(more.accepted) > len(once.accepted)
     for result in (once, more):
@@ -239,7 +239,7 @@ def test_retries_place_more_objects_and_count_attempts(rng):
 def test_source_height_mode_keeps_the_source_z(rng):
     frame = scene(rng)
     source = np.column_stack([np.zeros((9, 2)), np.linspace(-3, 1, 9), sizes(9), np.zeros(9)])
-    config = PlacementConfig(height_mode="source", max_nonground_points=10**6)
+    config = PlacementConfig(height="source", max_non_ground_points=10**6)
     result = place_objects(frame, sizes(9), source, rng, config)
     assert len(result.accepted) > 0
     np.testing.assert_array_equal(result.boxes[:, 2], source[result.accepted, 2])
@@ -299,14 +299,14 @@ def test_bad_input_is_rejected(rng):
         place_objects(frame, [1.0, 1.0, 1.0], None, rng)
     with pytest.raises(ConfigError, match="placement.x_range"):
         PlacementConfig(x_range=(5, 5))
-    with pytest.raises(ConfigError, match="placement.height_mode"):
-        PlacementConfig(height_mode="air")
-    with pytest.raises(ConfigError, match="placement.max_tries"):
-        PlacementConfig(max_tries=0)
+    with pytest.raises(ConfigError, match="placement.height"):
+        PlacementConfig(height="air")
+    with pytest.raises(ConfigError, match="placement.attempts"):
+        PlacementConfig(attempts=0)
     with pytest.raises(ConfigError, match="placement.fov_half_angle"):
         PlacementConfig(fov_half_angle=4.0)
-    with pytest.raises(ConfigError, match="placement.max_nonground_points"):
-        PlacementConfig(max_nonground_points=-1)
+    with pytest.raises(ConfigError, match="placement.max_non_ground_points"):
+        PlacementConfig(max_non_ground_points=-1)
 
 
 def test_real_kitti_frames(kitti_sample):

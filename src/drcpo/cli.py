@@ -239,47 +239,83 @@ def info(
     Console().print(class_table(summary, f"{db} ({len(database)} objects)"))
 
 
+INDEX_CONFIG_HELP = (
+    "YAML config file, or a preset: the index is built with its `index` section and the "
+    "partition grids and mirrored classes of its drcpo.construction, so that DR.CPO with this "
+    "config accepts it (default: the paper defaults). An option given explicitly wins over "
+    "the config."
+)
+
+
 @app.command()
 def index(
     db: Annotated[Path, typer.Argument(help="Database directory (the index goes to DB/index/).")],
-    k: Annotated[int, typer.Option("--k", min=1, help="Candidates per object.")] = 400,
+    config: Annotated[str | None, typer.Option(help=INDEX_CONFIG_HELP)] = None,
+    k: Annotated[
+        int | None,
+        typer.Option(
+            "--k", min=1, help="Candidates per object (default: index.k of --config, 400)."
+        ),
+    ] = None,
     alpha: Annotated[
-        float, typer.Option(min=0.0, help="Low-density partitions: below alpha x mean.")
-    ] = 0.8,
+        float | None,
+        typer.Option(
+            min=0.0, help="Low-density partitions: below alpha x mean (default: index.alpha, 0.8)."
+        ),
+    ] = None,
     min_points: Annotated[
-        int, typer.Option(min=0, help="Objects with fewer points are not indexed.")
-    ] = 5,
+        int | None,
+        typer.Option(
+            min=0, help="Objects with fewer points are not indexed (default: index.min_points, 5)."
+        ),
+    ] = None,
     exclude_difficulty: Annotated[
         list[int] | None,
-        typer.Option(help="Difficulty code never indexed (repeatable; -1 = unknown)."),
+        typer.Option(
+            help="Difficulty code never indexed (repeatable; -1 = unknown; "
+            "default: index.exclude_difficulty, none)."
+        ),
     ] = None,
     approximate_above: Annotated[
         int | None,
-        typer.Option(help="Approximate first stage for classes with more indexed objects."),
+        typer.Option(
+            help="Approximate first stage for classes with more indexed objects "
+            "(default: index.approximate_above, never)."
+        ),
     ] = None,
     workers: Annotated[
         int | None, typer.Option(min=1, help="Threads (default: all cores).")
     ] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing index.")] = False,
 ) -> None:
-    """Index every object's K best candidates (DR.CPO pre-processing)."""
+    """Index every object's K best candidates (DR.CPO pre-processing).
+
+    With --config, the index that config's DR.CPO needs (its index section, its construction
+    grids and mirrored classes); an option given explicitly wins over the config; without
+    either, the paper defaults.
+    """
+    import dataclasses
     import time
 
+    from drcpo.config import load_config
     from drcpo.database import GroundTruthDatabase
-    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT, IndexConfig, build_index, indexed_mask
+    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT, build_index, indexed_mask
     from drcpo.outputs import check_output
 
+    settings = load_config(config).index
+    options = {
+        "k": k,
+        "alpha": alpha,
+        "min_points": min_points,
+        "exclude_difficulty": exclude_difficulty,
+        "approximate_above": approximate_above,
+        "workers": workers,
+    }
+    given = {key: value for key, value in options.items() if value is not None}
+    settings = dataclasses.replace(settings, **given)
     database = GroundTruthDatabase.open(db)
     check_output(db / INDEX_DIRNAME, INDEX_OUTPUT, overwrite)  # before the long build
-    config = IndexConfig(
-        k=k,
-        alpha=alpha,
-        min_points=min_points,
-        exclude_difficulties=tuple(exclude_difficulty or ()),
-        approximate_above=approximate_above,
-        workers=workers,
-    )
-    total = int(indexed_mask(database, config).sum())
+    total = int(indexed_mask(database, settings).sum())
     done: dict[str, int] = {}
     start = time.perf_counter()
     with progress_bar("indexing objects") as bar:
@@ -288,10 +324,10 @@ def index(
             done[name] = objects
             bar(sum(done.values()), total)
 
-        result = build_index(database, config, progress=progress)
+        result = build_index(database, settings, progress=progress)
         path = result.save(db, overwrite=overwrite)
     seconds = time.perf_counter() - start
-    table = Table(title=f"{path} (K = {k}, {seconds:.1f} s)")
+    table = Table(title=f"{path} (K = {settings.k}, {seconds:.1f} s)")
     for column in ("class", "objects", "indexed", "mean candidates", "first stage"):
         table.add_column(column, justify="left" if column == "class" else "right")
     for name, stats in result.classes.items():

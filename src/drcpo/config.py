@@ -22,7 +22,15 @@ mapping is an error (naming the key and both lines) and ``5e4`` reads as a numbe
 
 Detector presets (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``) choose the e-HPR
 viewpoint height and radius of the paper's reference configuration for each detector; they live
-as YAML files in ``drcpo/configs/`` next to ``default.yaml`` (the paper defaults, spelled out).
+as YAML files in ``drcpo/configs/`` next to ``default.yaml`` (the paper defaults, spelled out),
+and their numbers in :data:`DETECTOR_PRESETS`, the one table of them.
+
+Each stage's section is defined once, in the stage's module, and composed here:
+``drcpo.construction`` is :class:`drcpo.construction.ConstructionConfig`, ``drcpo.placement``
+:class:`drcpo.placement.PlacementConfig`, ``index`` :class:`drcpo.index.IndexConfig` (how
+``drcpo index --config`` builds the candidate index; its partition grids and mirrored classes are
+construction's, so an index built from a config always matches it). All share one validation
+mechanism, :mod:`drcpo.config_fields`.
 """
 
 from __future__ import annotations
@@ -40,10 +48,70 @@ from typing import Any
 
 import yaml
 
+from drcpo.config_fields import (
+    SECTION,
+    Checked,
+    Spec,
+    check,
+    from_dict,
+    key_fields,
+    merge,
+    spec,
+    to_dict,
+)
+from drcpo.construction import ConstructionConfig
 from drcpo.errors import ConfigError, shown
+from drcpo.index import IndexConfig
+from drcpo.placement import PlacementConfig
 
+__all__ = [
+    "DETECTOR_PRESETS",
+    "KITTI_CLASSES",
+    "PIPELINES",
+    "PRESETS",
+    "AugmentConfig",
+    "ConstructionConfig",
+    "DRCPOConfig",
+    "EHPRSetting",
+    "ExternalOcclusionConfig",
+    "FlipConfig",
+    "GTSamplingConfig",
+    "GlobalAugmentationConfig",
+    "IndexConfig",
+    "PlacementConfig",
+    "RotationConfig",
+    "ScalingConfig",
+    "SelfOcclusionConfig",
+    "from_dict",
+    "load_config",
+    "per_class",
+    "preset_path",
+    "to_dict",
+]
+
+
+@dataclass(frozen=True)
+class EHPRSetting:
+    """e-HPR setting of one detector in the paper: radius ``R`` and viewpoint ``(0, 0, z)``.
+
+    Attributes:
+        radius: HPR radius ``R``, metres.
+        viewpoint_z: height of the viewpoint above the sensor origin, metres.
+    """
+
+    radius: float
+    viewpoint_z: float
+
+
+#: The detector presets (``drcpo/configs/<name>.yaml``) and their e-HPR settings.
+DETECTOR_PRESETS: dict[str, EHPRSetting] = {
+    "second": EHPRSetting(radius=300000.0, viewpoint_z=2.0),
+    "pointrcnn": EHPRSetting(radius=300000.0, viewpoint_z=1.0),
+    "pv_rcnn": EHPRSetting(radius=100000.0, viewpoint_z=0.0),
+    "pv_rcnn_plusplus": EHPRSetting(radius=100000.0, viewpoint_z=0.0),
+}
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
-PRESETS: tuple[str, ...] = ("second", "pointrcnn", "pv_rcnn", "pv_rcnn_plusplus")
+PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
 #: The preset whose e-HPR settings the paper defaults use.
 DEFAULT_PRESET = "pv_rcnn_plusplus"
 #: Pipelines :func:`build_pipeline` can make.
@@ -65,106 +133,69 @@ MAX_RADIUS = 1e150
 
 
 # --------------------------------------------------------------------------------------------
-# Field specifications
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class _Spec:
-    """How one config key is checked: its kind, inclusive/exclusive bounds or choices."""
-
-    kind: str  # int, float, bool, choice, range, per_class, names, ints, grids, section
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-    choices: tuple[str, ...] = ()
-    optional: bool = False
-    scalar_ok: bool = False  # per_class: a plain number means {"default": n}
-    strict: bool = False  # range: low < high (an empty interval is meaningless)
-    classes: bool = False  # names / per_class / grids: class names, checked vs known_classes
-    nonempty: bool = False  # names: at least one
-
-    def describe_range(self) -> str:
-        left = "(" if self.low_open else "["
-        right = ")" if self.high_open else "]"
-        low = "-inf" if self.low is None else _fmt(self.low)
-        high = "inf" if self.high is None else _fmt(self.high)
-        return f"{left}{low}, {high}{right}"
-
-
-def _fmt(value: float) -> str:
-    return str(int(value)) if float(value).is_integer() else repr(float(value))
-
-
-def _spec(kind: str, doc: str = "", **spec: Any) -> dict[str, Any]:
-    """Field metadata: how the key is checked (a :class:`_Spec`) and a one-line description."""
-    return {"spec": _Spec(kind, **spec), "doc": doc}
-
-
-_SECTION = {"spec": _Spec("section"), "doc": ""}
-
-
-def _copy(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _copy(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_copy(v) for v in value]
-    return value
-
-
-# --------------------------------------------------------------------------------------------
 # The configuration tree (paper defaults)
 # --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class FlipConfig:
+@dataclass(frozen=True, eq=False)
+class FlipConfig(Checked):
     """Random flip: with ``probability`` per axis listed (``x``: y -> -y; ``y``: x -> -x)."""
 
+    KEY_PATH = "global_augmentation.flip"
+
     probability: float = field(
-        default=0.5, metadata=_spec("float", "chance of each flip", low=0.0, high=1.0)
+        default=0.5, metadata=spec("float", "chance of each flip", low=0.0, high=1.0)
     )
     axes: list[str] = field(
         default_factory=lambda: ["x"],
-        metadata=_spec("names", "axes to flip along", choices=("x", "y")),
+        metadata=spec("names", "axes to flip along", choices=("x", "y")),
     )
 
 
-@dataclass(frozen=True)
-class RotationConfig:
+@dataclass(frozen=True, eq=False)
+class RotationConfig(Checked):
     """Random rotation about z, angle uniform in ``range`` (radians)."""
+
+    KEY_PATH = "global_augmentation.rotation"
 
     range: list[float] = field(
         default_factory=lambda: [-math.pi / 4, math.pi / 4],
-        metadata=_spec("range", "angle interval", low=-2 * math.pi, high=2 * math.pi),
+        metadata=spec("range", "angle interval", low=-2 * math.pi, high=2 * math.pi),
     )
 
 
-@dataclass(frozen=True)
-class ScalingConfig:
+@dataclass(frozen=True, eq=False)
+class ScalingConfig(Checked):
     """Random uniform scaling of the scene, factor uniform in ``range``."""
+
+    KEY_PATH = "global_augmentation.scaling"
 
     range: list[float] = field(
         default_factory=lambda: [0.95, 1.05],
-        metadata=_spec("range", "factor interval", low=0.0, low_open=True, high=10.0),
+        metadata=spec("range", "factor interval", low=0.0, low_open=True, high=10.0),
     )
 
 
-@dataclass(frozen=True)
-class GlobalAugmentationConfig:
+@dataclass(frozen=True, eq=False)
+class GlobalAugmentationConfig(Checked):
     """Global augmentation (flip, rotation, scaling), applied last, as OpenPCDet does."""
 
-    enabled: bool = field(default=True, metadata=_spec("bool"))
-    flip: FlipConfig = field(default_factory=FlipConfig, metadata=_SECTION)
-    rotation: RotationConfig = field(default_factory=RotationConfig, metadata=_SECTION)
-    scaling: ScalingConfig = field(default_factory=ScalingConfig, metadata=_SECTION)
+    KEY_PATH = "global_augmentation"
+
+    enabled: bool = field(default=True, metadata=spec("bool"))
+    flip: FlipConfig = field(default_factory=FlipConfig, metadata=SECTION)
+    rotation: RotationConfig = field(default_factory=RotationConfig, metadata=SECTION)
+    scaling: ScalingConfig = field(default_factory=ScalingConfig, metadata=SECTION)
 
 
-@dataclass(frozen=True)
-class GTSamplingConfig:
+@dataclass(frozen=True, eq=False)
+class GTSamplingConfig(Checked):
     """Ground-truth sampling with OpenPCDet's semantics (the conventional baseline)."""
 
-    enabled: bool = field(default=True, metadata=_spec("bool"))
+    KEY_PATH = "gt_sampling"
+
+    enabled: bool = field(default=True, metadata=spec("bool"))
     targets: dict[str, int] = field(
         default_factory=lambda: {"Car": 20, "Pedestrian": 15, "Cyclist": 15},
-        metadata=_spec(
+        metadata=spec(
             "per_class",
             "objects per class after sampling (existing ones count)",
             low=0,
@@ -174,7 +205,7 @@ class GTSamplingConfig:
     )
     min_points: dict[str, int] = field(
         default_factory=lambda: {"default": 5},
-        metadata=_spec(
+        metadata=spec(
             "per_class",
             "fewest points a sampled object may have",
             low=0,
@@ -185,7 +216,7 @@ class GTSamplingConfig:
     )
     exclude_difficulty: list[int] = field(
         default_factory=lambda: [],
-        metadata=_spec(
+        metadata=spec(
             "ints",
             "difficulty codes never sampled (OpenPCDet filter_by_difficulty)",
             low=-1,
@@ -193,157 +224,80 @@ class GTSamplingConfig:
         ),
     )
     use_road_plane: bool = field(
-        default=True, metadata=_spec("bool", "put boxes on the KITTI road plane when present")
+        default=True, metadata=spec("bool", "put boxes on the KITTI road plane when present")
     )
 
 
-@dataclass(frozen=True)
-class ConstructionConfig:
-    """Iterative construction of whole-body objects in canonical pose."""
-
-    mode: str = field(
-        default="partition",
-        metadata=_spec(
-            "choice", "paper (partition) or reference (whole)", choices=("partition", "whole")
-        ),
-    )
-    coverage: float = field(
-        default=0.85,
-        metadata=_spec(
-            "float", "stop when this share of partitions is dense", low=0.0, high=1.0, low_open=True
-        ),
-    )
-    max_iterations: int = field(
-        default=20, metadata=_spec("int", "most construction rounds", low=0, high=1000)
-    )
-    margin: float = field(
-        default=0.05,
-        metadata=_spec(
-            "float", "metres beyond the box where added points are kept", low=0.0, high=1.0
-        ),
-    )
-    mirror: list[str] = field(
-        default_factory=lambda: ["Car", "Cyclist"],
-        metadata=_spec("names", "classes mirrored across the x axis", classes=True),
-    )
-    grids: dict[str, list[int]] = field(
-        default_factory=lambda: {},
-        metadata=_spec("grids", "partition grid overrides per class", classes=True),
-    )
-
-
-@dataclass(frozen=True)
-class PlacementSettings:
-    """Random placement: area, height, collision and background checks."""
-
-    x_range: list[float] = field(
-        default_factory=lambda: [0.0, 70.4],
-        metadata=_spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
-    )
-    y_range: list[float] = field(
-        default_factory=lambda: [-40.0, 40.0],
-        metadata=_spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
-    )
-    height: str = field(
-        default="ground",
-        metadata=_spec(
-            "choice",
-            "box bottom on the local ground, or source height",
-            choices=("ground", "source"),
-        ),
-    )
-    max_non_ground_points: int = field(
-        default=10,
-        metadata=_spec("int", "frame points allowed inside a placed box", low=0, high=1_000_000),
-    )
-    ground_tolerance: float = field(
-        default=0.2,
-        metadata=_spec(
-            "float", "points this far above the ground are non-ground (m)", low=0.0, high=10.0
-        ),
-    )
-    attempts: int = field(
-        default=1,
-        metadata=_spec("int", "poses tried per sampled object (the paper: 1)", low=1, high=1000),
-    )
-    occluded_fraction: float | None = field(
-        default=1.0,
-        metadata=_spec(
-            "float",
-            "reject a placed box before construction once this share of its sensor-facing "
-            "surface e-HPR hides behind the frame's points (it would almost always drop the "
-            "object; 1.0: only fully hidden boxes; null: never)",
-            low=0.0,
-            high=1.0,
-            low_open=True,
-            optional=True,
-        ),
-    )
-    camera_fov: str = field(
-        default="auto",
-        metadata=_spec(
-            "choice",
-            "place inside the camera view: auto = when the frame is cut to it",
-            choices=("auto", "always", "never"),
-        ),
-    )
-
-
-@dataclass(frozen=True)
-class SelfOcclusionConfig:
+@dataclass(frozen=True, eq=False)
+class SelfOcclusionConfig(Checked):
     """s-HPR on each placed object, viewpoint at the sensor."""
 
-    enabled: bool = field(default=True, metadata=_spec("bool"))
+    KEY_PATH = "drcpo.self_occlusion"
+
+    enabled: bool = field(default=True, metadata=spec("bool"))
     radius_factor: float = field(
         default=200.0,
-        metadata=_spec("float", "R = box diagonal x this", low=0.0, low_open=True, high=1e9),
+        metadata=spec("float", "R = box diagonal x this", low=0.0, low_open=True, high=1e9),
     )
     min_points: int = field(
-        default=5, metadata=_spec("int", "fewest points an object keeps", low=0, high=1_000_000)
+        default=5, metadata=spec("int", "fewest points an object keeps", low=0, high=1_000_000)
     )
 
 
-@dataclass(frozen=True)
-class ExternalOcclusionConfig:
+@dataclass(frozen=True, eq=False)
+class ExternalOcclusionConfig(Checked):
     """e-HPR (or the range-image mode) on the frame after insertion."""
 
-    enabled: bool = field(default=True, metadata=_spec("bool"))
+    KEY_PATH = "drcpo.external_occlusion"
+
+    enabled: bool = field(default=True, metadata=spec("bool"))
     mode: str = field(
         default="hpr",
-        metadata=_spec(
+        metadata=spec(
             "choice", "hpr (the paper) or range_image (z-buffer)", choices=("hpr", "range_image")
         ),
     )
     preset: str = field(
         default=DEFAULT_PRESET,
-        metadata=_spec("choice", "detector whose (R, z) is used", choices=PRESETS),
+        metadata=spec("choice", "detector whose (R, z) is used", choices=PRESETS),
     )
     scope: str = field(
         default="inserted",
-        metadata=_spec("choice", "which points e-HPR may remove", choices=("inserted", "frame")),
+        metadata=spec("choice", "which points e-HPR may remove", choices=("inserted", "frame")),
     )
     radius: float | None = field(
         default=None,
-        metadata=_spec(
+        metadata=spec(
             "float", "override R", low=0.0, low_open=True, high=MAX_RADIUS, optional=True
         ),
     )
     viewpoint_z: float | None = field(
         default=None,
-        metadata=_spec(
+        metadata=spec(
             "float", "override viewpoint height (m)", low=-100.0, high=100.0, optional=True
         ),
     )
 
+    @property
+    def setting(self) -> EHPRSetting:
+        """The radius and viewpoint height e-HPR uses: the preset's, or the overrides."""
+        preset = DETECTOR_PRESETS[self.preset]
+        return EHPRSetting(
+            radius=preset.radius if self.radius is None else self.radius,
+            viewpoint_z=preset.viewpoint_z if self.viewpoint_z is None else self.viewpoint_z,
+        )
 
-@dataclass(frozen=True)
-class DRCPOConfig:
+
+@dataclass(frozen=True, eq=False)
+class DRCPOConfig(Checked):
     """DR.CPO: sample, construct, place, s-HPR, insert, e-HPR, filter labels."""
 
-    enabled: bool = field(default=True, metadata=_spec("bool"))
+    KEY_PATH = "drcpo"
+
+    enabled: bool = field(default=True, metadata=spec("bool"))
     sample: dict[str, int] = field(
         default_factory=lambda: {"Car": 10, "Pedestrian": 10, "Cyclist": 10},
-        metadata=_spec(
+        metadata=spec(
             "per_class",
             "objects tried per frame",
             low=0,
@@ -353,7 +307,7 @@ class DRCPOConfig:
     )
     min_points: dict[str, int] = field(
         default_factory=lambda: {"default": 5},
-        metadata=_spec(
+        metadata=spec(
             "per_class",
             "fewest points a sampled source object has",
             low=0,
@@ -364,47 +318,56 @@ class DRCPOConfig:
     )
     exclude_difficulty: list[int] = field(
         default_factory=lambda: [],
-        metadata=_spec("ints", "difficulty codes never sampled", low=-1, high=2),
+        metadata=spec("ints", "difficulty codes never sampled", low=-1, high=2),
     )
     min_points_after: int = field(
         default=5,
-        metadata=_spec(
+        metadata=spec(
             "int", "a box with fewer points after e-HPR is dropped", low=0, high=1_000_000
         ),
     )
-    construction: ConstructionConfig = field(default_factory=ConstructionConfig, metadata=_SECTION)
-    placement: PlacementSettings = field(default_factory=PlacementSettings, metadata=_SECTION)
+    construction: ConstructionConfig = field(default_factory=ConstructionConfig, metadata=SECTION)
+    placement: PlacementConfig = field(default_factory=PlacementConfig, metadata=SECTION)
     self_occlusion: SelfOcclusionConfig = field(
-        default_factory=SelfOcclusionConfig, metadata=_SECTION
+        default_factory=SelfOcclusionConfig, metadata=SECTION
     )
     external_occlusion: ExternalOcclusionConfig = field(
-        default_factory=ExternalOcclusionConfig, metadata=_SECTION
+        default_factory=ExternalOcclusionConfig, metadata=SECTION
     )
 
 
-@dataclass(frozen=True)
-class AugmentConfig:
+@dataclass(frozen=True, eq=False)
+class AugmentConfig(Checked):
     """The whole augmentation: which pipeline and each stage's settings."""
 
     pipeline: str = field(
         default="drcpo",
-        metadata=_spec("choice", "drcpo or the conventional baseline (cda)", choices=PIPELINES),
+        metadata=spec("choice", "drcpo or the conventional baseline (cda)", choices=PIPELINES),
     )
     preset: str | None = field(
         default=None,
-        metadata=_spec(
+        metadata=spec(
             "choice", "detector preset applied before these keys", choices=PRESETS, optional=True
         ),
     )
     known_classes: list[str] = field(
         default_factory=lambda: list(KITTI_CLASSES),
-        metadata=_spec("names", "class names the per-class keys may use", nonempty=True),
+        metadata=spec("names", "class names the per-class keys may use", nonempty=True),
     )
-    gt_sampling: GTSamplingConfig = field(default_factory=GTSamplingConfig, metadata=_SECTION)
-    drcpo: DRCPOConfig = field(default_factory=DRCPOConfig, metadata=_SECTION)
+    gt_sampling: GTSamplingConfig = field(default_factory=GTSamplingConfig, metadata=SECTION)
+    drcpo: DRCPOConfig = field(default_factory=DRCPOConfig, metadata=SECTION)
     global_augmentation: GlobalAugmentationConfig = field(
-        default_factory=GlobalAugmentationConfig, metadata=_SECTION
+        default_factory=GlobalAugmentationConfig, metadata=SECTION
     )
+    index: IndexConfig = field(default_factory=IndexConfig, metadata=SECTION)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        # The index partitions and mirrors as construction does: one source for both.
+        built = self.drcpo.construction
+        if (self.index.grids, self.index.mirror) != (built.grids, built.mirror):
+            index = dataclasses.replace(self.index, grids=built.grids, mirror=built.mirror)
+            object.__setattr__(self, "index", index)
 
     def to_dict(self) -> dict[str, Any]:
         """Every key as plain YAML/JSON types; :func:`load_config` reads it back unchanged."""
@@ -417,172 +380,6 @@ class AugmentConfig:
 # --------------------------------------------------------------------------------------------
 # Reading, validating, writing
 # --------------------------------------------------------------------------------------------
-def to_dict(config: Any) -> dict[str, Any]:
-    """Plain-dict form of any config dataclass in this module."""
-    out: dict[str, Any] = {}
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        out[f.name] = to_dict(value) if dataclasses.is_dataclass(value) else _copy(value)
-    return out
-
-
-def from_dict(cls: type, data: Mapping[str, Any] | None, path: str = "") -> Any:
-    """Build config dataclass ``cls`` from ``data`` on top of its defaults, validating every key.
-
-    Args:
-        cls: a config dataclass of this module.
-        data: the keys to set (missing keys keep their defaults).
-        path: dotted key path of ``data`` within the whole config, for messages.
-    """
-    return _merge(cls(), data, path)
-
-
-def _merge(base: Any, data: Mapping[str, Any] | None, path: str) -> Any:
-    if data is None:
-        return base
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"config key {path or '<root>'!r} must be a mapping, got {shown(data)}")
-    fields = {f.name: f for f in dataclasses.fields(base)}
-    changes: dict[str, Any] = {}
-    for key, value in data.items():
-        where = f"{path}.{key}" if path else str(key)
-        if key not in fields:
-            raise ConfigError(
-                f"unknown config key {where!r}; allowed keys here: {', '.join(sorted(fields))}"
-            )
-        spec: _Spec = fields[key].metadata["spec"]
-        if spec.kind == "section":
-            changes[key] = _merge(getattr(base, key), value, where)
-        else:
-            changes[key] = _check(value, spec, where)
-    return dataclasses.replace(base, **changes)
-
-
-def _check(value: Any, spec: _Spec, where: str) -> Any:
-    if value is None:
-        if spec.optional:
-            return None
-        raise ConfigError(f"config key {where!r} must be set (null is not allowed)")
-    kind = spec.kind
-    if kind == "bool":
-        if not isinstance(value, bool):
-            raise ConfigError(f"config key {where!r} must be true or false, got {shown(value)}")
-        return value
-    if kind in ("int", "float"):
-        return _number(value, spec, where, integer=kind == "int")
-    if kind == "choice":
-        if value not in spec.choices:
-            raise ConfigError(
-                f"config key {where!r} = {shown(value)} is not allowed; "
-                f"choose one of: {', '.join(spec.choices)}"
-            )
-        return value
-    if kind == "range":
-        return _interval(value, spec, where)
-    if kind == "per_class":
-        return _per_class(value, spec, where)
-    if kind == "names":
-        return _names(value, spec, where)
-    if kind == "ints":
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"config key {where!r} must be a list of integers")
-        return [_number(v, spec, f"{where}[{i}]", integer=True) for i, v in enumerate(value)]
-    if kind == "grids":
-        return _grids(value, where)
-    raise AssertionError(f"unknown spec kind {kind}")
-
-
-def _number(value: Any, spec: _Spec, where: str, integer: bool) -> int | float:
-    ok_types = (int,) if integer else (int, float)
-    if isinstance(value, bool) or not isinstance(value, ok_types):
-        if integer and isinstance(value, float) and value.is_integer():
-            value = int(value)
-        else:
-            wanted = "an integer" if integer else "a number"
-            raise ConfigError(f"config key {where!r} must be {wanted}, got {shown(value)}")
-    # Integers compare exactly with the bounds (float() of a huge one would overflow).
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ConfigError(f"config key {where!r} must be finite, got {value}")
-    too_low = spec.low is not None and (value <= spec.low if spec.low_open else value < spec.low)
-    too_high = spec.high is not None and (
-        value >= spec.high if spec.high_open else value > spec.high
-    )
-    if too_low or too_high:
-        raise ConfigError(
-            f"config key {where!r} = {shown(value)} is out of range; allowed range: "
-            f"{spec.describe_range()}"
-        )
-    return int(value) if integer else float(value)
-
-
-def _interval(value: Any, spec: _Spec, where: str) -> list[float]:
-    if not isinstance(value, list | tuple) or len(value) != 2:
-        raise ConfigError(f"config key {where!r} must be a pair [low, high], got {shown(value)}")
-    low, high = (_number(v, spec, f"{where}[{i}]", integer=False) for i, v in enumerate(value))
-    if spec.strict and low >= high:
-        raise ConfigError(f"config key {where!r} = [{low}, {high}]: low must be below high")
-    if low > high:
-        raise ConfigError(f"config key {where!r} = [{low}, {high}]: low must not exceed high")
-    return [low, high]
-
-
-def _per_class(value: Any, spec: _Spec, where: str) -> dict[str, int]:
-    if spec.scalar_ok and isinstance(value, int | float) and not isinstance(value, bool):
-        return {"default": _number(value, spec, where, integer=True)}
-    if not isinstance(value, Mapping):
-        hint = "a number or " if spec.scalar_ok else ""
-        raise ConfigError(
-            f"config key {where!r} must be {hint}a mapping of class name to integer, "
-            f"got {shown(value)}"
-        )
-    out = {}
-    for name, count in value.items():
-        if not isinstance(name, str) or not name:
-            raise ConfigError(f"config key {where!r}: class names must be strings, got {name!r}")
-        out[name] = _number(count, spec, f"{where}.{name}", integer=True)
-    return out
-
-
-def _names(value: Any, spec: _Spec, where: str) -> list[str]:
-    if isinstance(value, str) or not isinstance(value, list | tuple):
-        raise ConfigError(f"config key {where!r} must be a list of names, got {shown(value)}")
-    if spec.nonempty and not value:
-        raise ConfigError(f"config key {where!r} must name at least one class")
-    seen: set[str] = set()
-    for i, name in enumerate(value):
-        if not isinstance(name, str) or not name:
-            raise ConfigError(
-                f"config key {f'{where}[{i}]'!r} must be a non-empty string, got {shown(name)}"
-            )
-        if spec.choices and name not in spec.choices:
-            raise ConfigError(
-                f"config key {f'{where}[{i}]'!r} = {name!r} is not allowed; "
-                f"choose from: {', '.join(spec.choices)}"
-            )
-        if name in seen:
-            raise ConfigError(f"config key {f'{where}[{i}]'!r} = {name!r} is listed twice")
-        seen.add(name)
-    return list(value)
-
-
-def _grids(value: Any, where: str) -> dict[str, list[int]]:
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"config key {where!r} must map class names to [nx, ny, nz]")
-    out = {}
-    cell_spec = _Spec("int", low=1, high=100)
-    for name, grid in value.items():
-        if not isinstance(name, str) or not name:
-            raise ConfigError(f"config key {where!r}: class names must be strings, got {name!r}")
-        if not isinstance(grid, list | tuple) or len(grid) != 3:
-            raise ConfigError(
-                f"config key {f'{where}.{name}'!r} must be [nx, ny, nz], got {shown(grid)}"
-            )
-        out[name] = [
-            _number(n, cell_spec, f"{where}.{name}[{i}]", integer=True) for i, n in enumerate(grid)
-        ]
-    return out
-
-
 def _check_classes(config: AugmentConfig) -> None:
     """Every class name in a per-class key of ``config`` is one of its ``known_classes``.
 
@@ -595,9 +392,9 @@ def _check_classes(config: AugmentConfig) -> None:
             "config key 'known_classes' lists 'default', which is not a class name "
             "(it is the fallback entry of the per-class maps)"
         )
-    for where, spec, value, default in _class_keys(config, AugmentConfig(), ""):
-        fallback = spec.scalar_ok or spec.kind == "grids"
-        if spec.kind == "names":
+    for where, field_spec, value, default in _class_keys(config, AugmentConfig(), ""):
+        fallback = field_spec.scalar_ok or field_spec.kind == "grids"
+        if field_spec.kind == "names":
             labelled = [(f"{where}[{i}]", name) for i, name in enumerate(value)]
         else:
             labelled = [(f"{where}.{name}", name) for name in value]
@@ -617,16 +414,17 @@ def _check_classes(config: AugmentConfig) -> None:
             )
 
 
-def _class_keys(config: Any, default: Any, path: str) -> Iterator[tuple[str, _Spec, Any, Any]]:
-    """``(key path, spec, value, default value)`` of every class-keyed field of ``config``."""
-    for f in dataclasses.fields(config):
+def _class_keys(config: Any, default: Any, path: str) -> Iterator[tuple[str, Spec, Any, Any]]:
+    """``(key path, spec, value, default value)`` of every class-keyed key of ``config`` that
+    is set (not null)."""
+    for f in key_fields(config):
         where = f"{path}.{f.name}" if path else f.name
-        spec: _Spec = f.metadata["spec"]
+        field_spec: Spec = f.metadata["spec"]
         value, default_value = getattr(config, f.name), getattr(default, f.name)
-        if spec.kind == "section":
+        if field_spec.kind == "section":
             yield from _class_keys(value, default_value, where)
-        elif spec.classes:
-            yield where, spec, value, default_value
+        elif field_spec.classes and value is not None:
+            yield where, field_spec, value, default_value
 
 
 def per_class(values: Mapping[str, int], name: str, fallback: int = 0) -> int:
@@ -754,11 +552,11 @@ def _build(data: dict[str, Any]) -> AugmentConfig:
     base = AugmentConfig()
     preset = data.get("preset")
     if preset is not None:
-        spec = {f.name: f for f in dataclasses.fields(AugmentConfig)}["preset"].metadata["spec"]
-        _check(preset, spec, "preset")
+        preset_spec = AugmentConfig.__dataclass_fields__["preset"].metadata["spec"]
+        check(preset, preset_spec, "preset")
         preset_data = _read_yaml(preset_path(preset))
         preset_data.pop("preset", None)
-        base = _merge(base, preset_data, "")
-    config = _merge(base, data, "")
+        base = merge(base, preset_data, "")
+    config = merge(base, data, "")
     _check_classes(config)
     return config

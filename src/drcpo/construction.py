@@ -41,15 +41,17 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from drcpo.errors import ConfigError, DataError
+from drcpo.config_fields import Checked, spec
+from drcpo.errors import DataError
 from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for
 
 MODES = ("partition", "whole")
 
 
-@dataclass(frozen=True)
-class ConstructionConfig:
-    """Parameters of :func:`construct_object` (paper defaults).
+@dataclass(frozen=True, eq=False)
+class ConstructionConfig(Checked):
+    """Parameters of :func:`construct_object` (paper defaults): the config section
+    ``drcpo.construction``, whose keys are these fields.
 
     Attributes:
         mode: ``"partition"`` (the paper) or ``"whole"`` (the reference implementation).
@@ -57,47 +59,47 @@ class ConstructionConfig:
         max_iterations: most rounds of additions (0 disables construction).
         margin: metres beyond the source box's faces within which added points are kept
             (``partition`` mode).
-        mirrored_classes: classes mirrored across the x axis (y -> -y).
+        mirror: classes mirrored across the x axis (y -> -y).
         grids: per-class partition grids overriding :data:`drcpo.partitions.DEFAULT_GRIDS`
-            (``{"Car": (10, 4, 3), "default": (4, 2, 3)}``); stored as sorted pairs.
+            (``{"Car": [10, 4, 3], "default": [4, 2, 3]}``).
+
+    The candidate index partitions and mirrors each class with the same ``grids`` and
+    ``mirror`` (:class:`drcpo.index.IndexConfig` takes them from here).
     """
 
-    mode: str = "partition"
-    coverage: float = 0.85
-    max_iterations: int = 20
-    margin: float = 0.05
-    mirrored_classes: tuple[str, ...] = DEFAULT_MIRRORED
-    grids: Mapping[str, Grid] | tuple[tuple[str, Grid], ...] = field(default_factory=tuple)
+    KEY_PATH = "drcpo.construction"
 
-    def __post_init__(self) -> None:
-        if self.mode not in MODES:
-            raise ConfigError(f"construction.mode must be one of {MODES}, got {self.mode!r}")
-        if not 0 < self.coverage <= 1:
-            raise ConfigError(f"construction.coverage must be in (0, 1], got {self.coverage}")
-        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 0:
-            raise ConfigError(
-                f"construction.max_iterations must be an integer >= 0, got {self.max_iterations}"
-            )
-        if not self.margin >= 0:
-            raise ConfigError(f"construction.margin must be >= 0 metres, got {self.margin}")
-        if isinstance(self.mirrored_classes, str):
-            raise ConfigError("construction.mirrored_classes must be a list of class names")
-        object.__setattr__(self, "mirrored_classes", tuple(str(c) for c in self.mirrored_classes))
-        pairs = self.grids.items() if isinstance(self.grids, Mapping) else self.grids
-        grids = tuple(sorted((str(name), _valid_grid(name, grid)) for name, grid in pairs))
-        object.__setattr__(self, "grids", grids)
-        object.__setattr__(self, "max_iterations", int(self.max_iterations))
+    mode: str = field(
+        default="partition",
+        metadata=spec("choice", "paper (partition) or reference (whole)", choices=MODES),
+    )
+    coverage: float = field(
+        default=0.85,
+        metadata=spec(
+            "float", "stop when this share of partitions is dense", low=0.0, high=1.0, low_open=True
+        ),
+    )
+    max_iterations: int = field(
+        default=20, metadata=spec("int", "most construction rounds", low=0, high=1000)
+    )
+    margin: float = field(
+        default=0.05,
+        metadata=spec(
+            "float", "metres beyond the box where added points are kept", low=0.0, high=1.0
+        ),
+    )
+    mirror: list[str] = field(
+        default_factory=lambda: list(DEFAULT_MIRRORED),
+        metadata=spec("names", "classes mirrored across the x axis", classes=True),
+    )
+    grids: dict[str, list[int]] = field(
+        default_factory=dict,
+        metadata=spec("grids", "partition grid overrides per class", classes=True),
+    )
 
     def grid(self, name: str) -> Grid:
         """The partition grid of class ``name``."""
-        return grid_for(name, dict(self.grids))
-
-
-def _valid_grid(name: str, grid) -> Grid:
-    try:
-        return grid_for(str(name), {str(name): tuple(grid)})
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"construction.grids.{name}: {exc}") from exc
+        return grid_for(name, self.grids)
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,7 +276,7 @@ def _class_settings(database, rows, config, class_max_counts):
         dtype=np.int64,
     )
     grids = np.array([config.grid(name) for name in classes], dtype=np.int64).reshape(-1, 3)
-    mirror = np.array([name in config.mirrored_classes for name in classes], dtype=np.bool_)
+    mirror = np.array([name in config.mirror for name in classes], dtype=np.bool_)
     n_cells = grids.prod(axis=1)
     if class_max_counts is None or isinstance(class_max_counts, Mapping):
         given = class_max_counts or {}

@@ -58,13 +58,14 @@ import math
 import os
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numba as nb
 import numpy as np
 
+from drcpo.config_fields import Checked, spec, to_dict
 from drcpo.database import GroundTruthDatabase, read_manifest
 from drcpo.errors import ConfigError, DataError
 from drcpo.outputs import OutputKind, write_directory
@@ -90,72 +91,81 @@ _OCCUPANCY_DIVISOR = 48.0  # typical cell holds s / this objects
 # --------------------------------------------------------------------------------------------
 # Configuration
 # --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class IndexConfig:
-    """Parameters of the candidate index (paper defaults).
+@dataclass(frozen=True, eq=False)
+class IndexConfig(Checked):
+    """Parameters of the candidate index (paper defaults): the config section ``index``, whose
+    keys are the first seven fields.
 
     Attributes:
         k: candidates kept per object (the first stage keeps ``2 k``).
         alpha: a partition is low-density below ``alpha`` x the mean non-empty density.
         min_points: objects with fewer points are neither indexed nor candidates.
-        grids: partition grid overrides ``{class: (nx, ny, nz)}`` (key ``"default"`` for
-            classes without their own grid); see :data:`drcpo.partitions.DEFAULT_GRIDS`.
-        mirrored: classes whose points are mirrored across the x axis before counting.
-        exclude_difficulties: difficulty codes never indexed (e.g. ``(-1,)`` for unknown).
+        exclude_difficulty: difficulty codes never indexed (e.g. ``[-1]`` for unknown).
         classes: classes to index (``None``: every class in the database).
         approximate_above: classes with more indexed objects use the approximate first stage
             (``None``: always exact).
         approx_factor: the approximate mode re-ranks ``approx_factor x 2k`` nearest neighbours.
+
+    Not config keys:
+        grids: partition grid overrides ``{class: [nx, ny, nz]}`` (key ``"default"`` for
+            classes without their own grid); see :data:`drcpo.partitions.DEFAULT_GRIDS`.
+        mirror: classes whose points are mirrored across the x axis before counting.
+            In a loaded configuration both are ``drcpo.construction``'s, so the index
+            partitions every class as construction does.
         workers: threads (``None``: all cores).
         block_size: objects per work item.
     """
 
-    k: int = 400
-    alpha: float = 0.8
-    min_points: int = 5
-    grids: Mapping[str, Grid] = field(default_factory=dict)
-    mirrored: tuple[str, ...] = DEFAULT_MIRRORED
-    exclude_difficulties: tuple[int, ...] = ()
-    classes: tuple[str, ...] | None = None
-    approximate_above: int | None = None
-    approx_factor: float = 1.5
-    workers: int | None = None
-    block_size: int = 512
+    KEY_PATH = "index"
 
-    def __post_init__(self) -> None:
-        _require(
-            isinstance(self.k, int | np.integer) and 1 <= self.k <= MAX_K,
-            "k",
-            self.k,
-            f"1 .. {MAX_K}",
-        )
-        _require(
-            isinstance(self.alpha, int | float) and 0 < self.alpha < math.inf,
-            "alpha",
-            self.alpha,
-            "in (0, inf)",
-        )
-        _require(
-            isinstance(self.min_points, int | np.integer) and self.min_points >= 0,
-            "min_points",
-            self.min_points,
-            ">= 0",
-        )
-        _require(
-            self.approximate_above is None or self.approximate_above >= 0,
-            "approximate_above",
-            self.approximate_above,
-            ">= 0 or None",
-        )
-        _require(self.approx_factor >= 1, "approx_factor", self.approx_factor, ">= 1")
-        _require(self.workers is None or self.workers >= 1, "workers", self.workers, ">= 1 or None")
-        _require(self.block_size >= 1, "block_size", self.block_size, ">= 1")
-        for name in self.grids:
-            grid_for(name, self.grids)  # raises ConfigError on a malformed grid
-        object.__setattr__(self, "mirrored", tuple(self.mirrored))
-        object.__setattr__(self, "exclude_difficulties", tuple(self.exclude_difficulties))
-        if self.classes is not None:
-            object.__setattr__(self, "classes", tuple(self.classes))
+    k: int = field(
+        default=400, metadata=spec("int", "candidates kept per object", low=1, high=MAX_K)
+    )
+    alpha: float = field(
+        default=0.8,
+        metadata=spec(
+            "float", "low-density partitions: below alpha x the mean", low=0.0, low_open=True
+        ),
+    )
+    min_points: int = field(
+        default=5, metadata=spec("int", "objects with fewer points are not indexed", low=0)
+    )
+    exclude_difficulty: list[int] = field(
+        default_factory=list,
+        metadata=spec("ints", "difficulty codes never indexed", low=-1, high=2),
+    )
+    classes: list[str] | None = field(
+        default=None,
+        metadata=spec("names", "classes to index (null: every class)", classes=True, optional=True),
+    )
+    approximate_above: int | None = field(
+        default=None,
+        metadata=spec(
+            "int",
+            "approximate first stage for classes with more indexed objects (null: never)",
+            low=0,
+            optional=True,
+        ),
+    )
+    approx_factor: float = field(
+        default=1.5,
+        metadata=spec("float", "the approximate mode re-ranks this x 2k neighbours", low=1.0),
+    )
+    grids: dict[str, list[int]] = field(
+        default_factory=dict,
+        metadata=spec("grids", set_by="drcpo.construction.grids (the index partitions as it)"),
+    )
+    mirror: list[str] = field(
+        default_factory=lambda: list(DEFAULT_MIRRORED),
+        metadata=spec("names", set_by="drcpo.construction.mirror (the index mirrors as it)"),
+    )
+    workers: int | None = field(
+        default=None,
+        metadata=spec("int", low=1, optional=True, set_by="the caller (drcpo index --workers)"),
+    )
+    block_size: int = field(
+        default=512, metadata=spec("int", low=1, set_by="the caller (objects per work item)")
+    )
 
     def grid(self, name: str) -> Grid:
         return grid_for(name, self.grids)
@@ -164,31 +174,28 @@ class IndexConfig:
         return self.workers or os.cpu_count() or 1
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able parameters (what the manifest stores)."""
-        out = asdict(self)
-        out["grids"] = {name: list(grid) for name, grid in self.grids.items()}
-        for key in ("mirrored", "exclude_difficulties", "classes"):
-            out[key] = None if out[key] is None else list(out[key])
-        return out
+        """JSON-able parameters that decide the index (what the manifest stores): the config
+        keys, the grids and the mirrored classes."""
+        grids = {name: list(grid) for name, grid in self.grids.items()}
+        return {**to_dict(self), "grids": grids, "mirror": list(self.mirror)}
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> IndexConfig:
-        known = set(cls.__dataclass_fields__)
-        unknown = set(values) - known
+        """The inverse of :meth:`to_dict`; also reads the names manifests used before
+        (``mirrored``, ``exclude_difficulties``) and ignores their ``workers`` and ``block_size``
+        (how it was built, not what)."""
+        values = {_OLD_NAMES.get(key, key): value for key, value in values.items()}
+        for key in _HOW_BUILT:
+            values.pop(key, None)
+        known = sorted(f.name for f in fields(cls) if f.name not in _HOW_BUILT)
+        unknown = sorted(set(values) - set(known))
         if unknown:
-            raise ConfigError(f"unknown index parameters {sorted(unknown)}; known: {sorted(known)}")
-        values = dict(values)
-        if "grids" in values:
-            values["grids"] = {n: tuple(g) for n, g in values["grids"].items()}
-        for key in ("mirrored", "exclude_difficulties", "classes"):
-            if values.get(key) is not None:
-                values[key] = tuple(values[key])
+            raise ConfigError(f"unknown index parameters {unknown}; known: {known}")
         return cls(**values)
 
 
-def _require(ok: bool, key: str, value: Any, allowed: str) -> None:
-    if not ok:
-        raise ConfigError(f"index config {key} = {value!r} is out of range (allowed: {allowed})")
+_OLD_NAMES = {"mirrored": "mirror", "exclude_difficulties": "exclude_difficulty"}
+_HOW_BUILT = ("workers", "block_size")  # no bearing on the index
 
 
 # --------------------------------------------------------------------------------------------
@@ -346,8 +353,8 @@ def _load_array(path: Path, mmap: bool) -> np.ndarray:
 def indexed_mask(database: GroundTruthDatabase, config: IndexConfig) -> np.ndarray:
     """``bool (N,)``: objects that are indexed and may be candidates."""
     keep = database.num_points >= config.min_points
-    if config.exclude_difficulties:
-        keep &= ~np.isin(database.difficulty, np.asarray(config.exclude_difficulties))
+    if config.exclude_difficulty:
+        keep &= ~np.isin(database.difficulty, np.asarray(config.exclude_difficulty))
     if config.classes is not None:
         keep &= np.isin(database.names, np.asarray(config.classes, dtype=str))
     return keep
@@ -378,7 +385,7 @@ def build_index(
     rows_of = {name: np.flatnonzero(names == name) for name in classes}
     indexed_of = {name: rows[keep[rows]] for name, rows in rows_of.items()}
     _check_table_fits(n, config.k, {name: len(rows) for name, rows in indexed_of.items()})
-    densities, max_counts = _densities(database, grids, config.mirrored, p_max, indexed_of)
+    densities, max_counts = _densities(database, grids, config.mirror, p_max, indexed_of)
     candidates = np.full((n, config.k), -1, np.int32)
     stats: dict[str, dict[str, Any]] = {}
     for name in classes:

@@ -4,7 +4,7 @@ A pose is a heading uniform in ``[-pi, pi)`` and a position uniform over the pla
 that the whole BEV footprint lies inside it (with ``fov_only``, also inside the camera's field of
 view: every footprint corner at an azimuth ``|atan2(y, x)| <= fov_half_angle``; KITTI's camera 2
 sees about 41 degrees to each side). The box bottom is put on the ground estimated from the
-frame's own points (``height_mode="ground"``) or the box keeps its source height (``"source"``, the
+frame's own points (``height="ground"``) or the box keeps its source height (``"source"``, the
 reference implementation).
 
 A placement is rejected, for one reason counted per attempt, when
@@ -12,13 +12,13 @@ A placement is rejected, for one reason counted per attempt, when
 * ``"out_of_range"``: the footprint cannot fit in the area (or field of view);
 * ``"collision"``: its BEV box overlaps (area > 0) an existing box of the frame, a box placed
   earlier in this call, or an earlier box of the same batch (first come, first placed);
-* ``"obstacle"``: its box holds more than ``max_nonground_points`` frame points that are more
+* ``"obstacle"``: its box holds more than ``max_non_ground_points`` frame points that are more
   than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects);
 * ``"occluded"``: the caller's occlusion test rejects it (DR.CPO's: the box would be hidden
   behind the frame's points, see :class:`drcpo.pipeline.DRCPO`;
   :class:`drcpo.occlusion.zbuffer.OcclusionMap` is a z-buffer for such a test).
 
-Objects are tried up to ``max_tries`` times (a fresh pose each time); the paper tries once.
+Objects are tried up to ``attempts`` times (a fresh pose each time); the paper tries once.
 
 The hot loops are numba kernels that reproduce the reference numpy arithmetic operation for
 operation (same boxes, same verdicts, bit for bit): collisions are a separating-axis test
@@ -30,84 +30,122 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
-from drcpo.errors import ConfigError, DataError
+from drcpo.config_fields import Checked, spec
+from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import heading_terms, inside_box
 from drcpo.ground import GroundModel
 
 REASONS = ("out_of_range", "collision", "obstacle", "occluded")
 HEIGHT_MODES = ("ground", "source")
+CAMERA_FOV_MODES = ("auto", "always", "never")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 _FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view
 _MEMBER_CELLS = 256  # most BEV cells along a side of the grid that finds points near boxes
 
 
-@dataclass(frozen=True)
-class PlacementConfig:
-    """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults).
+@dataclass(frozen=True, eq=False)
+class PlacementConfig(Checked):
+    """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
+    section ``drcpo.placement``, whose keys are the first eight fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
+        height: ``"ground"`` (bottom on the estimated ground) or ``"source"``.
+        max_non_ground_points: most non-ground frame points a placed box may hold.
+        ground_tolerance: points more than this (metres) above the ground are non-ground.
+        attempts: poses tried per object.
+        occluded_fraction: for the caller's occlusion test (``occluded`` of
+            :func:`place_objects`; DR.CPO's rejects a box once e-HPR would hide this share of
+            its sensor-facing surface; ``None``: no test).
+        camera_fov: when the caller sets ``fov_only``: ``"auto"`` (when the frame is cut to the
+            camera's view), ``"always"`` or ``"never"``.
+
+    Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
         fov_half_angle: largest footprint-corner azimuth ``|atan2(y, x)|`` (radians).
-        height_mode: ``"ground"`` (bottom on the estimated ground) or ``"source"``.
-        max_nonground_points: most non-ground frame points a placed box may hold.
-        ground_tolerance: points more than this (metres) above the ground are non-ground.
-        max_tries: poses tried per object.
         clearance: metres of room kept free on every side of each placed footprint (for an
             object that may grow its box by that much once built): the footprint grown by it
             must lie in the area and overlap no box, nor any other grown footprint.
     """
 
-    x_range: tuple[float, float] = (0.0, 70.4)
-    y_range: tuple[float, float] = (-40.0, 40.0)
-    fov_only: bool = False
-    fov_half_angle: float = KITTI_FOV_HALF_ANGLE
-    height_mode: str = "ground"
-    max_nonground_points: int = 10
-    ground_tolerance: float = 0.2
-    max_tries: int = 1
-    clearance: float = 0.0
+    KEY_PATH = "drcpo.placement"
 
-    def __post_init__(self) -> None:
-        for name in ("x_range", "y_range"):
-            value = tuple(float(v) for v in getattr(self, name))
-            if len(value) != 2 or not np.isfinite(value).all() or not value[0] < value[1]:
-                raise ConfigError(
-                    f"placement.{name} must be two finite numbers (low < high), got {value}"
-                )
-            object.__setattr__(self, name, value)
-        if not 0 < self.fov_half_angle <= np.pi:
-            raise ConfigError(
-                f"placement.fov_half_angle must be in (0, pi] radians, got {self.fov_half_angle}"
-            )
-        if self.height_mode not in HEIGHT_MODES:
-            raise ConfigError(
-                f"placement.height_mode must be one of {HEIGHT_MODES}, got {self.height_mode!r}"
-            )
-        if int(self.max_nonground_points) != self.max_nonground_points or (
-            self.max_nonground_points < 0
-        ):
-            raise ConfigError(
-                "placement.max_nonground_points must be an integer >= 0, "
-                f"got {self.max_nonground_points}"
-            )
-        if not self.ground_tolerance >= 0:
-            raise ConfigError(
-                f"placement.ground_tolerance must be >= 0 metres, got {self.ground_tolerance}"
-            )
-        if int(self.max_tries) != self.max_tries or self.max_tries < 1:
-            raise ConfigError(f"placement.max_tries must be an integer >= 1, got {self.max_tries}")
-        if not (np.isfinite(self.clearance) and self.clearance >= 0):
-            raise ConfigError(f"placement.clearance must be >= 0 metres, got {self.clearance}")
-        object.__setattr__(self, "max_tries", int(self.max_tries))
-        object.__setattr__(self, "max_nonground_points", int(self.max_nonground_points))
+    x_range: list[float] = field(
+        default_factory=lambda: [0.0, 70.4],
+        metadata=spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
+    )
+    y_range: list[float] = field(
+        default_factory=lambda: [-40.0, 40.0],
+        metadata=spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
+    )
+    height: str = field(
+        default="ground",
+        metadata=spec(
+            "choice", "box bottom on the local ground, or source height", choices=HEIGHT_MODES
+        ),
+    )
+    max_non_ground_points: int = field(
+        default=10,
+        metadata=spec("int", "frame points allowed inside a placed box", low=0, high=1_000_000),
+    )
+    ground_tolerance: float = field(
+        default=0.2,
+        metadata=spec(
+            "float", "points this far above the ground are non-ground (m)", low=0.0, high=10.0
+        ),
+    )
+    attempts: int = field(
+        default=1,
+        metadata=spec("int", "poses tried per sampled object (the paper: 1)", low=1, high=1000),
+    )
+    occluded_fraction: float | None = field(
+        default=1.0,
+        metadata=spec(
+            "float",
+            "reject a placed box before construction once this share of its sensor-facing "
+            "surface e-HPR hides behind the frame's points (it would almost always drop the "
+            "object; 1.0: only fully hidden boxes; null: never)",
+            low=0.0,
+            high=1.0,
+            low_open=True,
+            optional=True,
+        ),
+    )
+    camera_fov: str = field(
+        default="auto",
+        metadata=spec(
+            "choice",
+            "place inside the camera view: auto = when the frame is cut to it",
+            choices=CAMERA_FOV_MODES,
+        ),
+    )
+    fov_only: bool = field(
+        default=False,
+        metadata=spec("bool", set_by="the caller, per frame (DR.CPO: from camera_fov)"),
+    )
+    fov_half_angle: float = field(
+        default=KITTI_FOV_HALF_ANGLE,
+        metadata=spec(
+            "float",
+            low=0.0,
+            low_open=True,
+            high=math.pi,
+            set_by="the caller (KITTI camera 2's by default)",
+        ),
+    )
+    clearance: float = field(
+        default=0.0,
+        metadata=spec(
+            "float", low=0.0, set_by="the caller (DR.CPO: the room its objects' labels need)"
+        ),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,7 +211,7 @@ def place_objects(
             obstacles to avoid and its points the background checked for non-ground points.
         dims: box sizes dx, dy, dz (metres) of the objects, in the order they are tried.
         source_boxes: ``(K, 7)`` the objects' original boxes; only their z is used, and only
-            with ``height_mode="source"`` (may be ``None`` otherwise).
+            with ``height="source"`` (may be ``None`` otherwise).
         rng: the only source of randomness.
         config: :class:`PlacementConfig` (defaults when ``None``).
         ground: the frame's :class:`GroundModel`; estimated from the frame's points (with its
@@ -197,7 +235,7 @@ def place_objects(
     room[:, :2] += 2.0 * config.clearance
     pending = np.arange(len(dims))
     attempts = 0
-    for _ in range(config.max_tries):
+    for _ in range(config.attempts):
         if len(pending) == 0:
             break
         attempts += len(pending)
@@ -253,7 +291,7 @@ def _judge(
     hit = np.zeros(len(live), dtype=bool)
     if len(occupied) and len(live):
         hit = bev_collisions(boxes[live], occupied).any(axis=1)
-    if config.height_mode == "ground":
+    if config.height == "ground":
         boxes[live, 2] = obstacles.ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
     else:
         boxes[live, 2] = source_z[pending[live]]
@@ -261,7 +299,7 @@ def _judge(
     live = live[~hit]
     own = boxes[live]
     own[:, 3:5] = dims[pending[live], :2]
-    blocked = obstacles.count(own) > config.max_nonground_points
+    blocked = obstacles.count(own) > config.max_non_ground_points
     verdict[live[blocked]] = _OBSTACLE
     live = live[~blocked]
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
@@ -530,10 +568,10 @@ def _check_dims(dims: np.ndarray) -> np.ndarray:
 def _source_heights(
     source_boxes: np.ndarray | None, count: int, config: PlacementConfig
 ) -> np.ndarray | None:
-    if config.height_mode != "source":
+    if config.height != "source":
         return None
     if source_boxes is None:
-        raise DataError('height_mode "source" needs the source boxes (source_boxes is None)')
+        raise DataError('height "source" needs the source boxes (source_boxes is None)')
     source_boxes = np.asarray(source_boxes, dtype=np.float64).reshape(-1, 7)
     if len(source_boxes) != count:
         raise DataError(f"source_boxes has {len(source_boxes)} rows; dims has {count}")

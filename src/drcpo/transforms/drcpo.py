@@ -4,6 +4,7 @@ settle the labels; each step's work lives in its own module (:mod:`drcpo.placeme
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -142,15 +143,11 @@ class DRCPO(Transform):
         self.config: DRCPOConfig = config
         self.database = database
         self.index = index
-        self._construction = construction.ConstructionConfig(
-            mode=config.construction.mode,
-            coverage=config.construction.coverage,
-            max_iterations=config.construction.max_iterations,
-            margin=config.construction.margin,
-            mirrored_classes=tuple(config.construction.mirror),
-            grids={k: tuple(v) for k, v in config.construction.grids.items()},
-        )
-        self._placement = {fov: self._placement_config(fov) for fov in (False, True)}
+        # Per frame, placement inside the camera's view or not; always with room for the label.
+        self._placement = {
+            fov: dataclasses.replace(config.placement, fov_only=fov, clearance=self.room)
+            for fov in (False, True)
+        }
         classes = [name for name, count in config.sample.items() if count > 0]
         self._check_index(classes)
         indexed = indexed_mask(database, index.config)
@@ -163,49 +160,43 @@ class DRCPO(Transform):
         for pool in self._pools.values():
             pool.setflags(write=False)
 
-    def _placement_config(self, fov_only: bool) -> placement.PlacementConfig:
-        p = self.config.placement
-        return placement.PlacementConfig(
-            x_range=tuple(p.x_range),
-            y_range=tuple(p.y_range),
-            fov_only=fov_only,
-            height_mode=p.height,
-            max_nonground_points=p.max_non_ground_points,
-            ground_tolerance=p.ground_tolerance,
-            max_tries=p.attempts,
-            clearance=self.room,
-        )
-
     @property
     def room(self) -> float:
         """Metres by which an object's label may exceed its placed box on any side: the
         construction margin (``partition`` mode keeps points that far outside the source box)
         and twice :data:`_FIT_PAD`. Placement keeps that much room free around each box, and
         the frame's points within it make way for the object."""
-        margin = self.config.construction.margin if self._construction.mode == "partition" else 0
+        built = self.config.construction
+        margin = built.margin if built.mode == "partition" else 0
         return float(margin) + 2.0 * _FIT_PAD
 
     def _check_index(self, classes: Sequence[str]) -> None:
-        """The index must partition and mirror each class as construction does."""
+        """The index must partition and mirror each class as construction does (it does when
+        built from this config, ``drcpo index DB --config``; this catches one built from
+        another)."""
         if len(self.index.candidates) != len(self.database):
             raise ConfigError(
                 f"the candidate index covers {len(self.index.candidates)} objects but the "
                 f"database has {len(self.database)}; rebuild it with `drcpo index`"
             )
-        mirrored_in_index = set(self.index.config.mirrored)
+        built = self.config.construction
+        rebuild = (
+            f"rebuild the index from this config: `drcpo index {self.database.path or 'DB'} "
+            "--config <your config.yaml> --overwrite`"
+        )
         for name in classes:
             if name not in self.index.grids:
                 continue  # no indexed object of this class: it is never sampled
-            grid = self._construction.grid(name)
+            grid = built.grid(name)
             if tuple(self.index.grids[name]) != tuple(grid):
                 raise ConfigError(
                     f"drcpo.construction.grids.{name} = {list(grid)} but the candidate index "
-                    f"was built with {list(self.index.grids[name])}; use the same grid"
+                    f"was built with {list(self.index.grids[name])}; {rebuild}"
                 )
-            if (name in self._construction.mirrored_classes) != (name in mirrored_in_index):
+            if (name in built.mirror) != (name in self.index.config.mirror):
                 raise ConfigError(
                     f"drcpo.construction.mirror and the candidate index disagree on whether "
-                    f"{name} is mirrored; use the same classes"
+                    f"{name} is mirrored; {rebuild}"
                 )
 
     @classmethod
@@ -442,7 +433,7 @@ class DRCPO(Transform):
             rows,
             self.index.candidates[rows],
             rng,
-            self._construction,
+            self.config.construction,
             self.index.max_counts,
             chunk=_CHUNK if on_chunk is not None else None,
             on_chunk=on_chunk,
@@ -619,11 +610,8 @@ class DRCPO(Transform):
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
-        settings = self.config.external_occlusion
-        preset = occlusion.HPR_PRESETS[settings.preset]
-        radius = settings.radius if settings.radius is not None else preset.radius
-        height = settings.viewpoint_z if settings.viewpoint_z is not None else preset.viewpoint_z
-        return float(radius), np.array([0.0, 0.0, float(height)])
+        setting = self.config.external_occlusion.setting
+        return float(setting.radius), np.array([0.0, 0.0, float(setting.viewpoint_z)])
 
     def _visible(self, points: np.ndarray, query: np.ndarray | None = None) -> np.ndarray:
         """``bool (N,)`` visibility from the e-HPR viewpoint (``True`` outside ``query``)."""
