@@ -33,7 +33,6 @@ from test_pipeline import synthetic_database, synthetic_frame
 
 from drcpo.frame import Frame, validate_frame
 from drcpo.index import IndexConfig, build_index
-
 from drcpo.pipeline import build_pipeline
 from drcpo.transforms import (
     DRCPO,
