@@ -277,8 +277,8 @@ def _rows_inside(points, rows, box, cos, sin, margin):  # pragma: no cover - num
     kept = 0
     for k in range(rows.shape[0]):
         i = rows[k]
-        p = (np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2]))
-        if in_box(*p, box[0], box[1], box[2], box[3], box[4], box[5], cos, sin, margin):
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        if in_box(px, py, pz, box[0], box[1], box[2], box[3], box[4], box[5], cos, sin, margin):
             out[kept] = i
             kept += 1
     return out[:kept]
