@@ -127,7 +127,9 @@ def in_box(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma: no 
     ``|z| <= dz/2 + margin``, all in float64, so points exactly on a face count as inside (NaN
     never does). Every exact points-in-box test of drcpo calls this one; numba kernels inline
     it. Scalars only: arrays passed to an inlined helper are reference-counted on every call,
-    which costs more than the arithmetic in hot loops.
+    which costs more than the arithmetic in hot loops. numba's disk cache only notices changes
+    to a kernel's own file: after changing this rule, delete the cached kernels
+    (``__pycache__/*.nbi``) of the modules that call it.
     """
     ox, oy, oz = px - cx, py - cy, pz - cz
     local_x = ox * cos + oy * sin

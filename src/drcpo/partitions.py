@@ -52,7 +52,9 @@ def cell_of(value, size, count):  # pragma: no cover - numba
     A point on an inner cell boundary belongs to the upper cell, points on or beyond the box's
     faces to the outermost cell. NaN, and values whose floor lies outside int64 (far beyond
     the box, never in valid data), convert to int64's minimum as numpy's cast does on x86, and
-    so land in cell 0.
+    so land in cell 0. Kernels of other modules inline this rule, and numba's disk cache only
+    notices changes to a kernel's own file: after changing it, delete their cached kernels
+    (``__pycache__/*.nbi``).
     """
     cell = np.int64(np.floor((value + size / 2.0) / size * count))
     if cell < 0:
