@@ -174,3 +174,120 @@ def test_box_holding_moves_out_only_the_faces_points_lie_beyond(rng):
     local = g.to_canonical(g.box_corners(held[None])[0], box)[:, :3]
     np.testing.assert_allclose(local.min(axis=0), -box[3:6] / 2, atol=1e-9)
     np.testing.assert_allclose(local.max(axis=0), box[3:6] / 2 + growth, atol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------
+# The points-in-box rule (in_box) and every caller of it, on adversarial inputs
+# --------------------------------------------------------------------------------------------
+def naive_in_box(point, box, margin):
+    """The rule in plain Python floats, with numpy's cos and sin of the heading."""
+    cos, sin = float(np.cos(box[6:7])[0]), float(np.sin(box[6:7])[0])
+    ox, oy, oz = (float(point[a]) - float(box[a]) for a in range(3))
+    local_x, local_y = ox * cos + oy * sin, -ox * sin + oy * cos
+    half = [float(box[3 + a]) / 2.0 + margin for a in range(3)]
+    return abs(local_x) <= half[0] and abs(local_y) <= half[1] and abs(oz) <= half[2]
+
+
+def naive_mask(points, boxes, margin):
+    return np.array([[naive_in_box(p, b, margin) for b in boxes] for p in points], bool)
+
+
+MARGINS = (0.0, 0.2, -0.2, 1e-4)
+
+
+def adversarial_boxes(rng):
+    """Rotated and axis-aligned boxes (quarter turns), overlapping, near the origin and far."""
+    headings = [0.0, np.pi / 2, np.pi, -np.pi / 2, 0.3, -2.1, 1e-9]
+    boxes = []
+    for centre in ([0.0, 0.0, 0.0], [1e6, -1e6, 3.0], [1e12, 1e12, -1e3]):
+        for h in headings:
+            size = rng.choice([0.5, 1.0, 2.0, 4.0], 3)
+            boxes.append([*(np.asarray(centre) + rng.uniform(-1, 1, 3)), *size, h])
+    boxes.append(boxes[0])  # a duplicate: a point in two boxes
+    boxes.append([0.0, 0.0, 0.0, 2.0, 1.0, 1.0, 0.0])  # exactly representable faces
+    return np.array(boxes)
+
+
+def adversarial_points(boxes, rng):
+    """``float64 (N, 4)``: per box, its corners, edge midpoints and face centres (computed as
+    the rule computes the frame, so they land on or a rounding off the faces), the same grown
+    and shrunk by each margin and nudged by one float step either way; plus NaN and inf."""
+    unit = np.array(np.meshgrid([-0.5, 0.0, 0.5], [-0.5, 0.0, 0.5], [-0.5, 0.0, 0.5])).T
+    unit = unit.reshape(-1, 3)
+    out = []
+    for box in boxes:
+        cos, sin = np.cos(box[6:7])[0], np.sin(box[6:7])[0]
+        for margin in MARGINS:
+            local = unit * box[3:6] + np.sign(unit) * margin
+            world = np.column_stack(
+                [
+                    cos * local[:, 0] - sin * local[:, 1] + box[0],
+                    sin * local[:, 0] + cos * local[:, 1] + box[1],
+                    local[:, 2] + box[2],
+                ]
+            )
+            out += [world, np.nextafter(world, np.inf), np.nextafter(world, -np.inf)]
+    xyz = np.concatenate([*out, rng.uniform(-3, 3, (200, 3))])
+    xyz = np.concatenate([xyz, [[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]]])
+    return np.column_stack([xyz, rng.random(len(xyz))])
+
+
+@pytest.fixture(scope="module")
+def adversarial():
+    rng = np.random.default_rng(13)
+    boxes = adversarial_boxes(rng)
+    return adversarial_points(boxes, rng), boxes
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("margin", MARGINS)
+def test_points_in_boxes_and_box_members_follow_the_naive_rule(adversarial, dtype, margin):
+    points, boxes = adversarial
+    points = points.astype(dtype)
+    want = naive_mask(points, boxes, margin)
+    assert want.sum() > 100 and (~want).sum() > 100
+    np.testing.assert_array_equal(g.points_in_boxes(points, boxes, margin), want)
+    point, box = g.box_members(points, boxes, margin)
+    np.testing.assert_array_equal(point, np.nonzero(want)[0])  # by point, then box
+    np.testing.assert_array_equal(box, np.nonzero(want)[1])
+    for m, single in enumerate(boxes):
+        rows = np.arange(len(points))[::-1]  # any order, kept
+        np.testing.assert_array_equal(
+            g.rows_in_box(points, rows, single, margin), rows[want[rows, m]]
+        )
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_box_query_follows_the_naive_rule(adversarial, dtype):
+    from drcpo.transforms.insertion import BoxQuery
+
+    points, boxes = adversarial
+    points = points.astype(dtype)
+    query = BoxQuery(points)
+    rng = np.random.default_rng(5)
+    owner = rng.integers(-1, len(boxes), len(points))
+    where = rng.random(len(points)) < 0.7
+    for margin in MARGINS:
+        want = naive_mask(points, boxes, margin)
+        for m, box in enumerate(boxes):
+            np.testing.assert_array_equal(query.inside(box, margin), np.flatnonzero(want[:, m]))
+        np.testing.assert_array_equal(query.inside_any(boxes, margin), want.any(axis=1))
+        np.testing.assert_array_equal(query.counts(boxes, margin), want.sum(axis=0))
+        last = np.where(want.any(axis=1), len(boxes) - 1 - np.argmax(want[:, ::-1], axis=1), -1)
+        np.testing.assert_array_equal(query.owners(boxes, margin), last)
+    want = naive_mask(points, boxes, 0.0)
+    own = [int((want[:, m] & (owner == m) & where).sum()) for m in range(len(boxes))]
+    np.testing.assert_array_equal(query.own_counts(owner, boxes, where), own)
+
+
+def test_placement_obstacle_counts_follow_the_naive_rule(adversarial):
+    from drcpo.ground import GroundModel
+    from drcpo.placement import _Obstacles
+
+    points, boxes = adversarial
+    finite = np.isfinite(points[:, :3]).all(axis=1)
+    # A ground far below every point: no point is ground, each counts in each box holding it.
+    ground = GroundModel.flat(-1e15)
+    counts = _Obstacles(points[finite].astype(np.float32), ground, 0.0).count(boxes)
+    want = naive_mask(points[finite].astype(np.float32), boxes, 0.0).sum(axis=0)
+    np.testing.assert_array_equal(counts, want)

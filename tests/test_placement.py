@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
-from drcpo.geometry import bev_corners, bev_overlap_area, points_in_boxes
+from drcpo.geometry import bev_corners, bev_overlap_area, box_members, points_in_boxes
 from drcpo.ground import GroundModel
 from drcpo.occlusion.zbuffer import (
     _DIRECTIONS,
@@ -23,7 +23,6 @@ from drcpo.placement import (
     _in_fov,
     _Obstacles,
     bev_collisions,
-    box_members,
     place_objects,
     sample_poses,
 )

@@ -43,7 +43,7 @@ import numpy as np
 
 from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
-from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for
+from drcpo.partitions import DEFAULT_MIRRORED, Grid, cell_of, flat_cell, grid_for
 
 MODES = ("partition", "whole")
 
@@ -436,10 +436,10 @@ def _add_source(points, offsets, row, copies, dims, grid, margin, counts, refs, 
         if abs(x) <= hx and abs(y) <= hy and abs(z) <= hz:
             refs[n_refs + kept] = 2 * i
             kept += 1
-            cx, cz = _cell(x, d0, nx), _cell(z, d2, nz)
-            counts[(cx * ny + _cell(y, d1, ny)) * nz + cz] += 1
+            cx, cz = cell_of(x, d0, nx), cell_of(z, d2, nz)
+            counts[(cx * ny + cell_of(y, d1, ny)) * nz + cz] += 1
             if copies == 2:
-                counts[(cx * ny + _cell(-y, d1, ny)) * nz + cz] += 1
+                counts[(cx * ny + cell_of(-y, d1, ny)) * nz + cz] += 1
     if copies == 2:
         for k in range(n_refs, n_refs + kept):
             refs[k + kept] = refs[k] + 1
@@ -547,7 +547,7 @@ def _construct_whole(points, offsets, rows, orders, dims, grids, mirror, scales,
 @numba.njit(cache=True, nogil=True)
 def _add_whole(points, offsets, row, copies, dims, grid, counts, refs, n_refs):
     """Adds all points of ``row`` (then their mirror images) and counts them in ``grid`` cells
-    (clipped, as :func:`drcpo.partitions.partition_index`)."""
+    (:func:`drcpo.partitions.flat_cell`: clipped to the grid)."""
     start, stop = offsets[row], offsets[row + 1]
     refs = _reserve(refs, n_refs + copies * (stop - start))
     for c in range(copies):
@@ -555,7 +555,7 @@ def _add_whole(points, offsets, row, copies, dims, grid, counts, refs, n_refs):
             x, y, z = _xyz(points, i, c)
             refs[n_refs] = 2 * i + c
             n_refs += 1
-            counts[_flat_cell(x, y, z, dims[0], dims[1], dims[2], grid[0], grid[1], grid[2])] += 1
+            counts[flat_cell(x, y, z, dims[0], dims[1], dims[2], grid[0], grid[1], grid[2])] += 1
     return refs, n_refs
 
 
@@ -622,29 +622,14 @@ def _xyz(points, i, copy):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _cell(value, size, count):
-    """The cell rule of :func:`drcpo.partitions.partition_index` along one axis."""
-    cell = np.int64(np.floor((value + size / 2.0) / size * count))
-    if cell < 0:
-        return np.int64(0)
-    if cell > count - 1:
-        return np.int64(count - 1)
-    return cell
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _flat_cell(x, y, z, d0, d1, d2, nx, ny, nz):
-    return (_cell(x, d0, nx) * ny + _cell(y, d1, ny)) * nz + _cell(z, d2, nz)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
 def _band(cell, size, count, half):
     """Where along one axis a coordinate may be (outer) and surely is (inner) in ``cell`` and
     within ``half`` of the centre, as ``(outer_mid, outer_half, inner_mid, inner_half)``.
 
-    The cut between cells is ``cell * size / count - size / 2`` up to a few float64 roundings
-    of the cell rule; a guard of 1e-9 relative dwarfs them, and values between the two
-    intervals get the exact rule (:func:`_in_band`), so that most points cost no division.
+    A speed device, not a rule: the cut between cells is ``cell * size / count - size / 2`` up
+    to a few float64 roundings of the cell rule (:func:`drcpo.partitions.cell_of`); a guard of
+    1e-9 relative dwarfs them, and values between the two intervals get the exact rule
+    (:func:`_in_band`), so that most points cost no division.
     """
     lo = -half if cell == 0 else cell * size / count - size / 2.0
     hi = half if cell == count - 1 else (cell + 1) * size / count - size / 2.0
@@ -654,7 +639,7 @@ def _band(cell, size, count, half):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def _in_band(value, band, cell, size, count, half):
-    """``|value| <= half and _cell(value) == cell``, exactly (NaN is never inside).
+    """``|value| <= half and cell_of(value) == cell``, exactly (NaN is never inside).
 
     One comparison per interval (``|value - mid| <= half width``): a pair of comparisons
     becomes two branches, the first one a coin toss, which costs more than the whole test.
@@ -664,7 +649,7 @@ def _in_band(value, band, cell, size, count, half):
         return False
     if abs(value - band[2]) <= band[3]:
         return True
-    return abs(value) <= half and _cell(value, size, count) == cell
+    return abs(value) <= half and cell_of(value, size, count) == cell
 
 
 @numba.njit(cache=True, nogil=True)

@@ -109,59 +109,28 @@ def from_canonical(points: np.ndarray, box: np.ndarray) -> np.ndarray:
     return out
 
 
-def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
-    """Which points lie in which rotated boxes: ``bool (N, M)``.
-
-    Args:
-        points: ``(N, 3+)`` points, metres.
-        boxes: ``(M, 7)`` boxes.
-        margin: metres added to every half-size (negative shrinks the boxes).
-
-    Boundary rule: closed boxes. A point is inside iff in the box's own frame
-    ``|x| <= dx/2 + margin``, ``|y| <= dy/2 + margin`` and ``|z| <= dz/2 + margin``,
-    computed in float64, so points exactly on a face count as inside.
-    """
-    boxes = _check_boxes(boxes)
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
-    if len(xyz) == 0 or len(boxes) == 0:
-        return np.zeros((len(xyz), len(boxes)), dtype=bool)
-    half = boxes[:, 3:6] / 2.0 + margin
-    out = np.zeros((len(xyz), len(boxes)), dtype=bool)
-    # Cheap bounding-sphere pre-filter keeps the N x M work to the points near each box.
-    # Slack keeps points exactly on a corner from being lost to rounding in the pre-filter.
-    radius = np.linalg.norm(half, axis=1) * (1 + 1e-9) + 1e-9
-    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    for m in range(len(boxes)):
-        delta = xyz - boxes[m, :3]
-        near = np.flatnonzero(np.einsum("ij,ij->i", delta, delta) <= radius[m] ** 2)
-        if len(near) == 0:
-            continue
-        d = delta[near]
-        local_x = d[:, 0] * cos[m] + d[:, 1] * sin[m]
-        local_y = -d[:, 0] * sin[m] + d[:, 1] * cos[m]
-        inside = (
-            (np.abs(local_x) <= half[m, 0])
-            & (np.abs(local_y) <= half[m, 1])
-            & (np.abs(d[:, 2]) <= half[m, 2])
-        )
-        out[near[inside], m] = True
-    return out
-
-
 def heading_terms(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """numpy's cos and sin ``(M,)`` of the headings of ``(M, 7)`` boxes, for the kernels that
-    test points against boxes (they must not use libm's, which may differ in the last bit)."""
-    heading = np.ascontiguousarray(boxes[:, 6])
+    """numpy's cos and sin ``(M,)`` of the headings of ``(M, 7)`` boxes, as the points-in-box
+    rule (:func:`in_box`) and every kernel working in a box's frame take them: numba's (libm's)
+    cos and sin may differ from numpy's in the last bit."""
+    heading = np.ascontiguousarray(np.asarray(boxes, dtype=np.float64).reshape(-1, 7)[:, 6])
     return np.cos(heading), np.sin(heading)
 
 
-# Scalars only: arrays passed to an inlined helper are reference-counted on every call, which
-# costs more than the arithmetic in hot loops.
 @nb.njit(cache=True, nogil=True, inline="always")
-def inside_box(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma: no cover - numba
-    """:func:`points_in_boxes`' test for one point and one box, operation for operation
-    (float64, closed box, half sizes grown by ``margin``), for numba kernels; ``cos``, ``sin``:
-    :func:`heading_terms` of the box."""
+def in_box(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma: no cover - numba
+    """THE points-in-box rule: whether the float64 point ``(px, py, pz)`` lies in the box with
+    centre ``(cx, cy, cz)``, sizes ``(dx, dy, dz)`` and heading terms ``cos``, ``sin`` (from
+    :func:`heading_terms`), grown by ``margin`` metres on every side (negative shrinks it).
+
+    Closed boxes: in the box's own frame ``|x| <= dx/2 + margin``, ``|y| <= dy/2 + margin`` and
+    ``|z| <= dz/2 + margin``, all in float64, so points exactly on a face count as inside (NaN
+    never does). Every exact points-in-box test of drcpo calls this one; numba kernels inline
+    it. Scalars only: arrays passed to an inlined helper are reference-counted on every call,
+    which costs more than the arithmetic in hot loops. numba's disk cache only notices changes
+    to a kernel's own file: after changing this rule, delete the cached kernels
+    (``__pycache__/*.nbi``) of the modules that call it.
+    """
     ox, oy, oz = px - cx, py - cy, pz - cz
     local_x = ox * cos + oy * sin
     local_y = -ox * sin + oy * cos
@@ -170,6 +139,151 @@ def inside_box(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma:
         and abs(local_y) <= dy / 2.0 + margin
         and abs(oz) <= dz / 2.0 + margin
     )
+
+
+def _check_points(points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(f"points must have shape (N, 3+), got {points.shape}")
+    if points.dtype not in (np.float32, np.float64):  # the kernels' two specialisations
+        points = points.astype(np.float64)
+    return points
+
+
+def points_in_boxes(points: np.ndarray, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    """Which points lie in which rotated boxes: ``bool (N, M)``.
+
+    Args:
+        points: ``(N, 3+)`` points, metres.
+        boxes: ``(M, 7)`` boxes.
+        margin: metres added to every half-size (negative shrinks the boxes).
+
+    Boundary rule: :func:`in_box` (closed boxes, float64), so points exactly on a face count
+    as inside. The pairs come from :func:`box_members`.
+    """
+    boxes = _check_boxes(boxes)
+    points = _check_points(points)
+    out = np.zeros((len(points), len(boxes)), dtype=bool)
+    point, box = box_members(points, boxes, margin)
+    out[point, box] = True
+    return out
+
+
+_MEMBER_CELLS = 256  # most BEV cells along a side of the grid that finds points near boxes
+
+
+def box_members(
+    points: np.ndarray, boxes: np.ndarray, margin: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every (point, box) pair with the point inside the box grown by ``margin`` metres
+    (:func:`in_box`): ``int64 (P,)`` point indices (ascending; a point's boxes in ascending
+    order) and ``int64 (P,)`` box indices.
+
+    One pass over the ``(N, 3+)`` points: each point looks up the boxes whose axis-aligned BEV
+    bounds cover its cell of a coarse grid, and is tested exactly against those only.
+    """
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    points = _check_points(points)
+    if len(boxes) == 0 or len(points) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return _members(points, boxes, *heading_terms(boxes), float(margin), _MEMBER_CELLS)
+
+
+@nb.njit(cache=True, nogil=True)
+def _members(points, boxes, cos, sin, margin, max_cells):  # pragma: no cover - numba
+    # A grid over the boxes' axis-aligned BEV bounds (grown by ``margin``) lists, per cell,
+    # the boxes covering it. The bounds have some slack: float rounding must not push a point
+    # inside a box out.
+    count = boxes.shape[0]
+    reach = np.empty((count, 2))
+    for m in range(count):
+        c, s = abs(cos[m]), abs(sin[m])
+        grow = margin * (c + s)
+        reach[m, 0] = ((boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 + grow) * (1.0 + 1e-9) + 1e-6
+        reach[m, 1] = ((boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 + grow) * (1.0 + 1e-9) + 1e-6
+    x0, x1 = np.min(boxes[:, 0] - reach[:, 0]), np.max(boxes[:, 0] + reach[:, 0])
+    y0, y1 = np.min(boxes[:, 1] - reach[:, 1]), np.max(boxes[:, 1] + reach[:, 1])
+    # Cells are found by multiplying with the inverse size (monotone, like division, so a
+    # point inside a box lands in a cell its bounds cover).
+    per_metre = 1.0 / max(0.5, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
+    nx, ny = int((x1 - x0) * per_metre) + 1, int((y1 - y0) * per_metre) + 1
+    spans = np.empty((count, 4), np.int64)
+    start = np.zeros(nx * ny + 1, np.int32)  # int32: fewer fresh pages to fault in
+    for m in range(count):
+        spans[m, 0] = int((boxes[m, 0] - reach[m, 0] - x0) * per_metre)
+        spans[m, 1] = min(int((boxes[m, 0] + reach[m, 0] - x0) * per_metre), nx - 1)
+        spans[m, 2] = int((boxes[m, 1] - reach[m, 1] - y0) * per_metre)
+        spans[m, 3] = min(int((boxes[m, 1] + reach[m, 1] - y0) * per_metre), ny - 1)
+        for i in range(spans[m, 0], spans[m, 1] + 1):
+            for j in range(spans[m, 2], spans[m, 3] + 1):
+                start[i * ny + j + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    listed = np.empty(start[nx * ny], np.int32)
+    fill = start[:-1].copy()
+    for m in range(count):
+        for i in range(spans[m, 0], spans[m, 1] + 1):
+            for j in range(spans[m, 2], spans[m, 3] + 1):
+                listed[fill[i * ny + j]] = m
+                fill[i * ny + j] += 1
+    found_point = np.empty(64, np.int64)
+    found_box = np.empty(64, np.int64)
+    found = 0
+    for i in range(points.shape[0]):
+        px, py = np.float64(points[i, 0]), np.float64(points[i, 1])
+        if not (x0 <= px <= x1 and y0 <= py <= y1):  # NaN fails too
+            continue
+        c = int((px - x0) * per_metre) * ny + int((py - y0) * per_metre)
+        if start[c] == start[c + 1]:
+            continue
+        pz = np.float64(points[i, 2])
+        for k in range(start[c], start[c + 1]):
+            m = listed[k]
+            if in_box(
+                px,
+                py,
+                pz,
+                boxes[m, 0],
+                boxes[m, 1],
+                boxes[m, 2],
+                boxes[m, 3],
+                boxes[m, 4],
+                boxes[m, 5],
+                cos[m],
+                sin[m],
+                margin,
+            ):
+                if found == found_point.shape[0]:
+                    found_point = np.concatenate((found_point, np.empty_like(found_point)))
+                    found_box = np.concatenate((found_box, np.empty_like(found_box)))
+                found_point[found], found_box[found] = i, m
+                found += 1
+    return found_point[:found].copy(), found_box[:found].copy()
+
+
+def rows_in_box(
+    points: np.ndarray, rows: np.ndarray, box: np.ndarray, margin: float = 0.0
+) -> np.ndarray:
+    """The ``rows`` (``int64 (k,)``, order kept) of ``(N, 3+)`` points that lie in one ``(7,)``
+    box grown by ``margin`` metres (:func:`in_box`): the exact test after a caller's own
+    pre-selection of candidate rows."""
+    box = np.asarray(box, dtype=np.float64).reshape(7)
+    cos, sin = heading_terms(box)
+    rows = np.asarray(rows, dtype=np.int64)
+    return _rows_inside(_check_points(points), rows, box, cos[0], sin[0], float(margin))
+
+
+@nb.njit(cache=True, nogil=True)
+def _rows_inside(points, rows, box, cos, sin, margin):  # pragma: no cover - numba
+    out = np.empty_like(rows)
+    kept = 0
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        if in_box(px, py, pz, box[0], box[1], box[2], box[3], box[4], box[5], cos, sin, margin):
+            out[kept] = i
+            kept += 1
+    return out[:kept]
 
 
 def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.ndarray:
@@ -190,7 +304,7 @@ def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.nd
         return box
     if points.ndim != 2 or points.shape[1] < 3:
         raise ValueError(f"points must have shape (N, 3+), got {points.shape}")
-    cos, sin = np.cos(box[6:7])[0], np.sin(box[6:7])[0]  # numpy's, as points_in_boxes
+    cos, sin = (terms[0] for terms in heading_terms(box))  # as in_box takes them
     extents = _local_extents(points, box, cos, sin)  # (2, 3): lowest, highest
     half = box[3:6] / 2.0
     if (extents[0] >= -half).all() and (extents[1] <= half).all():
@@ -208,8 +322,8 @@ def box_holding(box: np.ndarray, points: np.ndarray, pad: float = 1e-4) -> np.nd
 
 @nb.njit(cache=True, nogil=True)
 def _local_extents(points, box, cos, sin):  # pragma: no cover - numba
-    # Lowest and highest coordinate of the points in the box's own frame, as points_in_boxes
-    # computes them (float64).
+    # Lowest and highest coordinate of the points in the box's own frame, as in_box computes
+    # them (float64).
     out = np.empty((2, 3))
     out[0, :] = np.inf
     out[1, :] = -np.inf

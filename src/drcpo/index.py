@@ -69,7 +69,7 @@ from drcpo.config_fields import Checked, spec, to_dict
 from drcpo.database import GroundTruthDatabase, read_manifest
 from drcpo.errors import ConfigError, DataError
 from drcpo.outputs import OutputKind, write_directory
-from drcpo.partitions import DEFAULT_MIRRORED, Grid, grid_for, num_partitions
+from drcpo.partitions import DEFAULT_MIRRORED, Grid, flat_cell, grid_for, num_partitions
 
 FORMAT_NAME = "drcpo-candidate-index"
 FORMAT_VERSION = 1
@@ -501,8 +501,8 @@ def partition_occupancy(
 ) -> np.ndarray:
     """Points per partition ``int32 (N, P_max)`` of every object of the classes in ``grids``.
 
-    Same cell rule as :func:`drcpo.partitions.partition_index`, computed for all objects at
-    once over the concatenated points, in chunks of about ``chunk_points`` points. Objects of
+    The cell rule :func:`drcpo.partitions.flat_cell`, for all objects over the concatenated
+    points, in chunks of about ``chunk_points`` points. Objects of
     mirrored classes count each point twice (as itself and mirrored, y -> -y). Rows of classes
     not in ``grids`` stay 0.
 
@@ -553,36 +553,27 @@ def _chunk_occupancy(
     mirrored: np.ndarray,
     p_max: int,
 ) -> np.ndarray:
-    m = len(sizes)
-    owner = np.repeat(np.arange(m), sizes)
-    use = grid[owner, 0] > 0
-    owner = owner[use]
-    xyz = np.asarray(xyz, np.float64)[use]
-    d = np.where(grid[:, :1] > 0, dims, 1.0)[owner]
-    g = grid[owner]
-    base = owner * p_max
-    cell = _cells(xyz, d, g)
-    flat = base + (cell[:, 0] * g[:, 1] + cell[:, 1]) * g[:, 2] + cell[:, 2]
-    out = np.bincount(flat, minlength=m * p_max)
-    twin = mirrored[owner]
-    if twin.any():
-        # The mirror image (y -> -y) only changes the y cell.
-        y = -xyz[twin, 1]
-        cy = _axis_cell(y, d[twin, 1], g[twin, 1])
-        flat = base[twin] + (cell[twin, 0] * g[twin, 1] + cy) * g[twin, 2] + cell[twin, 2]
-        out += np.bincount(flat, minlength=m * p_max)
-    return out.reshape(m, p_max).astype(np.int32)
+    """Points per partition ``int32 (m, p_max)`` of ``m`` consecutive objects, whose ``(n, 3)``
+    points ``xyz`` are ``sizes`` ``(m,)`` long each."""
+    return _occupancy(np.asarray(xyz), np.asarray(sizes, np.int64), dims, grid, mirrored, p_max)
 
 
-def _cells(xyz: np.ndarray, dims: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    # Same arithmetic as partitions.partition_index, so cells agree bit for bit.
-    cell = np.floor((xyz + dims / 2.0) / dims * grid).astype(np.int64)
-    return np.clip(cell, 0, grid - 1, out=cell)
-
-
-def _axis_cell(c: np.ndarray, d: np.ndarray, n: np.ndarray) -> np.ndarray:
-    cell = np.floor((c + d / 2.0) / d * n).astype(np.int64)
-    return np.clip(cell, 0, n - 1, out=cell)
+@nb.njit(cache=True, nogil=True)
+def _occupancy(xyz, sizes, dims, grid, mirrored, p_max):  # pragma: no cover - numba
+    out = np.zeros((sizes.shape[0], p_max), np.int32)
+    start = 0
+    for m in range(sizes.shape[0]):
+        stop = start + sizes[m]
+        nx, ny, nz = grid[m, 0], grid[m, 1], grid[m, 2]
+        if nx > 0:
+            d0, d1, d2 = dims[m, 0], dims[m, 1], dims[m, 2]
+            for i in range(start, stop):
+                x, y, z = np.float64(xyz[i, 0]), np.float64(xyz[i, 1]), np.float64(xyz[i, 2])
+                out[m, flat_cell(x, y, z, d0, d1, d2, nx, ny, nz)] += 1
+                if mirrored[m]:
+                    out[m, flat_cell(x, -y, z, d0, d1, d2, nx, ny, nz)] += 1
+        start = stop
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,15 +1,15 @@
 """Partition grids of object boxes (shared by the candidate index and iterative construction).
 
 An object's box in canonical pose is cut into an even ``nx x ny x nz`` grid (along x, y, z).
-Cell rule: a point's cell along an axis is ``floor((c + d/2) / d * n)`` clipped to ``[0, n - 1]``,
-so a point on an inner cell boundary belongs to the upper cell and points on or beyond the box's
-faces belong to the outermost cell. Cells are numbered ``(ix * ny + iy) * nz + iz``.
+The cell rule is :func:`cell_of` (one axis) and :func:`flat_cell` (the cell number); every
+partition count in drcpo (this module, the candidate index, iterative construction) calls them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 
+import numba as nb
 import numpy as np
 
 from drcpo.errors import ConfigError
@@ -43,20 +43,58 @@ def num_partitions(grid: Grid) -> int:
     return int(grid[0] * grid[1] * grid[2])
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def cell_of(value, size, count):  # pragma: no cover - numba
+    """THE cell rule along one axis: the cell ``int64`` of canonical coordinate ``value`` in a
+    box of size ``size`` cut into ``count`` cells, ``floor((value + size/2) / size * count)``
+    in float64, clipped to ``[0, count - 1]``.
+
+    A point on an inner cell boundary belongs to the upper cell, points on or beyond the box's
+    faces to the outermost cell. NaN, and values whose floor lies outside int64 (far beyond
+    the box, never in valid data), convert to int64's minimum as numpy's cast does on x86, and
+    so land in cell 0. Kernels of other modules inline this rule, and numba's disk cache only
+    notices changes to a kernel's own file: after changing it, delete their cached kernels
+    (``__pycache__/*.nbi``).
+    """
+    cell = np.int64(np.floor((value + size / 2.0) / size * count))
+    if cell < 0:
+        return np.int64(0)
+    if cell > count - 1:
+        return np.int64(count - 1)
+    return cell
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def flat_cell(x, y, z, d0, d1, d2, nx, ny, nz):  # pragma: no cover - numba
+    """The cell number ``(ix * ny + iy) * nz + iz`` of canonical point ``(x, y, z)`` in a box
+    of size ``(d0, d1, d2)`` cut by grid ``(nx, ny, nz)`` (:func:`cell_of` along each axis)."""
+    return (cell_of(x, d0, nx) * ny + cell_of(y, d1, ny)) * nz + cell_of(z, d2, nz)
+
+
 def partition_index(points: np.ndarray, dims: np.ndarray, grid: Grid) -> np.ndarray:
-    """Flat cell index ``int64 (N,)`` of canonical ``(N, 3+)`` points in a box of size ``dims``.
+    """Flat cell index ``int64 (N,)`` (:func:`flat_cell`) of canonical ``(N, 3+)`` points in a
+    box of size ``dims``.
 
     Args:
         points: points in canonical pose, metres.
         dims: ``(3,)`` box size dx, dy, dz, metres (must be positive).
         grid: cells along x, y, z.
     """
-    dims = np.asarray(dims, dtype=np.float64)
-    counts = np.asarray(grid, dtype=np.int64)
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
-    cell = np.floor((xyz + dims / 2.0) / dims * counts).astype(np.int64)
-    np.clip(cell, 0, counts - 1, out=cell)
-    return (cell[:, 0] * counts[1] + cell[:, 1]) * counts[2] + cell[:, 2]
+    dims = np.asarray(dims, dtype=np.float64).reshape(3)
+    counts = np.asarray(grid, dtype=np.int64).reshape(3)
+    points = np.asarray(points)
+    if points.dtype not in (np.float32, np.float64):  # the kernel's two specialisations
+        points = points.astype(np.float64)
+    return _partition_index(points, dims, counts)
+
+
+@nb.njit(cache=True, nogil=True)
+def _partition_index(points, dims, grid):  # pragma: no cover - numba
+    out = np.empty(points.shape[0], np.int64)
+    for i in range(points.shape[0]):
+        x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        out[i] = flat_cell(x, y, z, dims[0], dims[1], dims[2], grid[0], grid[1], grid[2])
+    return out
 
 
 def partition_counts(points: np.ndarray, dims: np.ndarray, grid: Grid) -> np.ndarray:

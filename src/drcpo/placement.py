@@ -38,7 +38,7 @@ import numpy as np
 from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
 from drcpo.frame import Frame
-from drcpo.geometry import heading_terms, inside_box
+from drcpo.geometry import box_members, heading_terms
 from drcpo.ground import GroundModel
 
 REASONS = ("out_of_range", "collision", "obstacle", "occluded")
@@ -47,7 +47,6 @@ CAMERA_FOV_MODES = ("auto", "always", "never")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 _FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view
-_MEMBER_CELLS = 256  # most BEV cells along a side of the grid that finds points near boxes
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,8 +314,8 @@ class _Obstacles:
     """Counts of non-ground frame points in candidate boxes.
 
     The points in each box are found in one pass over the frame (a coarse BEV grid of the
-    boxes' bounding squares, see :func:`box_members`); only those are tested against the
-    ground, with :meth:`GroundModel.is_ground`.
+    boxes' bounding squares, see :func:`drcpo.geometry.box_members`); only those are tested
+    against the ground, with :meth:`GroundModel.is_ground`.
     """
 
     def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float) -> None:
@@ -331,95 +330,6 @@ class _Obstacles:
         point, box = box_members(self.points, boxes)
         above = ~self.ground.is_ground(self.points.take(point, axis=0), self.tolerance)
         return np.bincount(box[above], minlength=len(boxes)).astype(np.int64)
-
-
-def box_members(
-    points: np.ndarray, boxes: np.ndarray, margin: float = 0.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Every (point, box) pair with the point inside the box grown by ``margin`` metres:
-    ``int64 (P,)`` point indices (ascending; a point's boxes in ascending order) and ``int64
-    (P,)`` box indices.
-
-    Same arithmetic and boundary rule (closed boxes) as
-    :func:`drcpo.geometry.points_in_boxes`, in one pass over the ``(N, 3+)`` points: each
-    point looks up the boxes whose axis-aligned BEV bounds cover its cell of a coarse grid.
-    """
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    if len(boxes) == 0 or len(points) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return _members(points, boxes, *heading_terms(boxes), float(margin), _MEMBER_CELLS)
-
-
-@numba.njit(cache=True, nogil=True)
-def _members(points, boxes, cos, sin, margin, max_cells):  # pragma: no cover - numba
-    # A grid over the boxes' axis-aligned BEV bounds (grown by ``margin``) lists, per cell,
-    # the boxes covering it. The bounds have some slack: float rounding must not push a point
-    # inside a box out.
-    count = boxes.shape[0]
-    reach = np.empty((count, 2))
-    for m in range(count):
-        c, s = abs(cos[m]), abs(sin[m])
-        grow = margin * (c + s)
-        reach[m, 0] = ((boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 + grow) * (1.0 + 1e-9) + 1e-6
-        reach[m, 1] = ((boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 + grow) * (1.0 + 1e-9) + 1e-6
-    x0, x1 = np.min(boxes[:, 0] - reach[:, 0]), np.max(boxes[:, 0] + reach[:, 0])
-    y0, y1 = np.min(boxes[:, 1] - reach[:, 1]), np.max(boxes[:, 1] + reach[:, 1])
-    # Cells are found by multiplying with the inverse size (monotone, like division, so a
-    # point inside a box lands in a cell its bounds cover).
-    per_metre = 1.0 / max(0.5, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
-    nx, ny = int((x1 - x0) * per_metre) + 1, int((y1 - y0) * per_metre) + 1
-    spans = np.empty((count, 4), np.int64)
-    start = np.zeros(nx * ny + 1, np.int32)  # int32: fewer fresh pages to fault in
-    for m in range(count):
-        spans[m, 0] = int((boxes[m, 0] - reach[m, 0] - x0) * per_metre)
-        spans[m, 1] = min(int((boxes[m, 0] + reach[m, 0] - x0) * per_metre), nx - 1)
-        spans[m, 2] = int((boxes[m, 1] - reach[m, 1] - y0) * per_metre)
-        spans[m, 3] = min(int((boxes[m, 1] + reach[m, 1] - y0) * per_metre), ny - 1)
-        for i in range(spans[m, 0], spans[m, 1] + 1):
-            for j in range(spans[m, 2], spans[m, 3] + 1):
-                start[i * ny + j + 1] += 1
-    for c in range(nx * ny):
-        start[c + 1] += start[c]
-    listed = np.empty(start[nx * ny], np.int32)
-    fill = start[:-1].copy()
-    for m in range(count):
-        for i in range(spans[m, 0], spans[m, 1] + 1):
-            for j in range(spans[m, 2], spans[m, 3] + 1):
-                listed[fill[i * ny + j]] = m
-                fill[i * ny + j] += 1
-    found_point = np.empty(64, np.int64)
-    found_box = np.empty(64, np.int64)
-    found = 0
-    for i in range(points.shape[0]):
-        px, py = np.float64(points[i, 0]), np.float64(points[i, 1])
-        if not (x0 <= px <= x1 and y0 <= py <= y1):  # NaN fails too
-            continue
-        c = int((px - x0) * per_metre) * ny + int((py - y0) * per_metre)
-        if start[c] == start[c + 1]:
-            continue
-        pz = np.float64(points[i, 2])
-        for k in range(start[c], start[c + 1]):
-            m = listed[k]
-            if inside_box(
-                px,
-                py,
-                pz,
-                boxes[m, 0],
-                boxes[m, 1],
-                boxes[m, 2],
-                boxes[m, 3],
-                boxes[m, 4],
-                boxes[m, 5],
-                cos[m],
-                sin[m],
-                margin,
-            ):
-                if found == found_point.shape[0]:
-                    found_point = np.concatenate((found_point, np.empty_like(found_point)))
-                    found_box = np.concatenate((found_box, np.empty_like(found_box)))
-                found_point[found], found_box[found] = i, m
-                found += 1
-    return found_point[:found].copy(), found_box[:found].copy()
 
 
 def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:

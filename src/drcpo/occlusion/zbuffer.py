@@ -14,7 +14,7 @@ import numba
 import numpy as np
 
 from drcpo.errors import ConfigError, DataError
-from drcpo.geometry import heading_terms, inside_box
+from drcpo.geometry import heading_terms, in_box
 from drcpo.occlusion.checks import _check_points, _check_viewpoint
 
 __all__ = ["OcclusionMap", "range_image_occlusion", "surface_samples"]
@@ -505,7 +505,7 @@ def _occluded_share(
         for k in range(cleared.shape[0]):
             if abs(px - cleared[k, 0]) > bounds[k, 0] or abs(py - cleared[k, 1]) > bounds[k, 1]:
                 continue
-            if inside_box(
+            if in_box(
                 px,
                 py,
                 pz,

@@ -10,10 +10,10 @@ from typing import Any
 import numba as nb
 import numpy as np
 
-from drcpo import placement
 from drcpo.config import per_class
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import DataError
+from drcpo.geometry import box_members, heading_terms, rows_in_box
 
 
 def take_rows(array: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -95,9 +95,10 @@ class BoxQuery:
 
     Holds contiguous float32 copies of the x and y columns so each query first selects the
     points in the box's axis-aligned BEV bounds (a few cheap comparisons) and tests only those
-    exactly, with the arithmetic and boundary rule (closed boxes) of
-    :func:`drcpo.geometry.points_in_boxes`. (Sorting the points by x once instead costs more
-    than it saves for the few dozen queries a frame needs.)
+    exactly, with the points-in-box rule :func:`drcpo.geometry.in_box` (closed boxes). The
+    pre-filter is a speed device only: its float32 bounds are widened by ``_SLACK``. (Sorting
+    the points by x once instead costs more than it saves for the few dozen queries a frame
+    needs.)
 
     Args:
         points: ``(N, 3+)`` points, metres (not copied; do not modify them while querying).
@@ -130,8 +131,7 @@ class BoxQuery:
         """Indices ``int64 (k,)`` (ascending) of the points in one ``(7,)`` box grown by
         ``margin`` metres."""
         box = np.asarray(box, dtype=np.float64).reshape(7)
-        # numpy's cos/sin, as points_in_boxes uses them (libm may differ in the last bit).
-        cos, sin = float(np.cos(box[6:7])[0]), float(np.sin(box[6:7])[0])
+        cos, sin = (float(terms[0]) for terms in heading_terms(box))
         length, width = box[3] + 2.0 * margin, box[4] + 2.0 * margin
         half_x = (length * abs(cos) + width * abs(sin)) / 2.0 + self._SLACK
         half_y = (length * abs(sin) + width * abs(cos)) / 2.0 + self._SLACK
@@ -145,16 +145,7 @@ class BoxQuery:
         )
         if len(near) == 0:
             return near
-        delta = self.points[near, :3].astype(np.float64) - box[:3]
-        half = box[3:6] / 2.0 + margin
-        local_x = delta[:, 0] * cos + delta[:, 1] * sin
-        local_y = -delta[:, 0] * sin + delta[:, 1] * cos
-        inside = (
-            (np.abs(local_x) <= half[0])
-            & (np.abs(local_y) <= half[1])
-            & (np.abs(delta[:, 2]) <= half[2])
-        )
-        return near[inside]
+        return rows_in_box(self.points, near, box, margin)
 
     def inside_any(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``bool (N,)``: points in at least one of the ``(M, 7)`` boxes."""
@@ -164,11 +155,11 @@ class BoxQuery:
         """``int64 (N,)``: the last of the ``(M, 7)`` boxes holding each point (-1: none).
 
         One pass over the points for all boxes (a per-box query scans every point again), with
-        a coarse grid of the boxes' bounds (:func:`~drcpo.placement.box_members`); same
-        arithmetic and boundary rule as :meth:`inside`.
+        a coarse grid of the boxes' bounds (:func:`~drcpo.geometry.box_members`); the same
+        rule as :meth:`inside`.
         """
         owner = np.full(len(self.points), -1, dtype=np.int64)
-        point, box = placement.box_members(self.points, boxes, margin)  # by point, then box
+        point, box = box_members(self.points, boxes, margin)  # by point, then box
         last = np.flatnonzero(np.diff(point, append=len(owner)))  # a point's last box
         owner[point[last]] = box[last]
         return owner
@@ -176,7 +167,7 @@ class BoxQuery:
     def counts(self, boxes: np.ndarray, margin: float = 0.0) -> np.ndarray:
         """``int64 (M,)``: points in each box."""
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        box = placement.box_members(self.points, boxes, margin)[1]
+        box = box_members(self.points, boxes, margin)[1]
         return np.bincount(box, minlength=len(boxes)).astype(np.int64)
 
     def own_counts(
@@ -186,7 +177,7 @@ class BoxQuery:
         ``where`` (``bool (N,)``) that lie in it, in one pass."""
         owner, where = np.asarray(owner), np.asarray(where, dtype=bool)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        point, box = placement.box_members(self.points, boxes)
+        point, box = box_members(self.points, boxes)
         own = (owner[point] == box) & where[point]
         return np.bincount(box[own], minlength=len(boxes)).astype(np.int64)
 

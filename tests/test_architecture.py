@@ -1,0 +1,157 @@
+"""The package's shape, as docs/architecture.md states it: no import cycle, no import from a higher
+layer, no module over 800 lines without a written reason. Imports are read from the sources
+(every ``import`` statement, also those inside functions), so a cycle hidden by a lazy import
+counts too."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+ARCHITECTURE = Path(__file__).resolve().parents[1] / "docs" / "architecture.md"
+MAX_LINES = 800
+#: What a longer module's docstring says, followed by its reason.
+LONG_REASON = "Longer than 800 lines because"
+
+#: Layer of each module, by its dotted name or the longest listed prefix (bottom = 0); a module
+#: may import from lower layers and, acyclically, from its own package.
+LAYERS: dict[str, int] = {
+    "drcpo.errors": 0,
+    "drcpo._numba_cache": 0,
+    "drcpo.frame": 1,
+    "drcpo.geometry": 1,
+    "drcpo.outputs": 1,
+    "drcpo.partitions": 2,
+    "drcpo.ground": 2,
+    "drcpo.datasets": 2,
+    "drcpo.viz": 2,
+    "drcpo.occlusion": 3,
+    "drcpo.database": 3,
+    "drcpo.synth": 3,
+    "drcpo.evaluation": 3,
+    "drcpo.construction": 4,
+    "drcpo.index": 4,
+    "drcpo.placement": 4,
+    "drcpo.config": 5,
+    "drcpo.transforms": 6,
+    "drcpo.pipeline": 7,
+    "drcpo.datasets.export": 7,
+    "drcpo.warmup": 7,
+    "drcpo.integrations": 8,
+    "drcpo.demo": 8,
+    "drcpo.cli": 8,
+    "drcpo": 8,
+}
+
+
+def _modules() -> dict[str, Path]:
+    modules = {}
+    for path in (SRC / "drcpo").rglob("*.py"):
+        parts = path.relative_to(SRC).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        modules[name] = path
+    return modules
+
+
+MODULES = _modules()
+
+
+def _resolve(name: str) -> str:
+    """The drcpo module an imported dotted name lives in (``from a.b import c``: a.b.c or a.b)."""
+    while name not in MODULES:
+        name = name.rpartition(".")[0]
+    return name
+
+
+def imports_of(path: Path) -> set[str]:
+    """The drcpo modules ``path`` imports anywhere in it."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if node.module.split(".")[0] == "drcpo":
+                found |= {_resolve(f"{node.module}.{alias.name}") for alias in node.names}
+        elif isinstance(node, ast.Import):
+            found |= {_resolve(a.name) for a in node.names if a.name.split(".")[0] == "drcpo"}
+    return found
+
+
+GRAPH = {name: imports_of(path) - {name} for name, path in MODULES.items()}
+
+
+def layer_of(module: str) -> int:
+    prefix = module
+    while prefix not in LAYERS:
+        prefix = prefix.rpartition(".")[0]
+    return LAYERS[prefix]
+
+
+def _package(module: str) -> str:
+    return module if MODULES[module].name == "__init__.py" else module.rpartition(".")[0]
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (its modules in order, the first repeated), else None."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                return [*path[path.index(nxt) :], nxt]
+            if nxt not in state and (cycle := visit(nxt)):
+                return cycle
+        state[node] = 2
+        path.pop()
+        return None
+
+    for start in sorted(graph):
+        if start not in state and (cycle := visit(start)):
+            return cycle
+    return None
+
+
+def test_no_import_cycle():
+    assert find_cycle(GRAPH) is None, find_cycle(GRAPH)
+
+
+def test_the_cycle_finder_finds_cycles():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set(), "c": {"a", "b"}}) is None
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_imports_go_down_the_layers(module):
+    """Lower layers never import higher ones; within a layer, only the module's own package."""
+    wrong = []
+    for target in sorted(GRAPH[module]):
+        own, theirs = _package(module), _package(target)
+        same_package = theirs == own or theirs.startswith(own + ".")
+        if layer_of(target) > layer_of(module) or (
+            layer_of(target) == layer_of(module) and not same_package
+        ):
+            wrong.append(f"{target} (layer {layer_of(target)})")
+    assert not wrong, f"{module} (layer {layer_of(module)}) imports {wrong}"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_modules_stay_short_or_say_why(module):
+    path = MODULES[module]
+    lines = len(path.read_text().splitlines())
+    if lines > MAX_LINES:
+        docstring = ast.get_docstring(ast.parse(path.read_text())) or ""
+        assert LONG_REASON in docstring, f"{path.name}: {lines} lines and no reason given"
+
+
+def test_every_layered_package_is_in_the_architecture_document():
+    text = ARCHITECTURE.read_text()
+    for prefix in LAYERS:
+        if prefix == "drcpo":
+            continue
+        name = prefix.removeprefix("drcpo.").replace(".", "/")
+        shown = f"{name}/" if (SRC / prefix.replace(".", "/")).is_dir() else f"{name}.py"
+        assert shown.split("/")[-1] in text or shown in text, f"{shown} not in {ARCHITECTURE}"
