@@ -25,7 +25,8 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.zbuffer`: :func:`range_image_occlusion` and :class:`OcclusionMap`.
 * :mod:`~drcpo.occlusion.view_windows`: the directions boxes cover, seen from the viewpoint.
 * :mod:`~drcpo.occlusion.scopes`: s-HPR.
-* :mod:`~drcpo.occlusion.external`: e-HPR, its scopes and modes.
+* :mod:`~drcpo.occlusion.external`: e-HPR, its scopes (``frame``, ``inserted`` in two steps)
+  and modes (``hpr``, ``range_image``).
 
 Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
 pool outlives a call, and numba kernels are compiled without a threading layer.

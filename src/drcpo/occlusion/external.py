@@ -22,6 +22,7 @@ Imports the other :mod:`drcpo.occlusion` modules, never anything above.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -105,8 +106,9 @@ def external_occlusion(
     )
 
 
-class InsertedScope:
-    """e-HPR's ``inserted`` scope after step 1 (see :func:`inserted_scope`).
+class InsertedScope(ABC):
+    """e-HPR's ``inserted`` scope after step 1 (see :func:`inserted_scope`; one subclass per
+    path, which it picks).
 
     Attributes:
         removed_inserted: ``bool (K,)`` inserted points to remove (hidden), in their order.
@@ -121,14 +123,14 @@ class InsertedScope:
         hidden with the inserted points and visible without them."""
         return self.removed_of(self.in_windows(windows))
 
+    @abstractmethod
     def in_windows(self, windows: np.ndarray | None) -> np.ndarray:
         """``bool (M,)``: original points in ``windows`` (as :meth:`removed_behind`)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def removed_of(self, behind: np.ndarray) -> np.ndarray:
         """Step 2 for a given set: ``bool (M,)`` original points of ``behind`` (``bool (M,)``)
         to remove."""
-        raise NotImplementedError
 
 
 class _GridScope(InsertedScope):
