@@ -437,8 +437,8 @@ class DRCPO(Transform):
         on_chunk: Callable[[int, list[Any]], None] | None = None,
     ) -> list[Any]:
         """Constructed objects; with ``on_chunk``, built :data:`_CHUNK` at a time and handed to
-        it as they come (see :func:`~drcpo.construction.construct_objects`)."""
-        objects = construction.construct_objects(
+        it as they come (see :func:`~drcpo.construction.construct_chunks`)."""
+        chunks = construction.construct_chunks(
             self.database,
             rows,
             self.index.candidates[rows],
@@ -446,8 +446,12 @@ class DRCPO(Transform):
             self._construction,
             self.index.max_counts,
             chunk=_CHUNK if on_chunk is not None else None,
-            on_chunk=on_chunk,
         )
+        objects: list[Any] = []
+        for first, built in chunks:
+            objects += built
+            if on_chunk is not None:
+                on_chunk(first, built)
         for name, built in zip(self.database.names[rows], objects, strict=True):
             stats.construction(str(name), built.iterations)
         return objects
