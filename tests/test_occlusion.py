@@ -756,7 +756,11 @@ def test_hidden_groups_count_samples_hidden_among_the_frame_points(seed):
                 np.testing.assert_array_equal(found, expected)
     assert mixed
     # Not applicable where R is not above the ranges.
-    assert FrameGrid.build(frame, radius=10.0).hidden_groups(samples, offsets, cleared, 1.0) is None
+    assert grid.groups_apply(samples) and grid.groups_apply(samples[:0])
+    near = FrameGrid.build(frame, radius=10.0)
+    assert not near.groups_apply(samples)
+    with pytest.raises(ValueError, match="does not apply"):
+        near.hidden_groups(samples, offsets, cleared, 1.0)
     for bad, message in (
         (offsets[:-1], "offsets must run"),
         (offsets[::-1], "offsets must run"),

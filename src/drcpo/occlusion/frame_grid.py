@@ -254,6 +254,24 @@ class FrameGrid:
         r_min = min(self._r_min, float(ranges.min(initial=np.inf)))
         return r_min, max(self._r_max, float(ranges.max(initial=0.0)))
 
+    def groups_apply(self, samples: np.ndarray) -> bool:
+        """Whether :meth:`hidden_groups` decides ``samples`` ``(S, 3)`` (metres) against this
+        frame: the per-point test applies to the frame with them (``R`` above every range, no
+        point at the viewpoint), or there is nothing to decide (no samples, no frame point).
+        Where it does not, the caller decides (DR.CPO: no group hidden)."""
+        xyz = _check_points(samples)
+        if not len(xyz) or not self.size:
+            return True
+        return self._samples_apply(_norms(xyz - self.center))
+
+    def _samples_apply(self, ranges: np.ndarray) -> bool:
+        """:meth:`groups_apply` for samples at distances ``ranges`` ``(S,)`` (metres, S > 0)."""
+        if not np.isfinite(ranges).all():
+            return False
+        r_min = min(self._r_min, float(ranges.min()))
+        r_max = max(self._r_max, float(ranges.max()))
+        return self._local_applies(self.size, r_min, r_max, "local")
+
     def hidden_groups(
         self,
         samples: np.ndarray,
@@ -261,13 +279,12 @@ class FrameGrid:
         cleared: np.ndarray,
         share: float,
         pool: ThreadPoolExecutor | None = None,
-    ) -> np.ndarray | None:
+    ) -> np.ndarray:
         """Which groups of ``samples`` are at least ``share`` hidden among the frame's points
         without the ``cleared`` ones (each sample decided exactly, as a point added to them
-        alone); ``None`` when the per-point test does not apply (``R`` not above the ranges,
-        points at the viewpoint). A group is decided as soon as its count allows: samples the
-        plane normal to their ray shows visible first, the others then one by one. Samples the
-        test gives up on (its budget of full scans per group spent) count as visible. ``pool``
+        alone); only where :meth:`groups_apply` (else ``ValueError``). A group is decided as
+        soon as its count allows: samples the plane normal to their ray shows visible first,
+        the others then one by one. Samples the test gives up on (its budget of full scans per group spent) count as visible. ``pool``
         may lend a thread (the answer does not depend on it).
 
         Args:
@@ -294,10 +311,11 @@ class FrameGrid:
             return hidden
         rel = xyz - self.center
         ranges = _norms(rel)
+        if not self._samples_apply(ranges):
+            raise ValueError(
+                "the per-point test does not apply to these samples (see groups_apply)"
+            )
         r_min = min(self._r_min, float(ranges.min()))
-        r_max = max(self._r_max, float(ranges.max()))
-        if not (np.isfinite(ranges).all() and self._local_applies(n, r_min, r_max, "local")):
-            return None
         order = self._add(rel, ranges)
         position = np.empty(len(xyz), dtype=np.int64)
         position[order] = n + np.arange(len(xyz))

@@ -418,14 +418,17 @@ class DRCPO(Transform):
         (``owners``, see :meth:`_room_owners`) make way for them and hide nothing. Mode
         ``hpr``: surface samples decided exactly by HPR among the frame's points
         (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden where that test
-        does not apply); ``range_image``: a z-buffer at the sensor's resolution
-        (:class:`~drcpo.occlusion.zbuffer.OcclusionMap`)."""
+        does not apply, see :meth:`~drcpo.occlusion.FrameGrid.groups_apply`); ``range_image``:
+        a z-buffer at the sensor's resolution (:class:`~drcpo.occlusion.zbuffer.OcclusionMap`).
+        """
         _, viewpoint = self.e_hpr_setting()
         if frame_grid is not None:
             samples, offsets = surface_samples(boxes, viewpoint)
+            grid = frame_grid()
+            if not grid.groups_apply(samples):
+                return np.zeros(len(boxes), dtype=bool)
             helper = pool if spare_core() else None
-            hidden = frame_grid().hidden_groups(samples, offsets, owners >= 0, limit, helper)
-            return hidden if hidden is not None else np.zeros(len(boxes), dtype=bool)
+            return grid.hidden_groups(samples, offsets, owners >= 0, limit, helper)
         z_buffer = OcclusionMap(frame.points, viewpoint)
         return z_buffer.occluded(boxes, cleared=everything) >= limit
 
