@@ -284,8 +284,9 @@ class FrameGrid:
         without the ``cleared`` ones (each sample decided exactly, as a point added to them
         alone); only where :meth:`groups_apply` (else ``ValueError``). A group is decided as
         soon as its count allows: samples the plane normal to their ray shows visible first,
-        the others then one by one. Samples the test gives up on (its budget of full scans per group spent) count as visible. ``pool``
-        may lend a thread (the answer does not depend on it).
+        the others then one by one. Samples the test gives up on (its budget of full scans per
+        group spent) count as visible. ``pool`` may lend a thread (the answer does not depend
+        on it).
 
         Args:
             samples: ``(S, 3)`` points, metres.
