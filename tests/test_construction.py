@@ -5,6 +5,7 @@ from drcpo.construction import (
     ConstructionConfig,
     _gather,
     _numpy_sum,
+    construct_chunks,
     construct_object,
     construct_objects,
 )
@@ -452,18 +453,13 @@ def test_matches_the_reference_implementation(database, config):
         for row, cands, scale in zip(rows, candidates, scales, strict=True)
     ]
     batch = construct_objects(database, rows, candidates, batch_rng, config, scales)
-    # In chunks of 2, each handed over as it is built: the same objects, the same draws.
-    chunk_rng, handed = np.random.default_rng(11), []
-    chunked = construct_objects(
-        database,
-        rows,
-        candidates,
-        chunk_rng,
-        config,
-        scales,
-        chunk=2,
-        on_chunk=lambda first, objects: handed.append((first, len(objects))),
-    )
+    # In chunks of 2, each built when asked for: the same objects, the same draws.
+    chunk_rng, handed, chunked = np.random.default_rng(11), [], []
+    for first, objects in construct_chunks(
+        database, rows, candidates, chunk_rng, config, scales, chunk=2
+    ):
+        handed.append((first, len(objects)))
+        chunked += objects
     assert handed == [(first, len(rows[first : first + 2])) for first in range(0, len(rows), 2)]
     for k, (row, cands, scale) in enumerate(zip(rows, candidates, scales, strict=True)):
         single = construct_object(database, row, cands, single_rng, config, scale)
@@ -527,6 +523,12 @@ def test_batches_take_the_index_layout_and_class_maxima_by_name(database):
         construct_objects(database, rows, padded[:2], a)
     with pytest.raises(DataError, match="class_max_counts"):
         construct_objects(database, rows, padded, a, None, [None])
+    # construct_chunks checks on the call, before any chunk is asked for (nothing drawn)
+    state = a.bit_generator.state
+    with pytest.raises(DataError, match="candidate lists"):
+        construct_chunks(database, rows, padded[:2], a, chunk=1)
+    assert a.bit_generator.state == state
+    assert list(construct_chunks(database, [], np.zeros((0, 5), np.int32), a, chunk=2)) == []
 
 
 @pytest.mark.parametrize("seed", [0, 1])

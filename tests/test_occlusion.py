@@ -573,6 +573,12 @@ def _two_passes(points, inserted, behind, viewpoint, radius):
     return expected
 
 
+def grid_steps(grid, cleared, inserted, behind, **options):
+    """Both steps on a FrameGrid: the frame points and the inserted points to remove."""
+    step = grid.insert(cleared, inserted, **options)
+    return step.hidden_behind(behind), step.removed_inserted
+
+
 def _insertion_scene(seed: int):
     """A street frame, some of its points cleared, objects inserted (one of them above every
     frame point and one with copies of frame points), and the frame points behind them."""
@@ -609,56 +615,104 @@ def test_frame_grid_equals_the_two_passes(seed):
     assert expected[is_inserted].any() and expected[~is_inserted].any()
     for workers in (1, 2):
         grid = FrameGrid.build(frame, viewpoint, radius, spare=10)  # grows for the objects
-        found = grid.hidden_by_insertion(cleared, inserted, behind, method="local", workers=workers)
-        assert found is not None
+        found = grid_steps(grid, cleared, inserted, behind, method="local", workers=workers)
         np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
         assert not found[0][cleared].any()
 
 
-def test_behind_may_depend_on_the_inserted_points_verdicts(seed=1):
-    # The DR.CPO pipeline decides the frame points only behind the objects that keep enough
-    # points: ``behind`` is then a function of the inserted points' verdicts.
-    from drcpo.occlusion import FrameGrid, hidden_by_insertion
+@pytest.mark.parametrize("path", ["grid", "own grid", "reference", "range_image"])
+def test_inserted_scope_steps_equal_the_definition(path, seed=1):
+    # Step 1 decides the inserted points alone; the caller then picks the frame points to
+    # decide (DR.CPO: those behind the objects that keep enough points), and step 2 decides
+    # those: hidden with the objects, visible without them. Each path against its naive
+    # reference: hidden_point_removal (or range_image_occlusion) with and without the objects.
+    from drcpo.occlusion import FrameGrid, inserted_scope, range_image_occlusion
 
     frame, cleared, inserted, behind = _insertion_scene(seed)
     radius = 1e5
     points = np.concatenate([frame[~cleared], inserted])
     is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
-    hidden_inserted = _two_passes(
-        points, is_inserted, np.zeros(len(points), bool), np.zeros(3), radius
-    )
-    half = behind & (np.arange(len(frame)) % 2 == 0)  # what the function will answer
-    expected = _two_passes(
-        points,
-        is_inserted,
-        np.concatenate([half[~cleared], np.zeros(len(inserted), bool)]),
-        np.zeros(3),
-        radius,
-    )
-    seen = []
+    half = (behind & (np.arange(len(frame)) % 2 == 0))[~cleared]  # what the caller picks
+    options = {
+        "grid": {
+            "grid": FrameGrid.build(frame, radius=radius),
+            "cleared": cleared,
+            "method": "local",
+        },
+        "own grid": {"method": "local"},
+        "reference": {"method": "reference"},
+        "range_image": {"mode": "range_image"},
+    }[path]
+    scope = inserted_scope(points, is_inserted, np.zeros(3), radius, **options)
+    if path == "range_image":
+        visible = range_image_occlusion(points)
+        before = range_image_occlusion(points[~is_inserted])
+        expected_inserted = ~visible[is_inserted]
+        expected = half & ~visible[~is_inserted] & before
+    else:
+        nothing = np.zeros(len(points), bool)
+        expected_inserted = _two_passes(points, is_inserted, nothing, np.zeros(3), radius)
+        expected_inserted = expected_inserted[is_inserted]
+        expected = _two_passes(
+            points, is_inserted, np.append(half, np.zeros(len(inserted), bool)), np.zeros(3), radius
+        )[~is_inserted]
+    assert expected_inserted.any() and expected.any()
+    np.testing.assert_array_equal(scope.removed_inserted, expected_inserted)
+    np.testing.assert_array_equal(scope.removed_of(half), expected)
+    assert not scope.removed_of(np.zeros_like(half)).any()
 
-    def behind_of(removed):
-        seen.append(removed.copy())
-        return half
 
-    grid = FrameGrid.build(frame, radius=radius)
-    found = grid.hidden_by_insertion(cleared, inserted, behind_of, method="local")
-    np.testing.assert_array_equal(seen[0], hidden_inserted[is_inserted])
-    np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
-    # The same through the plain function, with either method.
-    for method in ("local", "reference"):
-        seen.clear()
-        removed = hidden_by_insertion(
-            points,
-            is_inserted,
-            lambda gone: (
-                seen.append(gone.copy()) or np.append(half[~cleared], np.zeros(len(inserted), bool))
-            ),
-            radius=radius,
-            method=method,
-        )
-        np.testing.assert_array_equal(seen[0], hidden_inserted)
-        np.testing.assert_array_equal(removed, expected)
+@pytest.mark.parametrize("path", ["grid", "own grid", "range_image"])
+def test_inserted_scope_decides_the_original_points_in_the_windows(path):
+    # removed_behind(windows) is removed_of(the original points in those view windows, by
+    # view_windows.in_windows); None: every direction.
+    from drcpo.occlusion import FrameGrid, inserted_scope
+    from drcpo.occlusion.view_windows import in_windows, window_spans
+
+    frame, cleared, inserted, _ = _insertion_scene(0)
+    points = np.concatenate([frame[~cleared], inserted])
+    is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
+    viewpoint = np.array([0.0, 0.0, 0.5])
+    options = {
+        "grid": {
+            "grid": FrameGrid.build(frame, viewpoint, 1e5),
+            "cleared": cleared,
+            "method": "local",
+        },
+        "own grid": {"method": "local"},
+        "range_image": {"mode": "range_image"},
+    }[path]
+    scope = inserted_scope(points, is_inserted, viewpoint, 1e5, **options)
+    boxes = np.array(
+        [[12.0, 2.0, -1.0, 4.2, 2.0, 1.7, 0.0], [20.0, -4.0, -0.8, 1.2, 1.2, 2.0, 0.3]]
+    )
+    windows = window_spans(boxes, viewpoint, True)
+    members = in_windows(points[~is_inserted], windows, viewpoint)
+    assert 0 < members.sum() < len(members)
+    np.testing.assert_array_equal(scope.in_windows(windows), members)
+    np.testing.assert_array_equal(scope.removed_behind(windows), scope.removed_of(members))
+    every = np.ones(len(members), dtype=bool)
+    np.testing.assert_array_equal(scope.removed_behind(None), scope.removed_of(every))
+
+
+def test_inserted_scope_picks_its_path_and_refuses_bad_settings():
+    from drcpo.occlusion import FrameGrid, inserted_scope
+
+    frame, cleared, inserted, _ = _insertion_scene(0)
+    points = np.concatenate([frame[~cleared], inserted])
+    is_inserted = np.repeat([False, True], [int((~cleared).sum()), len(inserted)])
+    grid = FrameGrid.build(frame, radius=1e5)
+    local = {"grid": grid, "cleared": cleared, "method": "local"}
+    assert type(inserted_scope(points, is_inserted, **local)).__name__ == "_GridScope"
+    # R below the ranges: the grid does not apply; the plain passes decide
+    small = FrameGrid.build(frame, radius=10.0)
+    assert not small.applies(cleared, inserted)
+    chosen = inserted_scope(points, is_inserted, radius=10.0, grid=small, cleared=cleared)
+    assert type(chosen).__name__ == "_PointsScope"
+    with pytest.raises(ValueError, match="needs cleared"):
+        inserted_scope(points, is_inserted, grid=grid)
+    with pytest.raises(ConfigError, match="mode"):
+        inserted_scope(points, is_inserted, mode="zbuffer")
 
 
 @pytest.mark.parametrize("seed", range(2))
@@ -702,7 +756,11 @@ def test_hidden_groups_count_samples_hidden_among_the_frame_points(seed):
                 np.testing.assert_array_equal(found, expected)
     assert mixed
     # Not applicable where R is not above the ranges.
-    assert FrameGrid.build(frame, radius=10.0).hidden_groups(samples, offsets, cleared, 1.0) is None
+    assert grid.groups_apply(samples) and grid.groups_apply(samples[:0])
+    near = FrameGrid.build(frame, radius=10.0)
+    assert not near.groups_apply(samples)
+    with pytest.raises(ValueError, match="does not apply"):
+        near.hidden_groups(samples, offsets, cleared, 1.0)
     for bad, message in (
         (offsets[:-1], "offsets must run"),
         (offsets[::-1], "offsets must run"),
@@ -718,15 +776,15 @@ def test_frame_grid_memory_is_reused_and_grown():
     from drcpo.occlusion import FrameGrid, GridMemory
 
     frame, cleared, inserted, behind = _insertion_scene(0)
-    expected = FrameGrid.build(frame).hidden_by_insertion(cleared, inserted, behind, method="local")
+    expected = grid_steps(FrameGrid.build(frame), cleared, inserted, behind, method="local")
     memory = GridMemory()
     memory.ints = np.empty(10, dtype=np.int64)  # far too short for the cells: replaced
     small = FrameGrid.build(frame[:500], spare=0, memory=memory)
     assert len(memory.ints) >= 3 * 500 and small.size == 500
     floats = memory.floats
     for _ in range(2):  # the second build finds its memory ready
-        found = FrameGrid.build(frame, memory=memory).hidden_by_insertion(
-            cleared, inserted, behind, method="local"
+        found = grid_steps(
+            FrameGrid.build(frame, memory=memory), cleared, inserted, behind, method="local"
         )
         for a, b in zip(found, expected, strict=True):
             np.testing.assert_array_equal(a, b)
@@ -759,7 +817,7 @@ def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
     undecided = FrameGrid._undecided
     monkeypatch.setattr(FrameGrid, "_undecided", lambda *a: settled.append(1) or undecided(*a))
     grid = FrameGrid.build(frame, radius=radius)
-    found = grid.hidden_by_insertion(cleared, inserted, behind, method="local")
+    found = grid_steps(grid, cleared, inserted, behind, method="local")
     assert settled  # the plain passes took over
     np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
 
@@ -767,14 +825,17 @@ def test_frame_grid_settles_what_its_kernel_gives_up_on(monkeypatch):
 def test_frame_grid_declines_where_auto_takes_one_hull():
     from drcpo.occlusion import FrameGrid
 
-    frame, cleared, inserted, behind = _insertion_scene(0)
+    frame, cleared, inserted, _ = _insertion_scene(0)
     grid = FrameGrid.build(frame[:500], radius=1e5)
     # "auto" runs one hull on a few hundred points: the grid leaves it to the caller
-    assert grid.hidden_by_insertion(cleared[:500], inserted[:100], behind[:500]) is None
-    assert grid.hidden_by_insertion(cleared[:500], inserted[:100], behind[:500], method="local")
+    assert not grid.applies(cleared[:500], inserted[:100])
+    with pytest.raises(ValueError, match="does not apply"):
+        grid.insert(cleared[:500], inserted[:100])
+    assert grid.applies(cleared[:500], inserted[:100], method="local")
+    assert grid.applies(cleared[:500], inserted[:0], method="local")  # no objects: the frame's
     at_origin = np.vstack([frame, np.zeros((1, 3), np.float32)])
     grid = FrameGrid.build(at_origin)
-    assert grid.hidden_by_insertion(np.zeros(len(at_origin), bool), inserted, None) is None
+    assert not grid.applies(np.zeros(len(at_origin), bool), inserted)
     with pytest.raises(DataError, match="NaN"):
         FrameGrid.build(np.vstack([frame, [[np.nan, 0, 0]]]))
 

@@ -20,6 +20,7 @@ from drcpo.occlusion.zbuffer import (
 from drcpo.placement import (
     REASONS,
     PlacementConfig,
+    PlacementRounds,
     _in_fov,
     _Obstacles,
     bev_collisions,
@@ -117,6 +118,14 @@ def test_clearance_keeps_room_around_each_placed_footprint(rng):
         PlacementConfig(clearance=-0.1)
 
 
+def place_with_verdicts(frame, dims, rng, config=None, occluded=None):
+    """PlacementRounds driven to the end, ``occluded(boxes, placed)`` deciding each round."""
+    rounds = PlacementRounds(frame, dims, None, rng, config)
+    while (drawn := rounds.next_round()) is not None:
+        rounds.settle(None if occluded is None else occluded(drawn.boxes, drawn.placed))
+    return rounds.result()
+
+
 def test_occluded_placements_are_tried_again(rng):
     frame = scene(rng, existing_boxes())
     calls = []
@@ -126,7 +135,7 @@ def test_occluded_placements_are_tried_again(rng):
         return boxes[:, 0] < 35.0  # say the near half of the area is hidden
 
     config = PlacementConfig(attempts=6)
-    result = place_objects(frame, sizes(20), None, rng, config, occluded=occluded)
+    result = place_with_verdicts(frame, sizes(20), rng, config, occluded)
     assert len(result.accepted) >= 10 and (result.boxes[:, 0] >= 35.0).all()
     np.testing.assert_array_equal(result.boxes[:, 3:6], sizes(20)[result.accepted])
     assert result.rejected["occluded"] > 0 and len(calls) > 1
@@ -139,8 +148,37 @@ def test_occluded_placements_are_tried_again(rng):
     left = result.reasons[result.reasons != ""]
     assert set(left) <= set(REASONS)
     # One try: those the test rejects stay rejected, for that reason.
-    once = place_objects(frame, sizes(20), None, np.random.default_rng(3), occluded=occluded)
+    once = place_with_verdicts(frame, sizes(20), np.random.default_rng(3), occluded=occluded)
     assert (once.reasons == "occluded").sum() == once.rejected["occluded"] > 0
+
+
+def test_rounds_draw_as_place_objects_whatever_the_verdicts():
+    # The rounds are place_objects step by step: accepting everything gives its result, and
+    # each round's boxes are the poses it drew that pass the geometric checks.
+    frame = scene(np.random.default_rng(0), existing_boxes())
+    config = PlacementConfig(attempts=4)
+    plain = place_objects(frame, sizes(20), None, np.random.default_rng(5), config)
+    rounds = place_with_verdicts(frame, sizes(20), np.random.default_rng(5), config)
+    np.testing.assert_array_equal(rounds.boxes, plain.boxes)
+    assert rounds.reasons.tolist() == plain.reasons.tolist()
+    assert (rounds.rejected, rounds.attempts) == (plain.rejected, plain.attempts)
+    # A rejected box is not placed: the next round draws its object again and does not count
+    # it among the boxes placed before.
+    first = PlacementRounds(frame, sizes(20), None, np.random.default_rng(5), config)
+    drawn = first.next_round()
+    assert len(drawn.boxes) and len(drawn.placed) == 0
+    first.settle(np.ones(len(drawn.boxes), bool))
+    assert first.result().rejected["occluded"] == len(drawn.boxes)
+    assert len(first.next_round().placed) == 0
+    first.settle()
+    with pytest.raises(RuntimeError, match="next_round first"):
+        first.settle()
+    again = PlacementRounds(frame, sizes(20), None, np.random.default_rng(5), config)
+    again.next_round()
+    with pytest.raises(RuntimeError, match="settle the current round"):
+        again.next_round()
+    with pytest.raises(RuntimeError, match="settle the current round"):
+        again.result()
 
 
 def test_surface_samples_lie_on_the_faces_seen_from_the_viewpoint():
@@ -215,10 +253,10 @@ def test_every_rejection_reason(rng):
     assert dense.rejected["obstacle"] == 6 and len(dense.accepted) == 0
     assert set(dense.rejected) == set(REASONS)
 
-    hidden = place_objects(frame, sizes(4), None, rng, occluded=lambda b, _: np.ones(len(b), bool))
+    hidden = place_with_verdicts(frame, sizes(4), rng, occluded=lambda b, _: np.ones(len(b), bool))
     assert hidden.reasons.tolist() == ["occluded"] * 4 and len(hidden.accepted) == 0
-    with pytest.raises(ValueError, match="occluded returned 1 verdicts"):
-        place_objects(frame, sizes(4), None, rng, occluded=lambda b, _: np.ones(1, bool))
+    with pytest.raises(ValueError, match="1 occluded verdicts for 4 boxes"):
+        place_with_verdicts(frame, sizes(4), rng, occluded=lambda b, _: np.ones(1, bool))
 
 
 def test_retries_place_more_objects_and_count_attempts(rng):

@@ -35,7 +35,7 @@ formulation as the reference.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -159,15 +159,12 @@ def construct_objects(
     rng: np.random.Generator,
     config: ConstructionConfig | None = None,
     class_max_counts: Mapping[str, np.ndarray] | Sequence[np.ndarray | None] | None = None,
-    *,
-    chunk: int | None = None,
-    on_chunk: Callable[[int, list[ConstructedObject]], None] | None = None,
 ) -> list[ConstructedObject]:
-    """:func:`construct_object` for several objects in compiled calls.
+    """:func:`construct_object` for several objects in one compiled call.
 
     The objects draw from ``rng`` one after the other, so the result (and ``rng``'s state
-    afterwards) is that of calling :func:`construct_object` on each in turn, however they are
-    chunked. Every input is checked before anything is drawn.
+    afterwards) is that of calling :func:`construct_object` on each in turn (and that of
+    :func:`construct_chunks`, however chunked). Every input is checked before anything is drawn.
 
     Args:
         database: a :class:`drcpo.database.GroundTruthDatabase`.
@@ -178,14 +175,29 @@ def construct_objects(
         config: :class:`ConstructionConfig` (paper defaults when ``None``).
         class_max_counts: per class name (the index's ``max_counts``; a class left out uses its
             objects' own maxima), or per object (``None`` entries likewise), or ``None``.
-        chunk: objects per compiled call (``None``: all in one).
-        on_chunk: called after each call with the index of its first object and its objects,
-            e.g. to start work on them while the next ones are built.
 
     Returns:
         The :class:`ConstructedObject` of each row, in order. Their arrays are views into
-        arrays shared by their chunk.
+        arrays shared by the call.
     """
+    chunks = construct_chunks(database, rows, candidate_rows, rng, config, class_max_counts)
+    return [built for _, objects in chunks for built in objects]
+
+
+def construct_chunks(
+    database,
+    rows: Sequence[int] | np.ndarray,
+    candidate_rows: Sequence[np.ndarray] | np.ndarray,
+    rng: np.random.Generator,
+    config: ConstructionConfig | None = None,
+    class_max_counts: Mapping[str, np.ndarray] | Sequence[np.ndarray | None] | None = None,
+    *,
+    chunk: int | None = None,
+) -> Iterator[tuple[int, list[ConstructedObject]]]:
+    """:func:`construct_objects` ``chunk`` objects per compiled call (``None``: all in one),
+    each chunk built when the caller asks for it, e.g. to start work on the ones before: an
+    iterator of (index of the chunk's first object, its objects). Inputs are checked on the
+    call, before anything is drawn; the draws are those of :func:`construct_objects`."""
     config = config or ConstructionConfig()
     n_objects = len(database)
     rows = _valid_rows(rows, n_objects)
@@ -195,22 +207,34 @@ def construct_objects(
         k = int(np.argmax(degenerate))
         raise DataError(f"database object {rows[k]} has a degenerate box size {dims[k].tolist()}")
     candidates = _candidate_matrix(candidate_rows, rows, n_objects)
-    grids, mirror, scales, own_scale = _class_settings(database, rows, config, class_max_counts)
-    if len(rows) == 0:
-        return []
-    points, offsets = _database_arrays(database)
+    settings = (dims, *_class_settings(database, rows, config, class_max_counts))
     step = len(rows) if chunk is None else max(1, int(chunk))
-    objects: list[ConstructedObject] = []
+    return _chunks(database, rows, candidates, settings, rng, config, step)
+
+
+def _chunks(
+    database,
+    rows: np.ndarray,
+    candidates: np.ndarray,
+    settings: tuple[np.ndarray, ...],
+    rng: np.random.Generator,
+    config: ConstructionConfig,
+    step: int,
+) -> Iterator[tuple[int, list[ConstructedObject]]]:
+    """The objects of :func:`construct_chunks`, ``step`` per compiled call."""
+    if len(rows) == 0:
+        return
+    points, offsets = _database_arrays(database)
     for first in range(0, len(rows), step):
         part = slice(first, first + step)
-        settings = (dims[part], grids[part], mirror[part], scales[part], own_scale[part])
+        own = tuple(values[part] for values in settings)
         if config.mode == "partition":
             out = _construct_partition(
                 points,
                 offsets,
                 rows[part],
                 candidates[part],
-                *settings,
+                *own,
                 float(config.margin),
                 config.max_iterations,
                 float(config.coverage),
@@ -218,12 +242,8 @@ def construct_objects(
             )
         else:
             orders = _whole_orders(candidates[part], rng, config.max_iterations)
-            out = _construct_whole(points, offsets, rows[part], orders, *settings, config.coverage)
-        built = _objects(*out)
-        objects += built
-        if on_chunk is not None:
-            on_chunk(first, built)
-    return objects
+            out = _construct_whole(points, offsets, rows[part], orders, *own, config.coverage)
+        yield first, _objects(*out)
 
 
 def _valid_rows(rows, n_objects: int) -> np.ndarray:

@@ -14,8 +14,9 @@ A placement is rejected, for one reason counted per attempt, when
   earlier in this call, or an earlier box of the same batch (first come, first placed);
 * ``"obstacle"``: its box holds more than ``max_non_ground_points`` frame points that are more
   than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects);
-* ``"occluded"``: the caller's occlusion test rejects it (DR.CPO's: the box would be hidden
-  behind the frame's points, see :class:`drcpo.pipeline.DRCPO`;
+* ``"occluded"``: the caller rejects it after the checks above (:class:`PlacementRounds` hands
+  each round's boxes to the caller and takes its verdict; DR.CPO's test: the box would be
+  hidden behind the frame's points, see :class:`drcpo.transforms.drcpo.DRCPO`;
   :class:`drcpo.occlusion.zbuffer.OcclusionMap` is a z-buffer for such a test).
 
 Objects are tried up to ``attempts`` times (a fresh pose each time); the paper tries once.
@@ -29,7 +30,6 @@ points in each box come from one pass with a coarse cell index (:func:`box_membe
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numba
@@ -201,9 +201,11 @@ def place_objects(
     rng: np.random.Generator,
     config: PlacementConfig | None = None,
     ground: GroundModel | None = None,
-    occluded: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> PlacementResult:
     """Place objects of sizes ``dims`` ``(K, 3)`` at random, collision- and obstacle-free.
+
+    The same as :class:`PlacementRounds` with every round's boxes accepted (no ``"occluded"``
+    test).
 
     Args:
         frame: the :class:`Frame` (or OpenPCDet dict) receiving the objects; its boxes are
@@ -215,56 +217,128 @@ def place_objects(
         config: :class:`PlacementConfig` (defaults when ``None``).
         ground: the frame's :class:`GroundModel`; estimated from the frame's points (with its
             ``plane`` and ``calib`` metadata, when both are present) when ``None``.
-        occluded: an occlusion test of the boxes that pass the others, ``(B, 7)``, given the
-            boxes placed before them ``(P, 7)``: ``bool (B,)``, those to reject (reason
-            ``"occluded"``, tried again like the others).
     """
-    config = config or PlacementConfig()
-    frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
-    dims = _check_dims(dims)
-    source_z = _source_heights(source_boxes, len(dims), config)
-    if ground is None:
-        ground = frame_ground(frame)
-    obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
-    placed = np.full((len(dims), 7), np.nan)
-    verdicts = np.zeros(len(dims), dtype=np.int64)  # 0: placed, else 1 + index in REASONS
-    counts = np.zeros(len(REASONS) + 1, dtype=np.int64)
-    occupied = frame.boxes
-    room = dims.copy()  # each footprint with its clearance: sampled and checked for collisions
-    room[:, :2] += 2.0 * config.clearance
-    pending = np.arange(len(dims))
-    attempts = 0
-    for _ in range(config.attempts):
-        if len(pending) == 0:
-            break
-        attempts += len(pending)
-        boxes = sample_poses(room[pending], rng, config)
-        verdict = _judge(boxes, pending, dims, source_z, occupied, obstacles, config)
+    rounds = PlacementRounds(frame, dims, source_boxes, rng, config, ground)
+    while rounds.next_round() is not None:
+        rounds.settle()
+    return rounds.result()
+
+
+@dataclass(frozen=True, eq=False)
+class Round:
+    """One round of :class:`PlacementRounds`: fresh poses for the objects not placed yet.
+
+    Attributes:
+        boxes: ``float64 (B, 7)`` the boxes that passed the geometric checks (area, collision,
+            obstacle), the objects' own sizes (without the clearance), in object order.
+        placed: ``float64 (P, 7)`` the boxes placed in earlier rounds, in object order.
+    """
+
+    boxes: np.ndarray
+    placed: np.ndarray
+
+
+class PlacementRounds:
+    """:func:`place_objects` one round at a time, so that the caller can reject boxes that
+    pass the geometric checks (DR.CPO's ``"occluded"`` test, see
+    :class:`drcpo.transforms.drcpo.DRCPO`) without placement calling back into it.
+
+    Each round draws a pose for every object not placed yet (up to ``attempts`` rounds):
+    :meth:`next_round` draws and checks them and returns the :class:`Round` (``None`` when
+    done); :meth:`settle` takes the caller's verdict on that round's boxes before the next
+    round is drawn; :meth:`result` gives the outcome. The random draws are those of
+    :func:`place_objects`, in the same order, whatever the verdicts.
+
+    Args: as :func:`place_objects`.
+    """
+
+    def __init__(
+        self,
+        frame: Frame | dict,
+        dims: np.ndarray,
+        source_boxes: np.ndarray | None,
+        rng: np.random.Generator,
+        config: PlacementConfig | None = None,
+        ground: GroundModel | None = None,
+    ) -> None:
+        self._config = config = config or PlacementConfig()
+        frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
+        self._dims = dims = _check_dims(dims)
+        self._source_z = _source_heights(source_boxes, len(dims), config)
+        self._rng = rng
+        if ground is None:
+            ground = frame_ground(frame)
+        self._obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
+        self._placed = np.full((len(dims), 7), np.nan)
+        self._verdicts = np.zeros(len(dims), dtype=np.int64)  # 0: placed, else 1 + REASONS index
+        self._counts = np.zeros(len(REASONS) + 1, dtype=np.int64)
+        self._occupied = frame.boxes
+        # each footprint with its clearance: sampled and checked for collisions
+        self._room = dims.copy()
+        self._room[:, :2] += 2.0 * config.clearance
+        self._pending = np.arange(len(dims))
+        self._rounds = 0
+        self._attempts = 0
+        self._open: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def next_round(self) -> Round | None:
+        """Draw and check the next round's poses; ``None`` when every object is placed or has
+        had its ``attempts`` poses. Call :meth:`settle` before the next round."""
+        if self._open is not None:
+            raise RuntimeError("settle the current round before drawing the next")
+        if self._rounds == self._config.attempts or len(self._pending) == 0:
+            return None
+        self._rounds += 1
+        pending = self._pending
+        self._attempts += len(pending)
+        boxes = sample_poses(self._room[pending], self._rng, self._config)
+        verdict = _judge(
+            boxes,
+            pending,
+            self._dims,
+            self._source_z,
+            self._occupied,
+            self._obstacles,
+            self._config,
+        )
         own = boxes.copy()  # the objects' own footprints, without the clearance
-        own[:, 3:5] = dims[pending, :2]
+        own[:, 3:5] = self._dims[pending, :2]
         passed = np.flatnonzero(verdict == 0)
-        if occluded is not None and len(passed):
-            before = placed[np.isfinite(placed[:, 0])]
-            hidden = np.asarray(occluded(own[passed], before), dtype=bool).reshape(-1)
+        self._open = (boxes, own, verdict, passed)
+        placed = self._placed[np.isfinite(self._placed[:, 0])]
+        return Round(boxes=own[passed], placed=placed)
+
+    def settle(self, occluded: np.ndarray | None = None) -> None:
+        """Close the current round: ``occluded`` ``bool (B,)`` marks its boxes to reject
+        (reason ``"occluded"``; tried again like the others), ``None``: none."""
+        if self._open is None:
+            raise RuntimeError("no round to settle: call next_round first")
+        boxes, own, verdict, passed = self._open
+        if occluded is not None:
+            hidden = np.asarray(occluded, dtype=bool).reshape(-1)
             if len(hidden) != len(passed):
-                raise ValueError(
-                    f"occluded returned {len(hidden)} verdicts for {len(passed)} boxes"
-                )
+                raise ValueError(f"{len(hidden)} occluded verdicts for {len(passed)} boxes")
             verdict[passed[hidden]] = _OCCLUDED
-        counts += np.bincount(verdict, minlength=len(counts))
-        verdicts[pending] = verdict
+        self._open = None
+        self._counts += np.bincount(verdict, minlength=len(self._counts))
+        self._verdicts[self._pending] = verdict
         ok = verdict == 0
-        occupied = np.concatenate([occupied, boxes[ok]])
-        placed[pending[ok]] = own[ok]
-        pending = pending[~ok]
-    accepted = np.flatnonzero(verdicts == 0)
-    return PlacementResult(
-        boxes=placed[accepted],
-        accepted=accepted.astype(np.int64),
-        rejected={reason: int(n) for reason, n in zip(REASONS, counts[1:], strict=True)},
-        reasons=_REASON_NAMES[verdicts].astype(str),
-        attempts=attempts,
-    )
+        self._occupied = np.concatenate([self._occupied, boxes[ok]])
+        self._placed[self._pending[ok]] = own[ok]
+        self._pending = self._pending[~ok]
+
+    def result(self) -> PlacementResult:
+        """The outcome of the rounds settled so far."""
+        if self._open is not None:
+            raise RuntimeError("settle the current round first")
+        accepted = np.flatnonzero(self._verdicts == 0)
+        return PlacementResult(
+            boxes=self._placed[accepted],
+            accepted=accepted.astype(np.int64),
+            rejected={reason: int(n) for reason, n in zip(REASONS, self._counts[1:], strict=True)},
+            reasons=_REASON_NAMES[self._verdicts].astype(str),
+            attempts=self._attempts,
+        )
 
 
 _OUT_OF_RANGE, _COLLISION, _OBSTACLE, _OCCLUDED = 1, 2, 3, 4  # verdicts: 1 + index in REASONS

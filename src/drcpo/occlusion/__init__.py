@@ -3,10 +3,10 @@ e-HPR, and two z-buffers.
 
 The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
 diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
-the viewpoint height from :data:`HPR_PRESETS`); :func:`hidden_by_insertion` is e-HPR's
-``inserted`` scope. :func:`range_image_occlusion` is a z-buffer alternative that is *not* the
-paper's method; :class:`OcclusionMap` is the z-buffer that rejects placements hidden behind the
-frame before anything is built.
+the viewpoint height from :data:`HPR_PRESETS`); :func:`inserted_scope` (two steps) and
+:func:`hidden_by_insertion` are e-HPR's ``inserted`` scope. :func:`range_image_occlusion` is a
+z-buffer alternative that is *not* the paper's method; :class:`OcclusionMap` is the z-buffer
+that rejects placements hidden behind the frame before anything is built.
 
 Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 :mod:`drcpo.geometry`), never anything above (:mod:`drcpo.placement`, :mod:`drcpo.transforms`):
@@ -24,7 +24,9 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.frame_grid`: :class:`FrameGrid`, a frame sorted once for e-HPR.
 * :mod:`~drcpo.occlusion.zbuffer`: :func:`range_image_occlusion` and :class:`OcclusionMap`.
 * :mod:`~drcpo.occlusion.view_windows`: the directions boxes cover, seen from the viewpoint.
-* :mod:`~drcpo.occlusion.scopes`: s-HPR, e-HPR and its scopes.
+* :mod:`~drcpo.occlusion.scopes`: s-HPR.
+* :mod:`~drcpo.occlusion.external`: e-HPR, its scopes (``frame``, ``inserted`` in two steps)
+  and modes (``hpr``, ``range_image``).
 
 Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
 pool outlives a call, and numba kernels are compiled without a threading layer.
@@ -33,6 +35,13 @@ pool outlives a call, and numba kernels are compiled without a threading layer.
 from __future__ import annotations
 
 from drcpo.occlusion.checks import MAX_RADIUS
+from drcpo.occlusion.external import (
+    InsertedScope,
+    azimuth_focus,
+    external_occlusion,
+    hidden_by_insertion,
+    inserted_scope,
+)
 from drcpo.occlusion.frame_grid import FrameGrid
 from drcpo.occlusion.grid import GridMemory, thread_grid_memory
 from drcpo.occlusion.hpr import (
@@ -43,13 +52,7 @@ from drcpo.occlusion.hpr import (
     hidden_point_removal,
 )
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
-from drcpo.occlusion.scopes import (
-    azimuth_focus,
-    external_occlusion,
-    hidden_by_insertion,
-    self_occlusion,
-    self_occlusion_many,
-)
+from drcpo.occlusion.scopes import self_occlusion, self_occlusion_many
 from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
 
 __all__ = [
@@ -62,11 +65,13 @@ __all__ = [
     "FrameGrid",
     "GridMemory",
     "HPRPreset",
+    "InsertedScope",
     "OcclusionMap",
     "azimuth_focus",
     "external_occlusion",
     "hidden_by_insertion",
     "hidden_point_removal",
+    "inserted_scope",
     "range_image_occlusion",
     "self_occlusion",
     "self_occlusion_many",

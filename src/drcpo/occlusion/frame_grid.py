@@ -42,7 +42,7 @@ from drcpo.occlusion.kernels import _BRUTE_BUDGET, _GROUP_BRUTE_BUDGET, Scene
 from drcpo.occlusion.local import _NONE_ABSENT, _PARALLEL_MIN, _first_cones
 from drcpo.occlusion.threads import _shared_chunks
 
-__all__ = ["FrameGrid"]
+__all__ = ["FrameGrid", "GridInsertion"]
 
 # Grid cells of a FrameGrid, relative to the typical first neighbourhood (half as wide as the
 # generic grid's: its scans read whole runs of cells; finer ones gain nothing on KITTI frames).
@@ -59,8 +59,8 @@ class FrameGrid:
     grid, for e-HPR's ``inserted`` scope on that frame with any inserted objects.
 
     It depends only on the frame, so the DR.CPO pipeline builds it (on a second thread) while
-    objects are placed and constructed. :meth:`hidden_by_insertion` then adds the inserted
-    points to its cells (no re-sorting of the frame) and skips the frame points they displace;
+    objects are placed and constructed. :meth:`insert` then adds the inserted points to its
+    cells (no re-sorting of the frame) and skips the frame points they displace;
     :meth:`in_windows` selects points by direction cell by cell.
 
     Directions are ``arctan2(y, x)`` (azimuth) and ``arctan2(z, sqrt(x x + y y))`` (elevation)
@@ -180,50 +180,53 @@ class FrameGrid:
             inside[self._order] = found
         return inside
 
-    def hidden_by_insertion(
+    def applies(self, cleared: np.ndarray, inserted: np.ndarray, method: str = "auto") -> bool:
+        """Whether :meth:`insert` serves e-HPR's inserted scope of the frame without its
+        ``cleared`` points (``bool (N,)``) plus ``inserted`` ``(K, 3 + C)`` (metres): whether
+        :func:`hidden_point_removal` with ``method`` would take the per-point test on that set
+        and on it without the inserted points. It does not when there are few points, ``R``
+        is not far above the ranges or points sit at the viewpoint; the caller then takes
+        the generic path (:func:`drcpo.occlusion.external.inserted_scope` decides this)."""
+        cleared = _check_query(cleared, self.size)
+        ranges = self._inserted_ranges(inserted)
+        r_min, r_max = self._bounds(ranges)
+        count = self.size - int(cleared.sum()) + len(ranges)
+        return self._local_applies(count, r_min, r_max, method)
+
+    def insert(
         self,
         cleared: np.ndarray,
         inserted: np.ndarray,
-        behind: np.ndarray | Callable[[np.ndarray], np.ndarray] | None,
         *,
         method: str = "auto",
         workers: int | None = None,
         pool: ThreadPoolExecutor | None = None,
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """:func:`hidden_by_insertion` of the frame without its ``cleared`` points plus the
-        ``inserted`` ones, with the per-point test; ``None`` when ``method`` would not use it
-        on that set (too few points, ``R`` not far above the ranges, points at the viewpoint):
-        the caller then asks :func:`hidden_by_insertion`. The inserted points are decided
-        first; ``behind`` may be a function of their verdicts.
+    ) -> GridInsertion:
+        """Step 1 of e-HPR's inserted scope with the per-point test: add the ``inserted``
+        points to the grid's cells (no re-sorting of the frame), skip the ``cleared`` frame
+        points, and decide the inserted points. Step 2 is the returned object's
+        :meth:`GridInsertion.hidden_behind`. Only where :meth:`applies` (else ``ValueError``);
+        the grid holds these inserted points until the next call.
 
         Args:
             cleared: ``bool (N,)`` frame points taken out (room made for the objects).
             inserted: ``(K, 3 + C)`` inserted points, metres.
-            behind: ``bool (N,)`` frame points whose removal is to be decided, or a function
-                that, given the inserted points to remove (``bool (K,)``), returns them.
-            method: as in :func:`hidden_by_insertion`.
+            method: as in :func:`hidden_point_removal` (``"auto"`` or ``"local"``).
             workers: threads (``None``: up to two of the CPUs this process may use).
             pool: a running pool whose thread may take part (else one is started for the call
                 when ``workers > 1`` and the work is large enough).
-
-        Returns:
-            ``bool (N,)`` frame points and ``bool (K,)`` inserted points to remove.
         """
         n = self.size
         cleared = _check_query(cleared, n)
         xyz = _check_points(inserted)
         workers = _check_workers(workers)
         k = len(xyz)
-        removed, removed_inserted = np.zeros(n, dtype=bool), np.zeros(k, dtype=bool)
         rel = xyz - self.center
-        ranges = _norms(rel)
-        if not np.isfinite(ranges).all():
-            row = int(np.flatnonzero(~np.isfinite(ranges))[0])
-            raise DataError(f"inserted points: row {row} is too far from the viewpoint for float64")
-        r_min = min(self._r_min, float(ranges.min(initial=np.inf)))
-        r_max = max(self._r_max, float(ranges.max(initial=0.0)))
-        if k and not self._local_applies(n - int(cleared.sum()) + k, r_min, r_max, method):
-            return None
+        ranges = self._inserted_ranges(xyz)
+        r_min, r_max = self._bounds(ranges)
+        if not self._local_applies(n - int(cleared.sum()) + k, r_min, r_max, method):
+            raise ValueError("the per-point test does not apply to this set (see applies)")
+        removed_inserted = np.zeros(k, dtype=bool)
         positions = self._add(rel, ranges)
         absent = np.zeros(n + k, dtype=bool)
         absent[:n] = cleared[self._order]
@@ -236,23 +239,38 @@ class FrameGrid:
             removed_inserted[undecided] = self._undecided(
                 nothing, nothing, undecided, cleared, xyz
             )[1]
-        if callable(behind):
-            behind = behind(removed_inserted)
-        behind = _check_query(behind, n) & ~cleared
-        if not behind.any():
-            return removed, removed_inserted
-        if not k and not self._local_applies(n - int(cleared.sum()), r_min, r_max, method):
-            return None
-        queries = np.flatnonzero(behind[self._order])
-        verdicts = decide(queries)
-        frame_rows = self._order[queries]
-        removed[frame_rows] = verdicts == _VERDICT_REMOVE
-        pending = verdicts >= _VERDICT_UNDECIDED_WITHOUT
-        if pending.any():
-            removed[frame_rows[pending]] = self._undecided(
-                verdicts[pending], frame_rows[pending], np.zeros(0, np.int64), cleared, xyz
-            )[0]
-        return removed, removed_inserted
+        return GridInsertion(self, cleared, xyz, removed_inserted, decide)
+
+    def _inserted_ranges(self, inserted: np.ndarray) -> np.ndarray:
+        """Distances ``(K,)`` of the inserted points from the viewpoint (metres), checked."""
+        ranges = _norms(_check_points(inserted) - self.center)
+        if not np.isfinite(ranges).all():
+            row = int(np.flatnonzero(~np.isfinite(ranges))[0])
+            raise DataError(f"inserted points: row {row} is too far from the viewpoint for float64")
+        return ranges
+
+    def _bounds(self, ranges: np.ndarray) -> tuple[float, float]:
+        """The least and greatest range of the frame's points and ``ranges`` (metres)."""
+        r_min = min(self._r_min, float(ranges.min(initial=np.inf)))
+        return r_min, max(self._r_max, float(ranges.max(initial=0.0)))
+
+    def groups_apply(self, samples: np.ndarray) -> bool:
+        """Whether :meth:`hidden_groups` decides ``samples`` ``(S, 3)`` (metres) against this
+        frame: the per-point test applies to the frame with them (``R`` above every range, no
+        point at the viewpoint), or there is nothing to decide (no samples, no frame point).
+        Where it does not, the caller decides (DR.CPO: no group hidden)."""
+        xyz = _check_points(samples)
+        if not len(xyz) or not self.size:
+            return True
+        return self._samples_apply(_norms(xyz - self.center))
+
+    def _samples_apply(self, ranges: np.ndarray) -> bool:
+        """:meth:`groups_apply` for samples at distances ``ranges`` ``(S,)`` (metres, S > 0)."""
+        if not np.isfinite(ranges).all():
+            return False
+        r_min = min(self._r_min, float(ranges.min()))
+        r_max = max(self._r_max, float(ranges.max()))
+        return self._local_applies(self.size, r_min, r_max, "local")
 
     def hidden_groups(
         self,
@@ -261,14 +279,14 @@ class FrameGrid:
         cleared: np.ndarray,
         share: float,
         pool: ThreadPoolExecutor | None = None,
-    ) -> np.ndarray | None:
+    ) -> np.ndarray:
         """Which groups of ``samples`` are at least ``share`` hidden among the frame's points
         without the ``cleared`` ones (each sample decided exactly, as a point added to them
-        alone); ``None`` when the per-point test does not apply (``R`` not above the ranges,
-        points at the viewpoint). A group is decided as soon as its count allows: samples the
-        plane normal to their ray shows visible first, the others then one by one. Samples the
-        test gives up on (its budget of full scans per group spent) count as visible. ``pool``
-        may lend a thread (the answer does not depend on it).
+        alone); only where :meth:`groups_apply` (else ``ValueError``). A group is decided as
+        soon as its count allows: samples the plane normal to their ray shows visible first,
+        the others then one by one. Samples the test gives up on (its budget of full scans per
+        group spent) count as visible. ``pool`` may lend a thread (the answer does not depend
+        on it).
 
         Args:
             samples: ``(S, 3)`` points, metres.
@@ -294,10 +312,11 @@ class FrameGrid:
             return hidden
         rel = xyz - self.center
         ranges = _norms(rel)
+        if not self._samples_apply(ranges):
+            raise ValueError(
+                "the per-point test does not apply to these samples (see groups_apply)"
+            )
         r_min = min(self._r_min, float(ranges.min()))
-        r_max = max(self._r_max, float(ranges.max()))
-        if not (np.isfinite(ranges).all() and self._local_applies(n, r_min, r_max, "local")):
-            return None
         order = self._add(rel, ranges)
         position = np.empty(len(xyz), dtype=np.int64)
         position[order] = n + np.arange(len(xyz))
@@ -442,3 +461,52 @@ class FrameGrid:
             removed_frame[with_objects] = ~visible[row_of[frame_rows[with_objects]]]
             removed_inserted = ~visible[len(originals) + inserted_rows]
         return removed_frame, removed_inserted
+
+
+class GridInsertion:
+    """The state of e-HPR's inserted scope on a :class:`FrameGrid` after step 1
+    (:meth:`FrameGrid.insert`): the inserted points decided, the frame points not yet.
+
+    Attributes:
+        removed_inserted: ``bool (K,)`` inserted points to remove (hidden).
+        cleared: ``bool (N,)`` the frame points taken out.
+    """
+
+    def __init__(
+        self,
+        grid: FrameGrid,
+        cleared: np.ndarray,
+        inserted: np.ndarray,
+        removed_inserted: np.ndarray,
+        decide: Callable[[np.ndarray], np.ndarray],
+    ) -> None:
+        self._grid = grid
+        self.cleared = cleared
+        self._inserted = inserted
+        self.removed_inserted = removed_inserted
+        self._decide = decide
+
+    def hidden_behind(self, behind: np.ndarray) -> np.ndarray:
+        """Step 2: ``bool (N,)`` frame points of ``behind`` (``bool (N,)``; cleared ones are
+        ignored) to remove: hidden with the inserted points, visible without them. Valid
+        until the grid's next :meth:`FrameGrid.insert`."""
+        grid = self._grid
+        n = grid.size
+        removed = np.zeros(n, dtype=bool)
+        behind = _check_query(behind, n) & ~self.cleared
+        if not behind.any():
+            return removed
+        queries = np.flatnonzero(behind[grid._order])
+        verdicts = self._decide(queries)
+        frame_rows = grid._order[queries]
+        removed[frame_rows] = verdicts == _VERDICT_REMOVE
+        pending = verdicts >= _VERDICT_UNDECIDED_WITHOUT
+        if pending.any():
+            removed[frame_rows[pending]] = grid._undecided(
+                verdicts[pending],
+                frame_rows[pending],
+                np.zeros(0, np.int64),
+                self.cleared,
+                self._inserted,
+            )[0]
+        return removed

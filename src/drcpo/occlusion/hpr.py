@@ -65,7 +65,8 @@ Defined behaviour on awkward input (every method):
   is below half the largest range, to Qhull's joggled mode ``"QJ"`` and finally to "all
   visible" with a :class:`RuntimeWarning`).
 
-The paper's uses of it (s-HPR, e-HPR) are in :mod:`drcpo.occlusion.scopes`. This module
+The paper's uses of it are in :mod:`drcpo.occlusion.scopes` (s-HPR) and
+:mod:`drcpo.occlusion.external` (e-HPR). This module
 imports the checks, flip, local and hull modules of :mod:`drcpo.occlusion`.
 """
 

@@ -20,7 +20,7 @@ from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
-from drcpo.occlusion.view_windows import box_windows, grown_boxes, in_windows, window_spans
+from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.insertion import (
@@ -361,27 +361,28 @@ class DRCPO(Transform):
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        last: list[tuple[int, np.ndarray, np.ndarray]] = []  # the occlusion test's last call
-
-        def occluded(boxes: np.ndarray, before: np.ndarray) -> np.ndarray:
-            everything = np.concatenate([before, boxes])
-            owners = self._room_owners(frame, everything)
-            hidden = self._occluded(frame, boxes, everything, owners, frame_grid, limit, pool)
-            last[:] = [(len(before), owners, hidden)]
-            return hidden
-
-        # No ground given: place_objects estimates it from the frame's points. (Estimating it
-        # on a second thread meanwhile measured slower on the shared cores.)
-        result = placement.place_objects(
-            frame, dims, source, rng, self._placement[fov], occluded=occluded if check else None
-        )
+        # No ground given: placement estimates it from the frame's points. (Estimating it on
+        # a second thread meanwhile measured slower on the shared cores.)
+        rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov])
+        last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
+        while (drawn := rounds.next_round()) is not None:
+            hidden = None
+            if check and len(drawn.boxes):
+                everything = np.concatenate([drawn.placed, drawn.boxes])
+                owners = self._room_owners(frame, everything)
+                hidden = self._occluded(
+                    frame, drawn.boxes, everything, owners, frame_grid, limit, pool
+                )
+                last = (len(drawn.placed), owners, hidden)
+            rounds.settle(hidden)
+        result = rounds.result()
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
         boxes, accepted = result.boxes, result.accepted
-        if not last or not len(boxes):
+        if last is None or not len(boxes):
             return boxes, accepted, None
-        before, owners, hidden = last[0]
+        before, owners, hidden = last
         if before or len(boxes) != int((~hidden).sum()):  # placed over several tries
             return boxes, accepted, self._room_owners(frame, boxes)
         renumber = np.full(len(hidden) + 1, -1, dtype=np.int64)  # (index -1: no room)
@@ -408,14 +409,17 @@ class DRCPO(Transform):
         (``owners``, see :meth:`_room_owners`) make way for them and hide nothing. Mode
         ``hpr``: surface samples decided exactly by HPR among the frame's points
         (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden where that test
-        does not apply); ``range_image``: a z-buffer at the sensor's resolution
-        (:class:`~drcpo.occlusion.zbuffer.OcclusionMap`)."""
+        does not apply, see :meth:`~drcpo.occlusion.FrameGrid.groups_apply`); ``range_image``:
+        a z-buffer at the sensor's resolution (:class:`~drcpo.occlusion.zbuffer.OcclusionMap`).
+        """
         _, viewpoint = self.e_hpr_setting()
         if frame_grid is not None:
             samples, offsets = surface_samples(boxes, viewpoint)
+            grid = frame_grid()
+            if not grid.groups_apply(samples):
+                return np.zeros(len(boxes), dtype=bool)
             helper = pool if spare_core() else None
-            hidden = frame_grid().hidden_groups(samples, offsets, owners >= 0, limit, helper)
-            return hidden if hidden is not None else np.zeros(len(boxes), dtype=bool)
+            return grid.hidden_groups(samples, offsets, owners >= 0, limit, helper)
         z_buffer = OcclusionMap(frame.points, viewpoint)
         return z_buffer.occluded(boxes, cleared=everything) >= limit
 
@@ -427,8 +431,8 @@ class DRCPO(Transform):
         on_chunk: Callable[[int, list[Any]], None] | None = None,
     ) -> list[Any]:
         """Constructed objects; with ``on_chunk``, built :data:`_CHUNK` at a time and handed to
-        it as they come (see :func:`~drcpo.construction.construct_objects`)."""
-        objects = construction.construct_objects(
+        it as they come (see :func:`~drcpo.construction.construct_chunks`)."""
+        chunks = construction.construct_chunks(
             self.database,
             rows,
             self.index.candidates[rows],
@@ -436,8 +440,12 @@ class DRCPO(Transform):
             self.config.construction,
             self.index.max_counts,
             chunk=_CHUNK if on_chunk is not None else None,
-            on_chunk=on_chunk,
         )
+        objects: list[Any] = []
+        for first, built in chunks:
+            objects += built
+            if on_chunk is not None:
+                on_chunk(first, built)
         for name, built in zip(self.database.names[rows], objects, strict=True):
             stats.construction(str(name), built.iterations)
         return objects
@@ -525,73 +533,48 @@ class DRCPO(Transform):
         """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
         and the insertions left with too few points in their box, ``bool (len(insertions),)``.
 
-        Scope ``frame``: every hidden point goes. Scope ``inserted``: the inserted points are
-        decided first, each exactly against the whole frame, and hidden ones go; then, for the
-        original points behind the boxes of the objects that keep enough points, in their view
-        windows (the directions they cover), those hidden with the objects but visible without
-        them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
-        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again; ``pool``
-        may lend a thread; ``placed``: see :meth:`_placed_task`.
+        e-HPR itself is :mod:`drcpo.occlusion.external`'s; this applies the label rule. Scope
+        ``frame``: every hidden point goes (:func:`~drcpo.occlusion.external_occlusion`).
+        Scope ``inserted`` (:func:`~drcpo.occlusion.inserted_scope`): the inserted points are
+        decided first, each exactly against the whole frame, and hidden ones go; then, for
+        the original points behind the boxes of the objects that keep enough points, in their
+        view windows (the directions they cover), those hidden with the objects but visible
+        without them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
+        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again;
+        ``pool`` may lend a thread; ``placed``: see :meth:`_placed_task`.
         """
         settings = self.config.external_occlusion
-        inserted = owner >= 0
         keep = np.ones(len(points), dtype=bool)
+        radius, viewpoint = self.e_hpr_setting()
         if settings.enabled and len(points) and settings.scope == "frame":
-            keep = self._visible(points)
+            keep = occlusion.external_occlusion(
+                points, settings.preset, mode=settings.mode, radius=radius, viewpoint_z=viewpoint[2]
+            )
         if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
             return keep, self._dropped(points, owner, insertions, keep)
-        _, viewpoint = self.e_hpr_setting()
-        first = int(np.count_nonzero(~inserted))  # the original points come first
+        first = int(np.count_nonzero(owner < 0))  # the original points come first
+        scope = occlusion.inserted_scope(
+            points,
+            owner >= 0,
+            viewpoint,
+            radius,
+            mode=settings.mode,
+            grid=grid if cleared_by is not None else None,
+            cleared=None if cleared_by is None else cleared_by >= 0,
+            pool=pool,
+        )
+        # The label rule on the inserted points left; the view windows of the objects kept.
+        dropped = self._dropped(points[first:], owner[first:], insertions, ~scope.removed_inserted)
+        kept = np.flatnonzero(~dropped)
         known = placed.windows_of(insertions) if placed is not None else None
-        found: dict[str, np.ndarray] = {}
-
-        def behind_kept(removed_inserted: np.ndarray, frame_points: np.ndarray) -> np.ndarray:
-            # ``frame_points``: in the grid's order and number, or the original points'.
-            found["dropped"] = dropped = self._dropped(
-                points[first:], owner[first:], insertions, ~removed_inserted
-            )
-            kept = np.flatnonzero(~dropped)
-            grown = grown_boxes([insertions[k].placed for k in kept])
-            windows = window_spans(
-                grown, viewpoint, True, None if known is None else [w[kept] for w in known]
-            )
-            if grid is not None and len(frame_points) == grid.size:
-                return grid.in_windows(windows) if windows is not None else frame_points.copy()
-            return in_windows(frame_points, windows, viewpoint)
-
-        if settings.mode == "hpr" and grid is not None and cleared_by is not None:
-            cleared = cleared_by >= 0
-            result = grid.hidden_by_insertion(
-                cleared,
-                points[first:],
-                lambda removed: behind_kept(removed, ~cleared),
-                pool=pool,
-            )
-            if result is not None:
-                keep = ~np.concatenate([result[0][~cleared], result[1]])
-                return keep, found["dropped"]
-        if settings.mode == "hpr":
-            radius, _ = self.e_hpr_setting()
-            removed = occlusion.hidden_by_insertion(
-                points,
-                inserted,
-                lambda gone: np.append(behind_kept(gone[first:], points[:first]), inserted[first:]),
-                viewpoint,
-                radius,
-            )
-            return ~removed, found["dropped"]
-        visible = self._visible(points)
-        keep[inserted & ~visible] = False
-        behind = behind_kept(~keep[first:], points[:first])
-        suspects = np.flatnonzero(behind & ~visible[:first])
-        if len(suspects):
-            wanted = np.zeros(first, dtype=bool)
-            wanted[suspects] = True
-            # Only points visible without the inserted objects go; those hidden even without
-            # them stay: HPR's own errors must not delete real points.
-            before = self._visible(points[:first], query=wanted)
-            keep[:first][wanted & before] = False
-        return keep, found["dropped"]
+        windows = window_spans(
+            grown_boxes([insertions[k].placed for k in kept]),
+            viewpoint,
+            True,
+            None if known is None else [w[kept] for w in known],
+        )
+        removed = np.concatenate([scope.removed_behind(windows), scope.removed_inserted])
+        return ~removed, dropped
 
     def _dropped(
         self,
@@ -612,14 +595,6 @@ class DRCPO(Transform):
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
         setting = self.config.external_occlusion.setting
         return float(setting.radius), np.array([0.0, 0.0, float(setting.viewpoint_z)])
-
-    def _visible(self, points: np.ndarray, query: np.ndarray | None = None) -> np.ndarray:
-        """``bool (N,)`` visibility from the e-HPR viewpoint (``True`` outside ``query``)."""
-        radius, viewpoint = self.e_hpr_setting()
-        if self.config.external_occlusion.mode == "range_image":
-            visible = occlusion.range_image_occlusion(points, viewpoint)
-            return visible if query is None else visible | ~query
-        return occlusion.hidden_point_removal(points, viewpoint, radius, query=query)
 
     def _settle(
         self,

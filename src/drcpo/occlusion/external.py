@@ -1,0 +1,385 @@
+"""e-HPR, the paper's external occlusion of a frame after insertion, in its two scopes and two
+modes; DR.CPO (:class:`drcpo.transforms.drcpo.DRCPO`) calls these and applies its label rule.
+
+* Scope ``frame`` (the paper): :func:`external_occlusion` removes every hidden point.
+* Scope ``inserted``: :func:`inserted_scope` in two steps that return data. Step 1 decides
+  the inserted points (:attr:`InsertedScope.removed_inserted`); the caller then works out
+  which objects it drops (too few points left) and the view windows of the others
+  (:mod:`drcpo.occlusion.view_windows`); step 2, :meth:`InsertedScope.removed_behind`,
+  decides the original points in those windows: those hidden with the objects but visible
+  without them go. :func:`hidden_by_insertion` is both steps for a fixed set of points.
+* Mode ``hpr`` (the paper's HPR) or ``range_image`` (a z-buffer, not the paper's method).
+
+Two focus mechanisms, on purpose: :func:`azimuth_focus` (``external_occlusion(focus=...)``)
+selects the azimuth bins around given points, for a caller that knows only which points
+matter; the view windows select the azimuth, elevation and distance that given boxes cover,
+for the inserted scope, which knows the objects' boxes. Neither can stand in for the other
+without changing what is decided (the windows are tighter, the bins need no boxes).
+
+Imports the other :mod:`drcpo.occlusion` modules, never anything above.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from drcpo.errors import ConfigError
+from drcpo.occlusion.checks import (
+    _check_points,
+    _check_query,
+    _check_radius,
+    _check_viewpoint,
+    _check_workers,
+)
+from drcpo.occlusion.flip import _Setup
+from drcpo.occlusion.frame_grid import FrameGrid, GridInsertion
+from drcpo.occlusion.hpr import HPR_METHODS, _crowded, _resolve_method, hidden_point_removal
+from drcpo.occlusion.local import _local_grid
+from drcpo.occlusion.presets import HPR_PRESETS
+from drcpo.occlusion.view_windows import in_windows
+from drcpo.occlusion.zbuffer import range_image_occlusion
+
+__all__ = [
+    "EHPR_MODES",
+    "InsertedScope",
+    "azimuth_focus",
+    "external_occlusion",
+    "hidden_by_insertion",
+    "inserted_scope",
+]
+
+EHPR_MODES = ("hpr", "range_image")
+
+
+def external_occlusion(
+    points: np.ndarray,
+    preset: str = "pv_rcnn_plusplus",
+    *,
+    mode: str = "hpr",
+    radius: float | None = None,
+    viewpoint_z: float | None = None,
+    focus: np.ndarray | None = None,
+    focus_margin: float = float(np.deg2rad(2.0)),
+    method: str = "auto",
+    workers: int | None = None,
+    range_image: dict | None = None,
+) -> np.ndarray:
+    """e-HPR, scope ``frame``: the paper's external occlusion of a whole frame (after
+    insertion), from the viewpoint ``(0, 0, z)``.
+
+    Args:
+        points: ``(N, 3 + C)`` the frame's points (metres).
+        preset: detector whose ``(R, z)`` is used, a key of :data:`HPR_PRESETS`.
+        mode: ``"hpr"`` (the paper) or ``"range_image"`` (:func:`range_image_occlusion`, not the
+            paper's method).
+        radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
+        focus: optional ``bool (N,)`` mask (or indices) of the points that matter, e.g. inserted
+            ones. Only points in the azimuth directions of the focus points (see
+            :func:`azimuth_focus`, ``focus_margin`` radians) are decided, exactly, against the
+            whole frame; all others are reported visible.
+        focus_margin: radians added on both sides of the focus points' azimuths.
+        method, workers: as in :func:`hidden_point_removal`.
+        range_image: keyword arguments for :func:`range_image_occlusion` in that mode.
+
+    Returns:
+        ``bool (N,)``: points kept (visible).
+    """
+    if preset not in HPR_PRESETS:
+        raise ConfigError(f"unknown HPR preset {preset!r}; choose one of {', '.join(HPR_PRESETS)}")
+    setting = HPR_PRESETS[preset]
+    xyz = _check_points(points)
+    query = None if focus is None else azimuth_focus(xyz, focus, focus_margin)
+    height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
+    if mode == "range_image":
+        visible = range_image_occlusion(xyz, (0.0, 0.0, height), **(range_image or {}))
+        return visible if query is None else visible | ~query
+    if mode != "hpr":
+        raise ConfigError(f"external occlusion mode must be 'hpr' or 'range_image', got {mode!r}")
+    r = setting.radius if radius is None else radius
+    return hidden_point_removal(
+        xyz, (0.0, 0.0, height), r, method=method, query=query, workers=workers
+    )
+
+
+class InsertedScope(ABC):
+    """e-HPR's ``inserted`` scope after step 1 (see :func:`inserted_scope`; one subclass per
+    path, which it picks).
+
+    Attributes:
+        removed_inserted: ``bool (K,)`` inserted points to remove (hidden), in their order.
+    """
+
+    removed_inserted: np.ndarray
+
+    def removed_behind(self, windows: np.ndarray | None) -> np.ndarray:
+        """Step 2: ``bool (M,)`` original points (in their order) to remove among those in
+        ``windows`` (``(W, 5)`` rows of
+        :func:`~drcpo.occlusion.view_windows.window_spans`; ``None``: every direction):
+        hidden with the inserted points and visible without them."""
+        return self.removed_of(self.in_windows(windows))
+
+    @abstractmethod
+    def in_windows(self, windows: np.ndarray | None) -> np.ndarray:
+        """``bool (M,)``: original points in ``windows`` (as :meth:`removed_behind`)."""
+
+    @abstractmethod
+    def removed_of(self, behind: np.ndarray) -> np.ndarray:
+        """Step 2 for a given set: ``bool (M,)`` original points of ``behind`` (``bool (M,)``)
+        to remove."""
+
+
+class _GridScope(InsertedScope):
+    """Both steps on a :class:`FrameGrid` of the frame (the original points are its points
+    without the cleared ones)."""
+
+    def __init__(self, grid: FrameGrid, step: GridInsertion) -> None:
+        self._grid, self._step = grid, step
+        self.removed_inserted = step.removed_inserted
+
+    def in_windows(self, windows: np.ndarray | None) -> np.ndarray:
+        kept = ~self._step.cleared
+        if windows is None:
+            return np.ones(int(kept.sum()), dtype=bool)
+        return self._grid.in_windows(windows)[kept]
+
+    def removed_of(self, behind: np.ndarray) -> np.ndarray:
+        kept = ~self._step.cleared
+        frame = np.zeros(len(kept), dtype=bool)
+        frame[kept] = behind
+        return self._step.hidden_behind(frame)[kept]
+
+
+class _PointsScope(InsertedScope):
+    """Both steps on the points themselves: HPR's plain passes or the range image.
+
+    ``visible`` (``bool (N,)``, mode ``range_image``) holds every point's verdict among all
+    points; with HPR (``None``), step 2 asks for the original points' verdicts then."""
+
+    def __init__(
+        self,
+        xyz: np.ndarray,
+        inserted: np.ndarray,
+        viewpoint: np.ndarray,
+        radius: float,
+        mode: str,
+        method: str = "auto",
+        workers: int | None = None,
+    ) -> None:
+        self._xyz, self._inserted, self._viewpoint = xyz, inserted, viewpoint
+        self._radius, self._mode, self._method, self._workers = radius, mode, method, workers
+        self._original = np.flatnonzero(~inserted)
+        self._visible = None
+        if mode == "range_image":
+            self._visible = range_image_occlusion(xyz, viewpoint)
+            self.removed_inserted = ~self._visible[inserted]
+        else:
+            self.removed_inserted = self._hidden(inserted)[inserted]
+
+    def _hidden(self, query: np.ndarray) -> np.ndarray:
+        """``bool (N,)``: points of ``query`` hidden among all points."""
+        if self._visible is not None:
+            return query & ~self._visible
+        if not query.any():
+            return np.zeros(len(query), dtype=bool)
+        return query & ~hidden_point_removal(
+            self._xyz,
+            self._viewpoint,
+            self._radius,
+            method=self._method,
+            query=query,
+            workers=self._workers,
+        )
+
+    def in_windows(self, windows: np.ndarray | None) -> np.ndarray:
+        return in_windows(self._xyz[self._original], windows, self._viewpoint)
+
+    def removed_of(self, behind: np.ndarray) -> np.ndarray:
+        query = np.zeros(len(self._xyz), dtype=bool)
+        query[self._original] = behind
+        suspects = self._hidden(query)
+        if suspects.any():
+            # Original points hidden even without the inserted objects stay: HPR's own
+            # verdicts on the original frame never delete a point.
+            suspects[self._original] &= self.visible_without(suspects[self._original])
+        return suspects[self._original]
+
+    def visible_without(self, wanted: np.ndarray) -> np.ndarray:
+        """``bool (M,)``: original points visible among the original points alone (``True``
+        outside ``wanted``, ``bool (M,)``)."""
+        originals = self._xyz[self._original]
+        if self._mode == "range_image":
+            return range_image_occlusion(originals, self._viewpoint) | ~wanted
+        return hidden_point_removal(
+            originals,
+            self._viewpoint,
+            self._radius,
+            method=self._method,
+            query=wanted,
+            workers=self._workers,
+        )
+
+
+class _Nothing(InsertedScope):
+    """No point takes part (all at the viewpoint): nothing is removed."""
+
+    def __init__(self, inserted: np.ndarray) -> None:
+        self._originals = int((~inserted).sum())
+        self.removed_inserted = np.zeros(int(inserted.sum()), dtype=bool)
+
+    def in_windows(self, windows: np.ndarray | None) -> np.ndarray:
+        return np.zeros(self._originals, dtype=bool)
+
+    def removed_of(self, behind: np.ndarray) -> np.ndarray:
+        return np.zeros(self._originals, dtype=bool)
+
+
+def inserted_scope(
+    points: np.ndarray,
+    inserted: np.ndarray,
+    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    radius: float = 100000.0,
+    *,
+    mode: str = "hpr",
+    grid: FrameGrid | None = None,
+    cleared: np.ndarray | None = None,
+    method: str = "auto",
+    workers: int | None = None,
+    pool: ThreadPoolExecutor | None = None,
+) -> InsertedScope:
+    """Step 1 of e-HPR's ``inserted`` scope: decide the inserted points; the returned
+    object's :meth:`~InsertedScope.removed_behind` is step 2.
+
+    The path is chosen here: with ``mode="hpr"``, a ``grid`` of the frame (points sorted
+    once, see :class:`FrameGrid`) where :meth:`FrameGrid.applies`; else, as
+    :func:`hidden_point_removal` would, the per-point test on a grid built for the call or
+    HPR's plain passes. Each point's verdict is exact against all points whichever path.
+
+    Args:
+        points: ``(N, 3 + C)`` the frame after insertion (metres).
+        inserted: ``bool (N,)`` the inserted points.
+        viewpoint: ``(3,)`` metres; radius: HPR's ``R`` (metres, unused by ``range_image``).
+        mode: one of :data:`EHPR_MODES`.
+        grid: the :class:`FrameGrid` of the frame before insertion, with ``cleared``
+            (``bool (grid.size,)``): the frame points taken out. ``points[~inserted]`` must
+            be the grid's points without them, in order.
+        method, workers: as in :func:`hidden_point_removal`; pool: a running pool whose thread
+            may take part.
+    """
+    xyz = _check_points(points)
+    center = _check_viewpoint(viewpoint)
+    radius = _check_radius(radius)
+    if method not in HPR_METHODS:
+        raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
+    if mode not in EHPR_MODES:
+        raise ConfigError(f"e-HPR mode must be one of {', '.join(EHPR_MODES)}, got {mode!r}")
+    inserted = _check_query(inserted, len(xyz))
+    if mode == "range_image":
+        return _PointsScope(xyz, inserted, center, radius, mode)
+    if grid is not None:
+        if cleared is None:
+            raise ValueError("inserted_scope: a grid needs cleared (the frame points taken out)")
+        if grid.applies(cleared, xyz[inserted], method):
+            step = grid.insert(cleared, xyz[inserted], method=method, workers=workers, pool=pool)
+            return _GridScope(grid, step)
+    workers = _check_workers(workers)
+    setup = _Setup.build(xyz, center, radius)
+    if setup.size == 0:
+        return _Nothing(inserted)
+    chosen = _resolve_method(method, setup)
+    if chosen == "local" and not (method == "auto" and _crowded(_local_grid(setup).starts, setup)):
+        original = np.flatnonzero(~inserted)
+        own = FrameGrid.build(xyz[original], center, radius, spare=len(xyz) - len(original))
+        none_cleared = np.zeros(len(original), dtype=bool)
+        if own.applies(none_cleared, xyz[inserted], "local"):
+            step = own.insert(none_cleared, xyz[inserted], method="local", workers=workers)
+            return _GridScope(own, step)
+    return _PointsScope(xyz, inserted, center, radius, mode, method, workers)
+
+
+def hidden_by_insertion(
+    points: np.ndarray,
+    inserted: np.ndarray,
+    behind: np.ndarray,
+    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    radius: float = 100000.0,
+    *,
+    method: str = "auto",
+    workers: int | None = None,
+) -> np.ndarray:
+    """Points that inserted objects remove from a frame (e-HPR's ``inserted`` scope, both
+    steps of :func:`inserted_scope` for a fixed ``behind``).
+
+    An inserted point goes when it is hidden; a point of ``behind`` (original points that the
+    inserted objects may occlude) goes when it is hidden in the whole set but visible once the
+    inserted points are taken out, so HPR's own verdicts on the original frame never delete a
+    point. The same as :func:`hidden_point_removal` with ``query=inserted | behind``, then on
+    ``points[~inserted]`` for the hidden points of ``behind``.
+
+    Args:
+        points: ``(N, 3 + C)`` the frame after insertion (metres).
+        inserted: ``bool (N,)`` the inserted points.
+        behind: ``bool (N,)`` original points whose removal is to be decided (points of
+            ``inserted`` are ignored here).
+        viewpoint, radius, method, workers: as in :func:`hidden_point_removal`.
+
+    Returns:
+        ``bool (N,)``: points to remove.
+    """
+    xyz = _check_points(points)
+    _check_viewpoint(viewpoint), _check_radius(radius), _check_workers(workers)
+    if method not in HPR_METHODS:
+        raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
+    n = len(xyz)
+    inserted = _check_query(inserted, n)
+    behind = _check_query(behind, n) & ~inserted
+    removed = np.zeros(n, dtype=bool)
+    if not (inserted | behind).any():
+        return removed
+    scope = inserted_scope(xyz, inserted, viewpoint, radius, method=method, workers=workers)
+    removed[inserted] = scope.removed_inserted
+    removed[~inserted] = scope.removed_of(behind[~inserted])
+    return removed
+
+
+def azimuth_focus(
+    points: np.ndarray,
+    focus: np.ndarray,
+    margin: float = float(np.deg2rad(2.0)),
+    *,
+    bin_width: float = float(np.deg2rad(0.5)),
+) -> np.ndarray:
+    """``bool (N,)``: points in the azimuth directions (about the z axis) of the focus points.
+
+    Azimuth is cut into bins of ``bin_width`` radians; a point is selected when its bin lies
+    within ``margin`` radians (rounded up to whole bins) of a bin holding a focus point. Focus
+    points themselves are always selected.
+
+    Args:
+        points: ``(N, 3 + C)`` points, metres.
+        focus: ``bool (N,)`` mask or integer indices of the focus points.
+        margin: radians of context on both sides.
+        bin_width: radians per azimuth bin.
+    """
+    xyz = _check_points(points)
+    chosen = _check_query(focus, len(xyz))
+    if not chosen.any():
+        return chosen
+    if not (math.isfinite(margin) and margin >= 0 and math.isfinite(bin_width) and bin_width > 0):
+        raise ConfigError(f"margin must be >= 0 and bin_width > 0, got {margin}, {bin_width}")
+    bins = max(1, math.ceil(2 * math.pi / bin_width))
+    azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+    index = np.floor((azimuth + np.pi) * (bins / (2 * np.pi))).astype(np.int64) % bins
+    hit = np.zeros(bins, dtype=bool)
+    hit[index[chosen]] = True
+    reach = math.ceil(margin * bins / (2 * math.pi))
+    if 2 * reach + 1 >= bins:
+        return np.ones(len(xyz), dtype=bool)
+    grown = hit.copy()
+    for shift in range(1, reach + 1):
+        grown |= np.roll(hit, shift) | np.roll(hit, -shift)
+    return grown[index] | chosen
