@@ -88,9 +88,8 @@ class DRCPO(Transform):
        1.0: all) of a 5 x 4 grid of samples on each of its sensor-facing faces behind the
        frame's points, each sample decided exactly as a point added to them (with the
        ``range_image`` mode: a z-buffer at the sensor's resolution). e-HPR would almost
-       always leave such an object too few points: on the KITTI sample and synthetic frames,
-       3 of 1,676 objects e-HPR kept were that hidden, against 4,182 of 4,673 it dropped (a
-       z-buffer test at 95 % caught 2,655 of them). So it is not built and hides nothing.
+       always leave such an object too few points (the counts: ``docs/measurements.md``), so
+       it is not built and hides nothing.
        Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
        ``whole`` mode the box grows during construction, so objects are constructed first
        and placed with their final size.

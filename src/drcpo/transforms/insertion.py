@@ -17,8 +17,8 @@ from drcpo.errors import DataError
 
 
 def take_rows(array: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``array[mask]`` for a boolean row mask, through ``take`` (several times faster for
-    point arrays than boolean indexing; the same rows in the same order)."""
+    """``array[mask]`` for a boolean row mask, through ``take`` (faster for point arrays
+    than boolean indexing; the same rows in the same order)."""
     return array.take(np.flatnonzero(mask), axis=0)
 
 
