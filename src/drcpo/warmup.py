@@ -15,6 +15,8 @@ import numpy as np
 
 from drcpo.frame import Frame
 
+__all__ = ["warmup", "warmup_frame"]
+
 #: Height of the warm-up frame's flat ground below the sensor (metres; KITTI's is about 1.7).
 _GROUND_Z = -1.7
 

@@ -32,6 +32,27 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 
+__all__ = [
+    "DEFAULT_IMAGE_SHAPE",
+    "DONT_CARE",
+    "FRAME_ID",
+    "Calibration",
+    "KittiDataset",
+    "KittiLabels",
+    "camera_boxes_to_lidar",
+    "check_frame_id",
+    "fov_mask",
+    "kitti_difficulty",
+    "lidar_boxes_to_camera",
+    "read_calib",
+    "read_image_shape",
+    "read_labels",
+    "read_plane",
+    "read_points",
+    "read_split",
+    "split_directory",
+]
+
 DEFAULT_IMAGE_SHAPE = (375, 1242)
 """``(height, width)`` in pixels of most KITTI images; used when a frame's image is absent."""
 #: Rows per matrix product: below the size at which OpenBLAS starts its worker threads, which

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+__all__: list[str] = []  # internal to drcpo.occlusion, whose __init__ has the API
+
 
 def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
     """``kernel`` over ``parts`` contiguous chunks of ``items``, on that many threads (the

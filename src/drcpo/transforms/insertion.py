@@ -15,6 +15,19 @@ from drcpo.config import per_class
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import DataError
 
+__all__ = [
+    "PER_BOX_METADATA",
+    "STALE_WHEN_BOXES_CHANGE",
+    "BoxQuery",
+    "match_features",
+    "placed_object",
+    "placed_objects",
+    "road_plane_heights",
+    "sampling_pools",
+    "take_rows",
+    "update_box_metadata",
+]
+
 
 def take_rows(array: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """``array[mask]`` for a boolean row mask, through ``take`` (faster for point arrays
