@@ -3,8 +3,8 @@ import pytest
 
 from drcpo.construction import (
     ConstructionConfig,
-    _gather,
-    _numpy_sum,
+    _gather,  # test seam: the numba gather kernel, against partition_index
+    _numpy_sum,  # test seam: numpy.mean's pairwise sum, checked bit for bit
     construct_chunks,
     construct_object,
     construct_objects,

@@ -9,6 +9,7 @@ from drcpo.ground import (
     KITTI_SENSOR_HEIGHT,
     GroundConfig,
     GroundModel,
+    # test seams: the numba kernels, each against a plain numpy/scipy reference
     _bin_lowest_points,
     _fill_heights,
     _ground_cells,

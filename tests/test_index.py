@@ -462,6 +462,7 @@ def test_candidate_table_too_large_for_memory_is_refused_before_allocating(monke
 
     db = random_database(np.random.default_rng(18), 300, classes=("Car", "Van"))
     largest = max(int((db.names == c).sum()) for c in ("Car", "Van"))
+    # test seam: the memory probe, so that the refusal is tested without a huge table
     monkeypatch.setattr(drcpo.index, "_memory_bytes", lambda: 1 << 20)  # a 1 MiB machine
     with pytest.raises(ConfigError) as info:
         build_index(db, IndexConfig(k=5000, min_points=0))

@@ -334,6 +334,7 @@ def test_fade_hook_restarts_persistent_workers_only_on_a_change(drcpo_db, infos)
     hook = DRCPOFadeHook(num_last_epochs=1)
     loader = _Loader(dataset, persistent_workers=True)
     hook.before_train_epoch(_runner(loader, 0, max_epochs=3))
+    # test seam: mmengine's loader (torch's DataLoader) holds persistent workers in _iterator
     assert loader._iterator is not None  # unseeded and still on: the workers are up to date
     hook.before_train_epoch(_runner(loader, 2, max_epochs=3))
     assert loader._iterator is None

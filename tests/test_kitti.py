@@ -335,7 +335,7 @@ def test_fov_mask_reproduces_openpcdet_num_points_in_gt(kitti_sample):
 def test_products_in_blocks_equal_one_product(rng):
     # Large point sets go through the calibration's products in blocks (so that BLAS keeps to
     # one thread); every row must come out as from one product.
-    from drcpo.datasets.kitti import _PRODUCT_ROWS, _product
+    from drcpo.datasets.kitti import _PRODUCT_ROWS, _product  # test seam: the blocks
 
     rows = (rng.normal(size=(2 * _PRODUCT_ROWS + 123, 4)) * 30).astype(np.float32)
     matrix = rng.normal(size=(4, 3)).astype(np.float32)

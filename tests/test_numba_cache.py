@@ -28,7 +28,7 @@ warnings.simplefilter("always")
 {prelude}
 import numpy as np
 import drcpo.{module}
-from drcpo.geometry import _rotate_rows
+from drcpo.geometry import _rotate_rows  # test seam: one small cached kernel
 
 out = np.zeros((2, 2))
 if {call}:

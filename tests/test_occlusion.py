@@ -115,7 +115,7 @@ def test_frame_fixture_through_external_occlusion_preset(hpr_fixtures):
 # ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("seed", range(6))
 def test_fast_paths_equal_reference_on_random_scenes(seed, monkeypatch):
-    # small sectors, so that scenes of a few thousand points are split into many
+    # test seam: small sectors, so that scenes of a few thousand points are split into many
     monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)
     rng = np.random.default_rng(seed)
     points = street_scene(rng, int(rng.integers(1500, 4000)), fov=[None, 0.8][seed % 2])
@@ -147,7 +147,7 @@ def test_local_equals_reference_on_random_clouds(seed, count, log_ratio):
 @pytest.mark.parametrize("seed", range(4))
 def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
     # integer lattices: duplicates, points on one ray, many coplanar quadruples
-    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 60)
+    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 60)  # test seam: many small sectors
     rng = np.random.default_rng(100 + seed)
     for trial in range(25):
         points = rng.integers(-6, 7, size=(int(rng.integers(4, 400)), 3)).astype(float)
@@ -164,7 +164,7 @@ def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
 
 @pytest.mark.parametrize("method", ALL_METHODS)
 def test_invariant_to_point_order(method, monkeypatch):
-    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)
+    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)  # test seam: many small sectors
     rng = np.random.default_rng(7)
     points = street_scene(rng, 3000)
     first = hidden_point_removal(points, (0, 0, 1.0), 3e5, method=method)
@@ -457,7 +457,7 @@ def test_range_image_beams_and_modes():
 
 
 def test_counting_sort_is_the_stable_argsort(rng):
-    from drcpo.occlusion.grid import _counting_sort
+    from drcpo.occlusion.grid import _counting_sort  # test seam: the numba sort
 
     for size, cells in ((0, 3), (1, 1), (500, 7), (5000, 900)):
         cell = rng.integers(0, cells, size)
@@ -467,7 +467,7 @@ def test_counting_sort_is_the_stable_argsort(rng):
 
 
 def test_distinct_without_duplicates_is_the_same_setup(rng):
-    from drcpo.occlusion.flip import _Setup
+    from drcpo.occlusion.flip import _Setup  # test seam: duplicate detection of the set-up
 
     xyz = rng.normal(size=(200, 3)) + 5.0
     setup = _Setup.build(xyz, np.zeros(3), 1000.0)
@@ -881,7 +881,7 @@ def _tiny_sphere(rng: np.random.Generator, count: int, radius: float = 0.1) -> n
 def _no_per_point_test(monkeypatch) -> None:
     """Fail if the per-point test runs on more than a few points (a degenerate hull's
     fallback may run it on the distinct points)."""
-    original = hpr._LocalState.visible
+    original = hpr._LocalState.visible  # test seam: which path "auto" takes
 
     def refuse(self, *args):
         if self.size > 100:
@@ -928,7 +928,7 @@ def test_auto_keeps_the_per_point_test_on_lidar_like_frames(rng, monkeypatch):
         ]
     )
     calls = []
-    original = hpr._LocalState.visible
+    original = hpr._LocalState.visible  # test seam: which path "auto" takes
     monkeypatch.setattr(
         hpr._LocalState,
         "visible",
@@ -942,7 +942,7 @@ def test_copies_under_a_radius_too_large_for_a_hull_are_decided_once_each(monkey
     # R / range above 1e7: no hull; the per-point test runs on the one distinct point.
     copies = np.tile(np.float32([[10.0, 2.0, -1.0]]), (5000, 1))
     sizes = []
-    original = hpr._local
+    original = hpr._local  # test seam: how many points the per-point test gets
     monkeypatch.setattr(
         hpr,
         "_local",

@@ -252,7 +252,7 @@ def test_concurrent_writer_processes_exactly_one_succeeds(tmp_path):
 
 @pytest.mark.parametrize("renameat2", [True, False], ids=["renameat2", "fallback"])
 def test_a_directory_appearing_meanwhile_is_not_replaced(tmp_path, monkeypatch, renameat2):
-    if not renameat2:
+    if not renameat2:  # test seam: a system without renameat2
         monkeypatch.setattr(outputs, "_renameat2", lambda: None)
     out = tmp_path / "out"
 
@@ -275,6 +275,7 @@ KILL_AT_RENAME = """
     from drcpo.database import GroundTruthDatabase, ObjectRecord
 
     mode = sys.argv[2]
+    # test seams: no renameat2, and a kill between the replace's steps
     if mode == "fallback":
         outputs._renameat2 = lambda: None
         renames = []
@@ -299,7 +300,7 @@ KILL_AT_RENAME = """
 
 @pytest.mark.parametrize("mode", ["exchange", "fallback"])
 def test_replace_killed_between_its_steps_keeps_a_complete_output(tmp_path, mode):
-    if mode == "exchange" and outputs._renameat2() is None:
+    if mode == "exchange" and outputs._renameat2() is None:  # test seam: the system probe
         pytest.skip("renameat2 is not available on this system")
     old = small_database(1, n=3)
     old.save(tmp_path / "db")
@@ -328,9 +329,9 @@ def test_replace_killed_between_its_steps_keeps_a_complete_output(tmp_path, mode
 @pytest.mark.parametrize("renameat2", [True, False], ids=["renameat2", "fallback"])
 def test_a_signal_during_the_replace_waits_for_it(tmp_path, monkeypatch, renameat2):
     write_directory(tmp_path / "out", fill("old"), KIND)
-    if not renameat2:
+    if not renameat2:  # test seam: a system without renameat2
         monkeypatch.setattr(outputs, "_renameat2", lambda: None)
-    real = outputs._commit
+    real = outputs._commit  # test seam: a signal just as the output is moved into place
 
     def commit(*args):
         signal.raise_signal(signal.SIGINT)  # Ctrl-C just as the output is moved into place
@@ -349,7 +350,7 @@ def test_a_signal_during_a_failed_replace_is_not_lost(tmp_path, monkeypatch):
         signal.raise_signal(signal.SIGINT)  # Ctrl-C, then the move itself fails
         raise OSError(errno.ENOSPC, "No space left on device", str(args[1]))
 
-    monkeypatch.setattr(outputs, "_commit", commit)
+    monkeypatch.setattr(outputs, "_commit", commit)  # test seam: the move fails
     with pytest.raises(KeyboardInterrupt):
         write_directory(tmp_path / "out", fill("new"), KIND)
     assert not (tmp_path / "out").exists()

@@ -27,6 +27,8 @@ from typer.core import TyperGroup
 from drcpo.errors import DrcpoError
 from drcpo.outputs import Interrupted
 
+__all__ = ["app", "main"]
+
 if TYPE_CHECKING:  # the evaluator loads its kernels: imported by its command only
     from drcpo.evaluation import KittiEvaluation
 

@@ -45,6 +45,16 @@ from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
 from drcpo.partitions import DEFAULT_MIRRORED, Grid, cell_of, flat_cell, grid_for
 
+__all__ = [
+    "MODES",
+    "ConstructedObject",
+    "ConstructionConfig",
+    "construct_chunks",
+    "construct_object",
+    "construct_objects",
+]
+
+
 MODES = ("partition", "whole")
 
 

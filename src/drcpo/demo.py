@@ -47,6 +47,8 @@ from drcpo.viz import (
     density_figure,
 )
 
+__all__ = ["DEFAULT_AUGMENTED", "DEFAULT_FRAMES", "DemoError", "inserted_mask", "run_demo"]
+
 DEFAULT_FRAMES = 16
 DEFAULT_AUGMENTED = 4
 MAX_CONSTRUCTION_PANELS = 8

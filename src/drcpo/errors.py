@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+__all__ = ["ConfigError", "DataError", "DrcpoError", "OutputError", "OutputExistsError", "shown"]
+
 
 class DrcpoError(Exception):
     """Base class of drcpo's errors about input data or configuration."""

@@ -20,6 +20,8 @@ import numpy as np
 
 from drcpo.errors import DataError
 
+__all__ = ["DICT_FIELDS", "FRAME_FIELDS", "MAX_COORDINATE", "Frame", "validate_frame"]
+
 
 @dataclass(frozen=True, eq=False)
 class Frame:

@@ -9,6 +9,28 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+__all__ = [
+    "TWO_PI",
+    "bev_corners",
+    "bev_iou",
+    "bev_overlap_area",
+    "box_corners",
+    "box_diagonal",
+    "box_holding",
+    "box_members",
+    "boxes_iou3d",
+    "canonical_iou3d",
+    "from_canonical",
+    "heading_terms",
+    "in_box",
+    "points_in_boxes",
+    "rotate_points_z",
+    "rotation_matrix_z",
+    "rows_in_box",
+    "to_canonical",
+    "wrap_angle",
+]
+
 TWO_PI = 2.0 * np.pi
 
 # Corner order of box_corners: bottom face counter-clockwise seen from above, starting at the

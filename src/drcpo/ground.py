@@ -36,6 +36,8 @@ import numpy as np
 
 from drcpo.errors import ConfigError, DataError
 
+__all__ = ["KITTI_SENSOR_HEIGHT", "GroundConfig", "GroundModel", "road_plane_to_lidar"]
+
 #: Height of the ground below KITTI's Velodyne (metres), used when a frame has no points.
 KITTI_SENSOR_HEIGHT = 1.73
 _RANSAC_SCORED = 1000

@@ -71,6 +71,25 @@ from drcpo.errors import ConfigError, DataError
 from drcpo.outputs import OutputKind, write_directory
 from drcpo.partitions import DEFAULT_MIRRORED, Grid, flat_cell, grid_for, num_partitions
 
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "INDEX_DIRNAME",
+    "INDEX_OUTPUT",
+    "MAX_K",
+    "CandidateIndex",
+    "IndexConfig",
+    "SimilaritySearch",
+    "build_index",
+    "indexed_mask",
+    "load_index",
+    "normalise_counts",
+    "partition_occupancy",
+    "rank_candidates",
+    "similarity_recall",
+]
+
+
 FORMAT_NAME = "drcpo-candidate-index"
 FORMAT_VERSION = 1
 INDEX_DIRNAME = "index"

@@ -45,6 +45,8 @@ from pathlib import Path
 
 from drcpo.errors import OutputError, OutputExistsError
 
+__all__ = ["Interrupted", "OutputKind", "atomic_write_bytes", "check_output", "write_directory"]
+
 _AT_FDCWD = -100  # <fcntl.h>: paths relative to the working directory
 _RENAME_NOREPLACE = 1  # <linux/fs.h>
 _RENAME_EXCHANGE = 2

@@ -14,6 +14,18 @@ import numpy as np
 
 from drcpo.errors import ConfigError
 
+__all__ = [
+    "DEFAULT_GRIDS",
+    "DEFAULT_MIRRORED",
+    "FALLBACK_GRID",
+    "Grid",
+    "grid_for",
+    "mirror_points",
+    "num_partitions",
+    "partition_counts",
+    "partition_index",
+]
+
 Grid = tuple[int, int, int]
 
 #: The paper's grids per class (along x, y, z).

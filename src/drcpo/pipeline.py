@@ -13,6 +13,8 @@ from drcpo.transforms.drcpo import DRCPO
 from drcpo.transforms.global_aug import GlobalFlip, GlobalRotation, GlobalScaling
 from drcpo.transforms.gt_sampling import GroundTruthSampling
 
+__all__ = ["build_pipeline"]
+
 
 def build_pipeline(
     config: Any = None,

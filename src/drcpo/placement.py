@@ -41,6 +41,22 @@ from drcpo.frame import Frame
 from drcpo.geometry import box_members, heading_terms
 from drcpo.ground import GroundModel
 
+__all__ = [
+    "CAMERA_FOV_MODES",
+    "HEIGHT_MODES",
+    "KITTI_FOV_HALF_ANGLE",
+    "REASONS",
+    "PlacementConfig",
+    "PlacementResult",
+    "PlacementRounds",
+    "Round",
+    "bev_collisions",
+    "frame_ground",
+    "place_objects",
+    "sample_poses",
+]
+
+
 REASONS = ("out_of_range", "collision", "obstacle", "occluded")
 HEIGHT_MODES = ("ground", "source")
 CAMERA_FOV_MODES = ("auto", "always", "never")

@@ -25,6 +25,18 @@ from matplotlib.patches import Polygon, Rectangle
 from drcpo.geometry import bev_corners
 from drcpo.outputs import atomic_write_bytes
 
+__all__ = [
+    "CLASS_COLOURS",
+    "INSERTED_COLOUR",
+    "OTHER_COLOUR",
+    "BevPanel",
+    "ConstructionStep",
+    "DistanceSeries",
+    "bev_figure",
+    "construction_figure",
+    "density_figure",
+]
+
 CLASS_COLOURS: dict[str, str] = {
     "Car": "#1f77b4",
     "Pedestrian": "#d62728",

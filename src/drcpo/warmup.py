@@ -1,7 +1,7 @@
 """Load a transform's compiled kernels ahead of time, so that forked workers inherit them.
 
-drcpo's kernels are compiled with numba and cached on disk; a process still pays a few seconds
-loading them on its first call (more on a cold cache). Data loaders fork their workers from the
+drcpo's kernels are compiled with numba and cached on disk; a process still pays for loading
+them on its first call (more on a cold cache). Data loaders fork their workers from the
 main process, often anew every epoch: calling :func:`warmup` once in the main process, before the
 loader starts, makes every worker's first call as fast as its later ones.
 """
@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 
 from drcpo.frame import Frame
+
+__all__ = ["warmup", "warmup_frame"]
 
 #: Height of the warm-up frame's flat ground below the sensor (metres; KITTI's is about 1.7).
 _GROUND_Z = -1.7

@@ -32,6 +32,17 @@ from drcpo.frame import Frame
 from drcpo.geometry import rotate_points_z, to_canonical
 from drcpo.outputs import check_output
 
+__all__ = [
+    "DEFAULT_CLASSES",
+    "Progress",
+    "build_database",
+    "frame_records",
+    "import_mmdet3d",
+    "import_openpcdet",
+    "points_in_boxes_openpcdet",
+    "validate_dbinfos",
+]
+
 DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 Progress = Callable[[int, int], None]

@@ -32,6 +32,8 @@ import numpy as np
 
 from drcpo.errors import DataError, shown
 
+__all__ = ["ALLOWED_GLOBALS", "MAX_DEPTH", "MAX_NDIM", "load", "loads"]
+
 MAX_DEPTH = 64
 """Deepest nesting of containers accepted; OpenPCDet and MMDetection3D infos need under 10."""
 

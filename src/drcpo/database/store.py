@@ -36,6 +36,17 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.outputs import OutputKind, write_directory
 
+__all__ = [
+    "DATABASE_OUTPUT",
+    "DIFFICULTY_NAMES",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "GroundTruthDatabase",
+    "ObjectRecord",
+    "difficulty_name",
+    "read_manifest",
+]
+
 FORMAT_NAME = "drcpo-gt-database"
 FORMAT_VERSION = 1
 DIFFICULTY_NAMES = ("easy", "moderate", "hard")  # codes 0, 1, 2; -1 is "unknown"

@@ -18,6 +18,8 @@ from drcpo.frame import Frame
 from drcpo.outputs import OutputKind, write_directory
 from drcpo.transforms.base import STATS_KEY, Transform
 
+__all__ = ["AUGMENT_OUTPUT", "augment_kitti", "frame_seed"]
+
 #: What :func:`augment_kitti` writes; ``augment.json`` (written last) marks it as drcpo's.
 AUGMENT_OUTPUT = OutputKind("drcpo augment output", "augment.json", "drcpo-augmented-kitti")
 

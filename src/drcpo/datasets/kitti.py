@@ -32,11 +32,32 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 
+__all__ = [
+    "DEFAULT_IMAGE_SHAPE",
+    "DONT_CARE",
+    "FRAME_ID",
+    "Calibration",
+    "KittiDataset",
+    "KittiLabels",
+    "camera_boxes_to_lidar",
+    "check_frame_id",
+    "fov_mask",
+    "kitti_difficulty",
+    "lidar_boxes_to_camera",
+    "read_calib",
+    "read_image_shape",
+    "read_labels",
+    "read_plane",
+    "read_points",
+    "read_split",
+    "split_directory",
+]
+
 DEFAULT_IMAGE_SHAPE = (375, 1242)
 """``(height, width)`` in pixels of most KITTI images; used when a frame's image is absent."""
 #: Rows per matrix product: below the size at which OpenBLAS starts its worker threads, which
-#: then spin on the other cores for about 0.1 s after the call (where DR.CPO's second thread
-#: works). Each row is computed as in one product over all rows.
+#: then keep spinning on the other cores after the call (where DR.CPO's second thread works;
+#: docs/measurements.md). Each row is computed as in one product over all rows.
 _PRODUCT_ROWS = 8192
 
 DONT_CARE = "DontCare"

@@ -26,6 +26,21 @@ from drcpo.errors import DataError
 from drcpo.geometry import rotation_matrix_z, wrap_angle
 from drcpo.outputs import atomic_write_bytes
 
+__all__ = [
+    "CALIB_KEYS",
+    "REFERENCE_CALIB",
+    "calib_text",
+    "calibration_matrices",
+    "label_lines",
+    "project_boxes",
+    "reference_calibration",
+    "write_calib",
+    "write_frame",
+    "write_image_sets",
+    "write_labels",
+    "write_points",
+]
+
 #: Calibration of KITTI training frame 000001 (a real HDL-64E + camera rig), all seven matrices.
 REFERENCE_CALIB: dict[str, np.ndarray] = {
     "P0": np.array(

@@ -19,6 +19,8 @@ import numpy as np
 from drcpo.datasets.kitti import DONT_CARE, _parse_floats, _read_lines
 from drcpo.errors import DataError
 
+__all__ = ["KittiObjects", "read_frames", "read_kitti_objects"]
+
 _FIELDS = 15  # type, truncated, occluded, alpha, bbox (4), h w l, x y z, ry
 
 

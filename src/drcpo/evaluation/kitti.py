@@ -39,6 +39,17 @@ from drcpo.errors import ConfigError, DataError
 from drcpo.evaluation.files import KittiObjects
 from drcpo.evaluation.overlaps import bev_iou, image_coverage, image_iou, iou3d
 
+__all__ = [
+    "DEFAULT_CLASSES",
+    "DIFFICULTIES",
+    "LOOSE_OVERLAPS",
+    "METRICS",
+    "SAMPLE_POINTS",
+    "STRICT_OVERLAPS",
+    "KittiEvaluation",
+    "evaluate_kitti",
+]
+
 METRICS = ("2d", "bev", "3d")
 DIFFICULTIES = ("easy", "moderate", "hard")
 DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")

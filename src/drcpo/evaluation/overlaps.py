@@ -13,6 +13,15 @@ import numpy as np
 
 from drcpo.geometry import _convex_intersection_area, bev_corners
 
+__all__ = [
+    "bev_intersection",
+    "bev_iou",
+    "image_coverage",
+    "image_intersection",
+    "image_iou",
+    "iou3d",
+]
+
 _PAIR_BLOCK = 65536  # pairs per vectorised block: bounds temporary memory to ~100 MB
 
 

@@ -6,3 +6,5 @@
 
 Each adapter imports its framework only when it is used, so ``import drcpo`` never needs one.
 """
+
+__all__: list[str] = []  # one module per framework; importing one needs it

@@ -58,6 +58,16 @@ except ImportError as _exc:  # pragma: no cover - exercised without mmdet3d only
         f"({_exc}); see README 'Training with MMDetection3D' for the installs"
     ) from _exc
 
+__all__ = [
+    "DEFAULT_STAGES",
+    "IGNORED_NAME",
+    "DRCPOAugment",
+    "DRCPOFadeHook",
+    "drcpo_transforms",
+    "from_drcpo_boxes",
+    "to_drcpo_boxes",
+]
+
 #: ``DRCPOAugment`` argument -> the OpenPCDet entry key it stands for.
 _ARGUMENTS = {
     "db_path": "DB_PATH",

@@ -59,6 +59,22 @@ import numpy as np
 
 from drcpo.errors import ConfigError, DataError
 
+__all__ = [
+    "CONTEXT_KEY",
+    "DEFAULT_EXCLUDE_DIFFICULTY",
+    "DEFAULT_STAGES",
+    "ENTRY_KEYS",
+    "FOV_ATTRIBUTE",
+    "NAME",
+    "STAGES",
+    "OpenPCDetAugmentor",
+    "augment_config",
+    "drcpo_calibration",
+    "main",
+    "openpcdet_draws",
+    "register",
+]
+
 NAME = "drcpo"
 #: drcpo stages an entry can run, in the order they run.
 STAGES = ("gt_sampling", "drcpo", "global_augmentation")

@@ -14,6 +14,8 @@ from scipy.spatial import ConvexHull, QhullError
 from drcpo.errors import DataError
 from drcpo.occlusion.grid import _norms
 
+__all__: list[str] = []  # internal to drcpo.occlusion, whose __init__ has the API
+
 # Points this close to the viewpoint, relative to (1 + max range), count as "at the viewpoint".
 _AT_VIEWPOINT = 1e-9
 

@@ -23,6 +23,8 @@ from drcpo.occlusion.kernels import (
     _row_runs,
 )
 
+__all__: list[str] = []  # internal to drcpo.occlusion, whose __init__ has the API
+
 _VERDICT_KEEP, _VERDICT_REMOVE, _VERDICT_UNDECIDED_WITHOUT, _VERDICT_UNDECIDED_WITH = 0, 1, 2, 3
 # A frame point among the frame's points alone (see _without_state).
 _WITHOUT_CLEAR, _WITHOUT_HIDDEN, _WITHOUT_VISIBLE, _WITHOUT_UNRESOLVED = range(1, 5)

@@ -124,8 +124,9 @@ def _norms_to(rel, out):  # pragma: no cover - numba
 
 class GridMemory:
     """Memory a :class:`FrameGrid` is built in, kept for the next grid: fresh memory costs a
-    page fault per 4 KiB on first use, which made a frame's grid built on a second thread
-    about twice as slow. A grid built in it is valid until the next one is."""
+    page fault per 4 KiB on first use, which slows down a frame's grid built on a second
+    thread markedly (docs/measurements.md). A grid built in it is valid until the next one
+    is."""
 
     def __init__(self) -> None:
         self.floats = np.empty(0)

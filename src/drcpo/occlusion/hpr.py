@@ -15,7 +15,7 @@ Methods (``method=``):
   whole flipped set. Open3D's answer, point for point, on inputs in general position. Clouds
   of at most :data:`HULL_KERNEL_MAX` points (``"auto"``: :data:`AUTO_REFERENCE_MAX`) within
   84 degrees of their mean direction, asked about every point (one object, for s-HPR), first
-  try :mod:`drcpo.occlusion.hull`'s certified hull, 6-7 times cheaper: it answers only when
+  try :mod:`drcpo.occlusion.hull`'s certified hull, which is cheaper: it answers only when
   every test it takes holds with a margin a thousand times Qhull's roundoff, and then its
   vertex set is Qhull's (exact copies share a verdict, as here); on a close call (coplanar
   points on the hull, near-copies, flat inputs, points at the viewpoint, ``R`` below half a
@@ -31,8 +31,8 @@ Methods (``method=``):
   point (more than a few hundred such points go to one reference hull instead). Written with
   ranges and unit vectors, it never subtracts flipped coordinates, so it stays exact for huge
   ``R`` where those (and hence Qhull and Open3D) lose precision. Its cost grows with the
-  number of points per neighbourhood: LiDAR sweeps take tens of milliseconds, while dense
-  volumetric blobs (thousands of points per degree) bring it down to about Qhull's speed.
+  number of points per neighbourhood: it is at its best on LiDAR sweeps and loses its lead
+  over one hull on dense volumetric blobs (thousands of points per degree).
 * ``"sectors"``: the reference hull split into overlapping azimuth sectors, the hulls spread
   over threads; a sector's verdict on one of its core points is used only when it is provably the
   whole set's (hidden in a subset implies hidden; visible needs a hull facet whose danger cone
@@ -43,7 +43,7 @@ Methods (``method=``):
   per-point test's neighbourhoods (on average more than :data:`AUTO_CROWDED` points share a
   point's grid cell, about a first neighbourhood wide: a dense object much smaller than its
   neighbourhoods, or many copies of a point, which make that test quadratic; LiDAR frames
-  give 2-6), unless ``R`` is too large for the flipped coordinates (a crowded set is then
+  stay far below it), unless ``R`` is too large for the flipped coordinates (a crowded set is then
   tested once per distinct point); else ``"local"`` (e-HPR on whole frames). The answer is
   the same either way (see the methods' agreement above); only the time differs.
 
@@ -104,8 +104,8 @@ HPR_METHODS: tuple[str, ...] = ("auto", "local", "sectors", "reference")
 AUTO_REFERENCE_MAX = 2000  # "auto" runs one Qhull hull up to this many points
 # "auto" runs one hull when more points than this, on average, share a point's cell of the
 # per-point test's grid (cells about a first neighbourhood wide): that test's time grows with
-# the points per neighbourhood, a hull's does not. LiDAR frames (KITTI sample, e-HPR presets)
-# give 2-6; 30,000 points on a 0.1 m sphere 10 m away with R = 100 give 30,000.
+# the points per neighbourhood, a hull's does not. LiDAR frames stay far below it, the crowded
+# inputs of benchmarks/bench_hpr_crowded.py far above (docs/measurements.md).
 AUTO_CROWDED = 128
 HULL_KERNEL_MAX = 20000  # "reference" tries occlusion.hull's certified hull up to this many points
 _KERNEL_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
@@ -364,7 +364,7 @@ def _sector_verdicts(task: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     cloud = np.vstack([flipped[members], np.zeros((1, 3))])
     try:
         # Q5: skip Qhull's final outer-plane correction, which only tightens error bounds
-        # (about 15% of a frame's hull time; same vertices on every fixture and test scene).
+        # and takes time (docs/measurements.md); same vertices on every fixture and test scene.
         hull = ConvexHull(cloud, qhull_options="Q5")
     except (QhullError, ValueError):
         count = int(core_mask.sum())

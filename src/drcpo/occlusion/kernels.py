@@ -13,6 +13,8 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 
+__all__ = ["Scene"]
+
 # Kernel constants. The tilt box bounds the plane search to 90 deg - 1e-7 rad from the ray;
 # the slack is how far (in units of the flipped range) a point must lie below a plane to count
 # as below it, about Qhull's own roundoff, so points on a common plane are not vertices.

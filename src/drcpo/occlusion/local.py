@@ -21,8 +21,10 @@ from drcpo.occlusion.kernels import (
 )
 from drcpo.occlusion.threads import _in_threads
 
-# Parallel work only pays above this many points (measured on 2 cores: e-HPR of a KITTI
-# frame with a few thousand queried points runs about 10% faster on two threads).
+__all__: list[str] = []  # internal to drcpo.occlusion, whose __init__ has the API
+
+# Parallel work only pays above this many points: below it, handing work to a second thread
+# costs more than it saves (docs/measurements.md).
 _PARALLEL_MIN = 2000
 
 

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+__all__: list[str] = []  # internal to drcpo.occlusion, whose __init__ has the API
+
 
 def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
     """``kernel`` over ``parts`` contiguous chunks of ``items``, on that many threads (the
@@ -19,8 +21,8 @@ def _in_threads(kernel, items: np.ndarray, parts: int) -> list[np.ndarray]:
     chunks = np.array_split(items, max(1, parts))
     if len(chunks) == 1:
         return [kernel(chunks[0])]
-    # The calling thread takes the first chunk: one thread fewer to start (starting one costs
-    # milliseconds when the other core is busy).
+    # The calling thread takes the first chunk: one thread fewer to start (starting one is
+    # slow when the other core is busy).
     with ThreadPoolExecutor(max_workers=len(chunks) - 1) as pool:
         others = [pool.submit(kernel, chunk) for chunk in chunks[1:]]
         return [kernel(chunks[0])] + [future.result() for future in others]

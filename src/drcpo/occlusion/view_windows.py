@@ -11,6 +11,15 @@ import numpy as np
 
 from drcpo.geometry import bev_corners, wrap_angle
 
+__all__ = [
+    "WINDOW_SLACK",
+    "box_windows",
+    "grown_boxes",
+    "in_windows",
+    "view_windows",
+    "window_spans",
+]
+
 WINDOW_SLACK = 0.1  # metres added around inserted boxes (construction keeps points 5 cm out)
 
 

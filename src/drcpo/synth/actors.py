@@ -13,6 +13,8 @@ import numpy as np
 
 from drcpo.synth.solids import BOX, CYLINDER, ELLIPSOID, Solids, make_solids
 
+__all__ = ["CLASSES", "SIZE_STATS", "Actor", "make_actor", "sample_dims"]
+
 CLASSES: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
 
 #: KITTI-like size statistics per class: mean and standard deviation of (length, width, height)

@@ -32,6 +32,20 @@ from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_leve
 from drcpo.synth.sensor import LidarConfig
 from drcpo.synth.world import World, WorldConfig, generate_world
 
+__all__ = [
+    "SYNTH_FORMAT",
+    "SYNTH_FORMAT_VERSION",
+    "SYNTH_MANIFEST",
+    "SYNTH_OUTPUT",
+    "SyntheticFrame",
+    "frame_rng",
+    "matches",
+    "split_ids",
+    "synth_parameters",
+    "synthesize_frame",
+    "write_synthetic_kitti",
+]
+
 SYNTH_MANIFEST = "synth.json"
 SYNTH_FORMAT_VERSION = 1
 SYNTH_FORMAT = "drcpo-synthetic-kitti"

@@ -16,6 +16,8 @@ import numpy as np
 
 from drcpo.synth.solids import BOX, ELLIPSOID, Solids
 
+__all__ = ["GROUND", "MISS", "Ground", "RayHits", "Scene"]
+
 MISS, GROUND = -2, -1  # hit codes besides solid rows
 _MIN_GROUND_STEP = 0.02  # metres; smallest step of the height-field march
 _REFINE_ITERATIONS = 40

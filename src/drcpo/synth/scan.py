@@ -12,6 +12,8 @@ from drcpo.synth.sensor import LidarConfig, RayGrid, ray_grid
 from drcpo.synth.solids import ALBEDO, EXTRA_DROPOUT
 from drcpo.synth.world import World
 
+__all__ = ["Sweep", "Visibility", "actor_visibility", "occlusion_level", "scan", "scan_rays"]
+
 _GRAZING_COS = 0.15  # below this |cos(incidence)| returns get weak and drop out more often
 
 

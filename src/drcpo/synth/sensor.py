@@ -12,6 +12,8 @@ import numpy as np
 
 from drcpo.errors import ConfigError
 
+__all__ = ["LidarConfig", "RayGrid", "hdl64e_elevations", "ray_grid"]
+
 
 def hdl64e_elevations() -> tuple[float, ...]:
     """The 64 beam elevations (degrees) of an HDL-64E, +2.0 down to -24.9.

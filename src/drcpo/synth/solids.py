@@ -15,6 +15,19 @@ import numpy as np
 
 from drcpo.geometry import rotate_points_z
 
+__all__ = [
+    "ALBEDO",
+    "BOX",
+    "CYLINDER",
+    "ELLIPSOID",
+    "EXTRA_DROPOUT",
+    "MATERIALS",
+    "MATERIAL_ID",
+    "MATERIAL_NAMES",
+    "Solids",
+    "make_solids",
+]
+
 BOX, ELLIPSOID, CYLINDER = 0, 1, 2
 
 #: name -> (albedo, extra dropout probability). Glass returns little; paint and signs a lot.

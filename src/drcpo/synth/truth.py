@@ -16,6 +16,8 @@ from drcpo.synth.raycast import MISS, Scene
 from drcpo.synth.solids import Solids
 from drcpo.synth.world import World
 
+__all__ = ["PlacedObjectTruth", "free_pose", "place_object", "visible_points"]
+
 
 def visible_points(scene: Scene, points: np.ndarray, tolerance: float = 0.02) -> np.ndarray:
     """``bool (N,)``: points ``(N, 3+)`` (metres, LiDAR frame) that the sensor sees in ``scene``.

@@ -19,6 +19,16 @@ from drcpo.synth.actors import Actor, make_actor
 from drcpo.synth.raycast import Ground, Scene
 from drcpo.synth.solids import BOX, CYLINDER, ELLIPSOID, MATERIAL_ID, Solids, make_solids
 
+__all__ = [
+    "Range",
+    "Street",
+    "World",
+    "WorldConfig",
+    "footprints",
+    "generate_world",
+    "support_height",
+]
+
 Range = tuple[float, float]
 
 

@@ -32,12 +32,23 @@ from drcpo.config import to_dict
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
 from drcpo.frame import DICT_FIELDS, FRAME_FIELDS, Frame, validate_frame
-from drcpo.outputs import OutputKind
+
+__all__ = [
+    "DRAW_KEYS",
+    "STATS_KEY",
+    "TRANSFORMS",
+    "Compose",
+    "FrameLike",
+    "Stats",
+    "Transform",
+    "as_frame",
+    "config_body",
+    "register",
+    "transform_from_config",
+]
 
 FrameLike = Frame | dict[str, Any]
 STATS_KEY = "augment_stats"
-#: What :func:`augment_kitti` writes; ``augment.json`` (written last) marks it as drcpo's.
-AUGMENT_OUTPUT = OutputKind("drcpo augment output", "augment.json", "drcpo-augmented-kitti")
 #: Keys of a global stage's statistics that hold its random draws (lists, one entry per run).
 DRAW_KEYS = ("flipped", "angle", "scale")
 

@@ -32,6 +32,11 @@ from drcpo.transforms.insertion import (
 )
 from drcpo.transforms.work_queue import WorkQueue, result_if_done, spare_core
 
+__all__ = [
+    "DRCPO",
+]
+
+
 _CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
 _FIT_PAD = 1e-4  # metres between a label's moved face and the point beyond it (see box_holding)
 
@@ -89,9 +94,8 @@ class DRCPO(Transform):
        1.0: all) of a 5 x 4 grid of samples on each of its sensor-facing faces behind the
        frame's points, each sample decided exactly as a point added to them (with the
        ``range_image`` mode: a z-buffer at the sensor's resolution). e-HPR would almost
-       always leave such an object too few points: on the KITTI sample and synthetic frames,
-       3 of 1,676 objects e-HPR kept were that hidden, against 4,182 of 4,673 it dropped (a
-       z-buffer test at 95 % caught 2,655 of them). So it is not built and hides nothing.
+       always leave such an object too few points (the counts: ``docs/measurements.md``), so
+       it is not built and hides nothing.
        Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
        ``whole`` mode the box grows during construction, so objects are constructed first
        and placed with their final size.

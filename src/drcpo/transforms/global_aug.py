@@ -15,6 +15,8 @@ from drcpo.frame import Frame
 from drcpo.geometry import rotate_points_z, wrap_angle
 from drcpo.transforms.base import Stats, Transform, config_body, register
 
+__all__ = ["GlobalFlip", "GlobalRotation", "GlobalScaling"]
+
 
 @register
 class GlobalFlip(Transform):

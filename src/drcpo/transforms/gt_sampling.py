@@ -22,6 +22,8 @@ from drcpo.transforms.insertion import (
     update_box_metadata,
 )
 
+__all__ = ["GroundTruthSampling"]
+
 
 @register
 class GroundTruthSampling(Transform):

@@ -15,10 +15,23 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.errors import DataError
 from drcpo.geometry import box_members, heading_terms, rows_in_box
 
+__all__ = [
+    "PER_BOX_METADATA",
+    "STALE_WHEN_BOXES_CHANGE",
+    "BoxQuery",
+    "match_features",
+    "placed_object",
+    "placed_objects",
+    "road_plane_heights",
+    "sampling_pools",
+    "take_rows",
+    "update_box_metadata",
+]
+
 
 def take_rows(array: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``array[mask]`` for a boolean row mask, through ``take`` (several times faster for
-    point arrays than boolean indexing; the same rows in the same order)."""
+    """``array[mask]`` for a boolean row mask, through ``take`` (faster for point arrays
+    than boolean indexing; the same rows in the same order)."""
     return array.take(np.flatnonzero(mask), axis=0)
 
 

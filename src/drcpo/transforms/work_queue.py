@@ -9,6 +9,8 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
+__all__ = ["WorkQueue", "result_if_done", "spare_core"]
+
 
 def result_if_done(future: Future | None) -> Any:
     """A future's result if it has one already, else ``None``."""
