@@ -38,7 +38,8 @@ import numpy as np
 
 from drcpo.database import GroundTruthDatabase
 from drcpo.geometry import canonical_iou3d
-from drcpo.index import IndexConfig, SimilaritySearch, build_index, similarity_recall
+from drcpo.index import IndexConfig, build_index, similarity_recall
+from drcpo.similarity import SimilaritySearch
 
 KITTI = {"Car": 14_357, "Pedestrian": 2_207, "Cyclist": 734}
 WAYMO = {"Car": 1_000_000}

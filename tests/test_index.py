@@ -10,7 +10,6 @@ from drcpo.geometry import canonical_iou3d
 from drcpo.index import (
     CandidateIndex,
     IndexConfig,
-    SimilaritySearch,
     build_index,
     indexed_mask,
     load_index,
@@ -18,6 +17,7 @@ from drcpo.index import (
     similarity_recall,
 )
 from drcpo.partitions import grid_for, mirror_points, num_partitions, partition_counts
+from drcpo.similarity import SimilaritySearch
 
 CLASSES = ("Car", "Pedestrian", "Cyclist", "Van")
 

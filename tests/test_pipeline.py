@@ -701,23 +701,42 @@ def test_determinism_across_runs_and_a_forked_worker(synthetic_world):
     assert not np.array_equal(other[1], first[1])
 
 
-def test_same_output_on_one_core_as_on_two(kitti_world, monkeypatch):
+def test_same_output_on_one_thread_as_on_two(kitti_world):
     # A data-loader worker pinned to one core runs every step on its own thread; the frame
     # must be the one two threads give.
-    import drcpo.transforms.drcpo as drcpo_module
-    from drcpo.occlusion import frame_grid, hpr, scopes
+    db, index, frames = kitti_world
+    one_thread, two_threads = DRCPO(db, index, workers=1), DRCPO(db, index, workers=2)
+    assert one_thread == two_threads  # the threads are not part of the config
+    for i, frame in enumerate(frames):
+        one = one_thread(frame, np.random.default_rng(30 + i))
+        two = two_threads(frame, np.random.default_rng(30 + i))
+        np.testing.assert_array_equal(one.points, two.points)
+        np.testing.assert_array_equal(one.boxes, two.boxes)
+        assert one.metadata["augment_stats"]["objects"] == two.metadata["augment_stats"]["objects"]
+
+
+def test_one_worker_starts_no_thread(kitti_world, monkeypatch):
+    import concurrent.futures
 
     db, index, frames = kitti_world
-    transform = DRCPO(db, index)
-    two = [transform(frame, np.random.default_rng(30 + i)) for i, frame in enumerate(frames)]
-    monkeypatch.setattr(drcpo_module, "spare_core", lambda: False)
-    for module in (hpr, frame_grid, scopes):  # each checks its own workers argument
-        monkeypatch.setattr(module, "_check_workers", lambda workers: 1)
-    for i, (frame, out) in enumerate(zip(frames, two, strict=True)):
-        one = transform(frame, np.random.default_rng(30 + i))
-        np.testing.assert_array_equal(one.points, out.points)
-        np.testing.assert_array_equal(one.boxes, out.boxes)
-        assert one.metadata["augment_stats"]["objects"] == out.metadata["augment_stats"]["objects"]
+    submitted = []
+    original = concurrent.futures.ThreadPoolExecutor.submit
+    monkeypatch.setattr(
+        concurrent.futures.ThreadPoolExecutor,
+        "submit",
+        lambda pool, *a, **k: submitted.append(a[0]) or original(pool, *a, **k),
+    )
+    DRCPO(db, index, workers=1)(frames[0], np.random.default_rng(0))
+    assert submitted == []
+    DRCPO(db, index, workers=2)(frames[0], np.random.default_rng(0))
+    assert submitted
+
+
+@pytest.mark.parametrize("workers", [0, 3, 1.5, "2"])
+def test_workers_must_be_one_two_or_auto(kitti_world, workers):
+    db, index, _ = kitti_world
+    with pytest.raises(ConfigError, match="workers"):
+        DRCPO(db, index, workers=workers)
 
 
 def test_drcpo_dict_in_dict_out_and_features(synthetic_world):

@@ -62,6 +62,8 @@ from drcpo.config_fields import (
 from drcpo.construction import ConstructionConfig
 from drcpo.errors import ConfigError, shown
 from drcpo.index import IndexConfig
+from drcpo.occlusion.presets import HPR_PRESETS
+from drcpo.occlusion.presets import HPRPreset as EHPRSetting
 from drcpo.placement import PlacementConfig
 
 __all__ = [
@@ -90,26 +92,9 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class EHPRSetting:
-    """e-HPR setting of one detector in the paper: radius ``R`` and viewpoint ``(0, 0, z)``.
-
-    Attributes:
-        radius: HPR radius ``R``, metres.
-        viewpoint_z: height of the viewpoint above the sensor origin, metres.
-    """
-
-    radius: float
-    viewpoint_z: float
-
-
-#: The detector presets (``drcpo/configs/<name>.yaml``) and their e-HPR settings.
-DETECTOR_PRESETS: dict[str, EHPRSetting] = {
-    "second": EHPRSetting(radius=300000.0, viewpoint_z=2.0),
-    "pointrcnn": EHPRSetting(radius=300000.0, viewpoint_z=1.0),
-    "pv_rcnn": EHPRSetting(radius=100000.0, viewpoint_z=0.0),
-    "pv_rcnn_plusplus": EHPRSetting(radius=100000.0, viewpoint_z=0.0),
-}
+#: The detector presets (``drcpo/configs/<name>.yaml``) and their e-HPR settings: the one table,
+#: kept as data in :mod:`drcpo.occlusion.presets` (which the occlusion functions read too).
+DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
 PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
 #: The preset whose e-HPR settings the paper defaults use.

@@ -127,6 +127,9 @@ class DRCPO(Transform):
         index: its :class:`~drcpo.index.CandidateIndex`.
         config: a :class:`~drcpo.config.DRCPOConfig` (the paper defaults when ``None``) or a
             mapping of its keys.
+        workers: threads a call may use, 1 or 2; ``None`` (default): two when the process may
+            use a second CPU, checked on every call (a forked data-loader worker pinned to one
+            core gets one). The output does not depend on it; it is not part of the config.
 
     The transform holds only read-only state (database, index, config, per-class row pools),
     so it is safe to share with forked workers.
@@ -139,7 +142,11 @@ class DRCPO(Transform):
         database: GroundTruthDatabase,
         index: Any,
         config: DRCPOConfig | Mapping[str, Any] | None = None,
+        workers: int | None = None,
     ) -> None:
+        if workers not in (None, 1, 2):
+            raise ConfigError(f"DRCPO workers = {workers!r}; allowed: 1, 2 or None (auto)")
+        self.workers = workers
         if isinstance(config, Mapping) or config is None:
             config = from_dict(DRCPOConfig, config, "drcpo")
         if not isinstance(config, DRCPOConfig):
@@ -173,6 +180,14 @@ class DRCPO(Transform):
         built = self.config.construction
         margin = built.margin if built.mode == "partition" else 0
         return float(margin) + 2.0 * _FIT_PAD
+
+    def _two_threads(self) -> bool:
+        """Whether this call runs work on a second thread (see ``workers``)."""
+        return self.workers == 2 or (self.workers is None and spare_core())
+
+    def _hpr_workers(self) -> int | None:
+        """The ``workers`` of the HPR calls: one thread when this transform has one."""
+        return 1 if self.workers == 1 else None
 
     def _check_index(self, classes: Sequence[str]) -> None:
         """The index must partition and mirror each class as construction does (it does when
@@ -240,7 +255,7 @@ class DRCPO(Transform):
         with ThreadPoolExecutor(max_workers=1) as pool:
             frame_grid = self._frame_grid(frame, rows, pool)
             # s-HPR of each object, done by this thread and the pool's when it is free.
-            s_hpr = WorkQueue(pool if spare_core() else None)
+            s_hpr = WorkQueue(pool if self._two_threads() else None)
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
                     boxes, accepted, owners = self._place(
@@ -278,7 +293,7 @@ class DRCPO(Transform):
                 record["points_out"] = len(points)
             with stats.stage("drcpo.external_occlusion", len(points)) as record:
                 grid = frame_grid() if frame_grid is not None and insertions else None
-                helper = pool if spare_core() else None
+                helper = pool if self._two_threads() else None
                 keep, dropped = self._external_occlusion(
                     points, owner, insertions, grid, cleared_by, helper, result_if_done(placed)
                 )
@@ -308,7 +323,7 @@ class DRCPO(Transform):
         # In this thread's memory, wherever built: the previous call's grid is done with.
         memory = occlusion.thread_grid_memory()
         build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius, memory=memory)
-        return pool.submit(build).result if spare_core() else cache(build)
+        return pool.submit(build).result if self._two_threads() else cache(build)
 
     def _placed_task(
         self,
@@ -322,7 +337,7 @@ class DRCPO(Transform):
         """On two cores, start on ``pool`` working out the :class:`_Placed` of the placed
         ``boxes`` (of source ``rows``; ``owners``: the room each frame point lies in, if known)
         while the objects are built; its future, or ``None`` when nothing is started."""
-        if frame_grid is None or len(boxes) == 0 or not spare_core():
+        if frame_grid is None or len(boxes) == 0 or not self._two_threads():
             return None
         _, viewpoint = self.e_hpr_setting()
 
@@ -422,7 +437,7 @@ class DRCPO(Transform):
             grid = frame_grid()
             if not grid.groups_apply(samples):
                 return np.zeros(len(boxes), dtype=bool)
-            helper = pool if spare_core() else None
+            helper = pool if self._two_threads() else None
             return grid.hidden_groups(samples, offsets, owners >= 0, limit, helper)
         z_buffer = OcclusionMap(frame.points, viewpoint)
         return z_buffer.occluded(boxes, cleared=everything) >= limit
@@ -552,7 +567,12 @@ class DRCPO(Transform):
         radius, viewpoint = self.e_hpr_setting()
         if settings.enabled and len(points) and settings.scope == "frame":
             keep = occlusion.external_occlusion(
-                points, settings.preset, mode=settings.mode, radius=radius, viewpoint_z=viewpoint[2]
+                points,
+                settings.preset,
+                mode=settings.mode,
+                radius=radius,
+                viewpoint_z=viewpoint[2],
+                workers=self._hpr_workers(),
             )
         if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
             return keep, self._dropped(points, owner, insertions, keep)
@@ -565,6 +585,7 @@ class DRCPO(Transform):
             mode=settings.mode,
             grid=grid if cleared_by is not None else None,
             cleared=None if cleared_by is None else cleared_by >= 0,
+            workers=self._hpr_workers(),
             pool=pool,
         )
         # The label rule on the inserted points left; the view windows of the objects kept.
