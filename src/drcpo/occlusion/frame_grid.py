@@ -45,7 +45,7 @@ from drcpo.occlusion.threads import _shared_chunks
 __all__ = ["FrameGrid", "GridInsertion"]
 
 # Grid cells of a FrameGrid, relative to the typical first neighbourhood (half as wide as the
-# generic grid's: its scans read whole runs of cells; finer ones gain nothing on KITTI frames).
+# generic grid's: its scans read whole runs of cells; docs/measurements.md: finer ones).
 _FRAME_ROW_HEIGHT = 1.0
 _FRAME_COLUMN_WIDTH = 0.5
 # Work items per call, claimed by the threads as they go: small enough that a thread the

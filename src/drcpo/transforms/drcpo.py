@@ -380,8 +380,8 @@ class DRCPO(Transform):
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        # No ground given: placement estimates it from the frame's points. (Estimating it on
-        # a second thread meanwhile measured slower on the shared cores.)
+        # No ground given: placement estimates it from the frame's points (on this thread; see
+        # docs/measurements.md for why not on the second one).
         rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov])
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
         while (drawn := rounds.next_round()) is not None:
