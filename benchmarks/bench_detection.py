@@ -391,6 +391,8 @@ def plot(summary: dict[str, Any], path: Path) -> None:
                 sd = [per_size[s][metric][name]["sd"] for s in per_size]
                 ax.errorbar(sizes, mean, yerr=sd, marker="o", capsize=3, label=arm)
             ax.set_xscale("log")
+            ax.set_xticks(sizes, [str(s) for s in sizes])  # the subsets, not log decades
+            ax.minorticks_off()
             ax.set_title(f"{name}, {metric.upper()} moderate AP_R40")
             ax.set_xlabel("training frames")
             ax.grid(alpha=0.3)
