@@ -27,15 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import mmdet3d_support as support
-
-
-def _build_db(out: Path) -> Path:
-    from drcpo.database.build import import_openpcdet
-    from drcpo.index import IndexConfig, build_index
-
-    database = import_openpcdet(support.KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
-    build_index(database, IndexConfig(k=20, workers=1)).save(out)
-    return out
+import openpcdet_support as pcdet_support
 
 
 def main() -> None:
@@ -55,7 +47,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         infos = support.write_mmdet3d_infos(support.KITTI_SAMPLE, tmp / "kitti_infos_train.pkl")
-        db = _build_db(tmp / "drcpo_db")
+        db = pcdet_support.sample_database(tmp / "drcpo_db")
         default = support.dataset(infos, support.pipeline(support.object_sample(tmp)))
         start = time.perf_counter()
         drcpo = dict(type="DRCPOAugment", db_path=str(db), classes=support.CLASS_NAMES)

@@ -30,15 +30,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import openpcdet_support as support
 
 
-def _build_db(out: Path) -> Path:
-    from drcpo.database.build import import_openpcdet
-    from drcpo.index import IndexConfig, build_index
-
-    database = import_openpcdet(support.KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
-    build_index(database, IndexConfig(k=20, workers=1)).save(out)
-    return out
-
-
 def _dataset(entry):
     from pcdet.datasets.kitti.kitti_dataset import KittiDataset
 
@@ -91,7 +82,7 @@ def main() -> None:
 
     openpcdet.register()
     with tempfile.TemporaryDirectory() as tmp:
-        db = args.db or _build_db(Path(tmp) / "drcpo_db")
+        db = args.db or support.sample_database(Path(tmp) / "drcpo_db")
         default = _dataset(None)
         start = time.perf_counter()
         ours = _dataset({"NAME": "drcpo", "DB_PATH": str(db), "WARMUP": not args.no_warmup})

@@ -29,6 +29,17 @@ KITTI_SAMPLE = SHARED / "data" / "kitti_sample"
 CLASS_NAMES = ["Car", "Pedestrian", "Cyclist"]
 
 
+def sample_database(out: Path) -> Path:
+    """drcpo's database of the KITTI sample at ``out``, imported from OpenPCDet's dbinfos (as
+    the README says) and indexed with a small K; the tests' and benchmarks' shared fixture."""
+    from drcpo.database import import_openpcdet
+    from drcpo.index import IndexConfig, build_index
+
+    database = import_openpcdet(KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
+    build_index(database, IndexConfig(k=20, workers=1)).save(out)
+    return out
+
+
 # CPU stand-ins ------------------------------------------------------------------------------
 def bev_corners(boxes: np.ndarray) -> np.ndarray:
     """``(M, 4, 2)`` BEV corners of ``(M, 7+)`` boxes (centre, dx along the heading)."""

@@ -16,6 +16,7 @@ import types
 
 import mmdet3d_support as support
 import numpy as np
+import openpcdet_support as pcdet_support
 import pytest
 
 # CI's MMDetection3D step sets DRCPO_REQUIRE_MMDET3D=1: there a missing piece fails instead.
@@ -57,13 +58,7 @@ DefaultScope.get_instance("drcpo-mmdet3d-tests", scope_name="mmdet3d")
 @pytest.fixture(scope="module")
 def drcpo_db(tmp_path_factory):
     """drcpo's database of the sample, from its OpenPCDet dbinfos, indexed with a small K."""
-    from drcpo.database.build import import_openpcdet
-    from drcpo.index import IndexConfig, build_index
-
-    out = tmp_path_factory.mktemp("mm") / "drcpo_db"
-    database = import_openpcdet(support.KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
-    build_index(database, IndexConfig(k=20, workers=1)).save(out)
-    return out
+    return pcdet_support.sample_database(tmp_path_factory.mktemp("mm") / "drcpo_db")
 
 
 @pytest.fixture(scope="module")

@@ -59,13 +59,7 @@ SEED = 666
 @pytest.fixture(scope="module")
 def drcpo_db(tmp_path_factory):
     """drcpo's database of the sample, from OpenPCDet's own dbinfos (as the README says)."""
-    from drcpo.database.build import import_openpcdet
-    from drcpo.index import IndexConfig, build_index
-
-    out = tmp_path_factory.mktemp("pcdet") / "drcpo_db"
-    database = import_openpcdet(support.KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
-    build_index(database, IndexConfig(k=20, workers=1)).save(out)
-    return out
+    return support.sample_database(tmp_path_factory.mktemp("pcdet") / "drcpo_db")
 
 
 def _entry(db, **keys):
