@@ -1,0 +1,192 @@
+"""The LiDAR that recorded a frame: its beams, azimuth step, mount, range noise and dropout.
+
+Sensor-true augmentation (``self_occlusion.mode: sensor``, ``external_occlusion.mode: sensor``)
+renders inserted objects through this model, so that they carry the frame's scan lines and the
+density its sensor gives at their distance. A beam ``b`` is a cone of rays leaving the point
+``mount + (0, 0, offsets[b])`` at elevation ``elevations[b]`` above the horizontal, one ray per
+azimuth column ``c`` at ``azimuth = phase + c * azimuth_step``. Presets name real sensors; the
+synthetic world's sensor is the ``hdl64e`` preset.
+
+Units: radians and metres throughout (the YAML keys say ``_deg`` where they take degrees).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from drcpo.errors import ConfigError
+
+__all__ = ["SENSOR_PRESETS", "Sensor", "hdl64e_elevations_deg", "sensor_preset"]
+
+
+def hdl64e_elevations_deg() -> tuple[float, ...]:
+    """The 64 beam elevations (degrees) of a Velodyne HDL-64E, +2.0 down to -24.9.
+
+    Two laser blocks: the upper 32 beams about 1/3 degree apart (+2.0 to -8.33), the lower 32
+    about 1/2 degree apart (-8.87 to -24.9).
+    """
+    upper = np.linspace(2.0, -8.33, 32)
+    lower = np.linspace(-8.87, -24.9, 32)
+    return tuple(float(round(v, 4)) for v in np.concatenate([upper, lower]))
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """A rotating multi-beam LiDAR (read-only arrays; safe to share between threads).
+
+    Attributes:
+        elevations: ``float64 (B,)`` beam elevations, radians, strictly descending (beam 0 is
+            the top one).
+        offsets: ``float64 (B,)`` height of each beam's origin above ``mount``, metres (0 for
+            the presets; KITTI's lasers sit a few cm apart, which ``auto`` may fit).
+        azimuth_step: radians between two firings of a beam.
+        phase: azimuth of column 0, radians in ``[0, azimuth_step)``.
+        mount: ``float64 (3,)`` the sensor's position in the LiDAR frame, metres (KITTI: the
+            origin).
+        range_noise: standard deviation of the Gaussian range error, metres.
+        dropout: probability that a return is lost.
+        min_range, max_range: returns nearer / farther than these are never recorded, metres.
+        name: the preset's name, or ``"auto"`` / ``"custom"``.
+    """
+
+    elevations: np.ndarray
+    offsets: np.ndarray | None
+    azimuth_step: float
+    phase: float = 0.0
+    mount: np.ndarray | None = None
+    range_noise: float = 0.02
+    dropout: float = 0.03
+    min_range: float = 1.0
+    max_range: float = 120.0
+    name: str = "custom"
+
+    def __post_init__(self) -> None:
+        elevations = np.array(self.elevations, dtype=np.float64).reshape(-1)
+        offsets = np.array(
+            np.zeros_like(elevations) if self.offsets is None else self.offsets, dtype=np.float64
+        ).reshape(-1)
+        mount = np.array((0.0, 0.0, 0.0) if self.mount is None else self.mount, dtype=np.float64)
+        where = f"sensor {self.name!r}"
+        if len(elevations) == 0 or not np.isfinite(elevations).all():
+            raise ConfigError(f"{where}: elevations must be a non-empty list of finite numbers")
+        if (np.abs(elevations) >= math.pi / 2).any():
+            raise ConfigError(f"{where}: elevations must lie strictly within (-90, 90) degrees")
+        if len(elevations) > 1 and not (np.diff(elevations) < 0).all():
+            raise ConfigError(f"{where}: elevations must be distinct, listed top beam first")
+        if offsets.shape != elevations.shape or not np.isfinite(offsets).all():
+            raise ConfigError(f"{where}: offsets must be one finite number per beam")
+        if mount.shape != (3,) or not np.isfinite(mount).all():
+            raise ConfigError(f"{where}: mount must be three finite numbers (x, y, z)")
+        checks = {
+            "azimuth_step": 1e-4 <= self.azimuth_step <= math.radians(10.0),
+            "phase": 0.0 <= self.phase < max(self.azimuth_step, 1e-12),
+            "range_noise": 0.0 <= self.range_noise <= 1.0,
+            "dropout": 0.0 <= self.dropout < 1.0,
+            "min_range": 0.0 <= self.min_range < self.max_range,
+            "max_range": self.max_range <= 1000.0,
+        }
+        for key, ok in checks.items():
+            if not ok:
+                raise ConfigError(f"{where}: {key} = {getattr(self, key)!r} is out of range")
+        for array in (elevations, offsets, mount):
+            array.setflags(write=False)
+        object.__setattr__(self, "elevations", elevations)
+        object.__setattr__(self, "offsets", offsets)
+        object.__setattr__(self, "mount", mount)
+
+    @property
+    def num_beams(self) -> int:
+        return len(self.elevations)
+
+    @property
+    def num_columns(self) -> int:
+        """Azimuth columns per revolution."""
+        return max(1, round(2.0 * math.pi / self.azimuth_step))
+
+    @property
+    def beam_width(self) -> float:
+        """Half the smallest gap between neighbouring beams, radians: how far from a beam's
+        elevation a return still counts as on it (the whole gap for a one-beam sensor is
+        undefined, so 0.5 degree then)."""
+        if self.num_beams == 1:
+            return math.radians(0.5)
+        return float(np.min(-np.diff(self.elevations))) / 2.0
+
+    def beam_edges(self) -> np.ndarray:
+        """``float64 (B + 1,)`` elevation boundaries between beams, descending: beam ``b``
+        owns elevations in ``(edges[b + 1], edges[b]]``; the outer edges lie half the
+        neighbouring gap beyond the extreme beams."""
+        e = self.elevations
+        if self.num_beams == 1:
+            w = self.beam_width
+            return np.array([e[0] + w, e[0] - w])
+        middle = (e[:-1] + e[1:]) / 2.0
+        return np.concatenate(
+            [[e[0] + (e[0] - e[1]) / 2.0], middle, [e[-1] - (e[-2] - e[-1]) / 2.0]]
+        )
+
+    def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ray cell of each point ``(N, 3+)`` (metres, LiDAR frame): ``beam int64 (N,)``
+        (-1 outside every beam; elevation seen from each beam's own origin), ``column int64
+        (N,)`` in ``[0, num_columns)`` and ``range float64 (N,)`` from the mount."""
+        xyz = np.asarray(points)[:, :3].astype(np.float64) - self.mount
+        horizontal = np.hypot(xyz[:, 0], xyz[:, 1])
+        # Nearest beam in elevation seen from the mount first, then refined with the offsets.
+        elevation = np.arctan2(xyz[:, 2], horizontal)
+        beam = _nearest_beam(self.beam_edges(), elevation)
+        if np.any(self.offsets):
+            valid = beam >= 0
+            own = np.arctan2(xyz[valid, 2] - self.offsets[beam[valid]], horizontal[valid])
+            beam[valid] = _nearest_beam(self.beam_edges(), own)
+        azimuth = np.arctan2(xyz[:, 1], xyz[:, 0]) - self.phase
+        column = np.floor(azimuth / self.azimuth_step + 0.5).astype(np.int64) % self.num_columns
+        return beam, column, np.linalg.norm(xyz, axis=1)
+
+    def ray_directions(self, beam: np.ndarray, column: np.ndarray) -> np.ndarray:
+        """``float64 (K, 3)`` unit directions of the rays of beams ``beam`` and columns
+        ``column`` (integer arrays of one shape)."""
+        elevation = self.elevations[np.asarray(beam)]
+        azimuth = self.phase + np.asarray(column, dtype=np.float64) * self.azimuth_step
+        cos_e = np.cos(elevation)
+        return np.stack([cos_e * np.cos(azimuth), cos_e * np.sin(azimuth), np.sin(elevation)], -1)
+
+    def ray_origins(self, beam: np.ndarray) -> np.ndarray:
+        """``float64 (K, 3)`` where the rays of beams ``beam`` start (mount plus offset)."""
+        origins = np.broadcast_to(self.mount, (len(np.asarray(beam)), 3)).copy()
+        origins[:, 2] += self.offsets[np.asarray(beam)]
+        return origins
+
+
+def _nearest_beam(edges: np.ndarray, elevation: np.ndarray) -> np.ndarray:
+    """Beam owning each elevation (see :meth:`Sensor.beam_edges`), -1 outside them all."""
+    # edges descend; searchsorted wants ascending
+    k = np.searchsorted(-edges, -elevation, side="left") - 1
+    k[(elevation > edges[0]) | (elevation <= edges[-1])] = -1
+    return k.astype(np.int64)
+
+
+def _hdl64e() -> Sensor:
+    return Sensor(
+        elevations=np.radians(hdl64e_elevations_deg()),
+        offsets=None,
+        # a whole number of columns per turn, as the world's sweep fires them
+        azimuth_step=2.0 * math.pi / round(360.0 / 0.17),
+        name="hdl64e",
+    )
+
+
+#: Named sensors. ``hdl64e``: KITTI's Velodyne HDL-64E as the synthetic world models it.
+SENSOR_PRESETS = {"hdl64e": _hdl64e}
+
+
+def sensor_preset(name: str) -> Sensor:
+    """The :class:`Sensor` of preset ``name`` (see :data:`SENSOR_PRESETS`)."""
+    try:
+        return SENSOR_PRESETS[name]()
+    except KeyError:
+        raise ConfigError(
+            f"unknown sensor {name!r}; presets: {', '.join(sorted(SENSOR_PRESETS))}"
+        ) from None
