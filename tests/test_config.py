@@ -308,6 +308,7 @@ BAD_VALUES = {
     "drcpo.placement.occluded_fraction": 0,
     "drcpo.placement.camera_fov": "sometimes",
     "drcpo.self_occlusion.enabled": "true",
+    "drcpo.self_occlusion.mode": "raytrace",
     "drcpo.self_occlusion.radius_factor": 1e300,
     "drcpo.self_occlusion.min_points": 10**7,
     "drcpo.external_occlusion.enabled": None,

@@ -1075,3 +1075,20 @@ def test_drcpo_frame_grid_paths_give_the_plain_answer(kitti_world, config, monke
         np.testing.assert_array_equal(out.points, plain.points)
         np.testing.assert_array_equal(out.boxes, plain.boxes)
         np.testing.assert_array_equal(out.names, plain.names)
+
+
+
+def test_box_source_says_which_stage_added_each_box(synthetic_world):
+    """metadata["box_source"]: "" for the frame's boxes, then "gt_sampling", then "drcpo"."""
+    db, index, frames = synthetic_world
+    pipeline = build_pipeline("default", db, index=index)
+    out = pipeline(frames[0], np.random.default_rng(3))
+    sources = out.metadata["box_source"]
+    assert len(sources) == len(out.boxes)
+    counts = {s: int(np.count_nonzero(sources == s)) for s in ("", "gt_sampling", "drcpo")}
+    assert counts["gt_sampling"] > 0 and counts["drcpo"] > 0
+    assert sum(counts.values()) == len(sources)
+    stats = out.metadata["augment_stats"]["objects"]
+    assert counts["drcpo"] == sum(c["added"] for c in stats["drcpo"].values())
+    # each stage appends its boxes after the earlier ones
+    assert list(sources) == sorted(sources, key=["", "gt_sampling", "drcpo"].index)

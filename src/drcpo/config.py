@@ -68,9 +68,11 @@ from drcpo.placement import PlacementConfig
 
 __all__ = [
     "DETECTOR_PRESETS",
+    "EXTERNAL_OCCLUSION_MODES",
     "KITTI_CLASSES",
     "PIPELINES",
     "PRESETS",
+    "SELF_OCCLUSION_MODES",
     "AugmentConfig",
     "ConstructionConfig",
     "DRCPOConfig",
@@ -95,6 +97,8 @@ __all__ = [
 #: The detector presets (``drcpo/configs/<name>.yaml``) and their e-HPR settings: the one table,
 #: kept as data in :mod:`drcpo.occlusion.presets` (which the occlusion functions read too).
 DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
+SELF_OCCLUSION_MODES = ("hpr", "sensor")
+EXTERNAL_OCCLUSION_MODES = ("hpr", "range_image", "sensor")
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
 PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
 #: The preset whose e-HPR settings the paper defaults use.
@@ -220,6 +224,14 @@ class SelfOcclusionConfig(Checked):
     KEY_PATH = "drcpo.self_occlusion"
 
     enabled: bool = field(default=True, metadata=spec("bool"))
+    mode: str = field(
+        default="hpr",
+        metadata=spec(
+            "choice",
+            "hpr (the paper's s-HPR) or sensor (render the object through the sensor model)",
+            choices=SELF_OCCLUSION_MODES,
+        ),
+    )
     radius_factor: float = field(
         default=200.0,
         metadata=spec("float", "R = box diagonal x this", low=0.0, low_open=True, high=1e9),
@@ -239,7 +251,9 @@ class ExternalOcclusionConfig(Checked):
     mode: str = field(
         default="hpr",
         metadata=spec(
-            "choice", "hpr (the paper) or range_image (z-buffer)", choices=("hpr", "range_image")
+            "choice",
+            "hpr (the paper), range_image (z-buffer) or sensor (along the sensor's rays)",
+            choices=EXTERNAL_OCCLUSION_MODES,
         ),
     )
     preset: str = field(

@@ -24,11 +24,13 @@ from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.insertion import (
+    BOX_SOURCE,
     BoxQuery,
     placed_object,
     sampling_pools,
     take_rows,
     update_box_metadata,
+    with_box_sources,
 )
 from drcpo.transforms.work_queue import WorkQueue, result_if_done, spare_core
 
@@ -664,10 +666,11 @@ class DRCPO(Transform):
             ),
             names=np.concatenate([frame.names[kept_boxes], [i.name for i in kept]]),
             metadata=update_box_metadata(
-                frame.metadata,
+                with_box_sources(frame.metadata, len(frame.boxes)) if kept else frame.metadata,
                 len(frame.boxes),
                 keep=kept_boxes if drop_original.any() else None,
                 added=len(kept),
+                added_values={BOX_SOURCE: np.full(len(kept), "drcpo")},
             ),
         )
 

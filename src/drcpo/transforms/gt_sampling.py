@@ -14,12 +14,14 @@ from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.insertion import (
+    BOX_SOURCE,
     BoxQuery,
     placed_objects,
     road_plane_heights,
     sampling_pools,
     take_rows,
     update_box_metadata,
+    with_box_sources,
 )
 
 __all__ = ["GroundTruthSampling"]
@@ -155,7 +157,7 @@ class GroundTruthSampling(Transform):
         names = np.concatenate([frame.names, self.database.names[rows].astype(str)])
         db = self.database
         metadata = update_box_metadata(
-            frame.metadata,
+            with_box_sources(frame.metadata, len(frame.boxes)),
             len(frame.boxes),
             added=len(rows),
             added_values={
@@ -163,6 +165,7 @@ class GroundTruthSampling(Transform):
                 "occlusion": db.occlusion[rows],
                 "truncation": db.truncation[rows],
                 "num_points_in_gt": db.num_points[rows],
+                BOX_SOURCE: np.full(len(rows), "gt_sampling"),
             },
         )
         return frame.replace(

@@ -16,6 +16,7 @@ from drcpo.errors import DataError
 from drcpo.geometry import box_members, heading_terms, rows_in_box
 
 __all__ = [
+    "BOX_SOURCE",
     "PER_BOX_METADATA",
     "STALE_WHEN_BOXES_CHANGE",
     "BoxQuery",
@@ -26,6 +27,7 @@ __all__ = [
     "sampling_pools",
     "take_rows",
     "update_box_metadata",
+    "with_box_sources",
 ]
 
 
@@ -203,9 +205,24 @@ PER_BOX_METADATA: dict[str, Any] = {
     "occlusion": -1,
     "truncation": np.nan,
     "num_points_in_gt": -1,
+    "box_source": "",  # see BOX_SOURCE
 }
+#: Metadata key of a ``str (M,)`` array saying which stage added each box: ``""`` for the
+#: frame's own, ``"gt_sampling"``, ``"drcpo"`` (sensor-true occlusion treats every added box as
+#: an inserted object; benchmarks tell the boxes apart by it).
+BOX_SOURCE = "box_source"
 #: Metadata that describes the original boxes as a whole and is dropped once they change.
 STALE_WHEN_BOXES_CHANGE = ("labels",)
+
+
+def with_box_sources(metadata: Mapping[str, Any], num_boxes: int) -> dict[str, Any]:
+    """``metadata`` with a :data:`BOX_SOURCE` array for its ``num_boxes`` boxes (the frame's
+    own, ``""``, when it has none or one of another length)."""
+    out = dict(metadata)
+    value = out.get(BOX_SOURCE)
+    if value is None or np.ndim(value) != 1 or len(value) != num_boxes:
+        out[BOX_SOURCE] = np.full(num_boxes, "", dtype="<U11")
+    return out
 
 
 def update_box_metadata(
