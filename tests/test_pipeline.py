@@ -1077,7 +1077,6 @@ def test_drcpo_frame_grid_paths_give_the_plain_answer(kitti_world, config, monke
         np.testing.assert_array_equal(out.names, plain.names)
 
 
-
 def test_box_source_says_which_stage_added_each_box(synthetic_world):
     """metadata["box_source"]: "" for the frame's boxes, then "gt_sampling", then "drcpo"."""
     db, index, frames = synthetic_world
