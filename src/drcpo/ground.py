@@ -17,6 +17,9 @@ Method (over a bird's-eye-view grid; about a millisecond for a KITTI sweep):
    between the two, when it lies within ``fill_radius``; otherwise the plane's height.
 5. :meth:`GroundModel.height_at` interpolates the cell-centre heights bilinearly; queries
    outside the grid use the nearest edge cell with the same plane correction.
+   :meth:`GroundModel.observed_height_at` answers only where the frame saw the ground: in a
+   ground cell, from the ground cells among the four it interpolates between (no height
+   borrowed in step 4, no plane).
 
 The estimates sit slightly low (a cell's lowest point is about 1.5 noise sigmas below the mean
 surface, i.e. 2-4 cm for a Velodyne HDL-64E).
@@ -212,6 +215,36 @@ class GroundModel:
         )
         return out
 
+    def observed_height_at(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ground height where the frame observed the ground, at BEV positions ``(K, 2+)``.
+
+        Returns ``(heights float64 (K,), observed bool (K,))``: ``observed`` where the position
+        lies in a ground cell (one whose height came from its own points, see ``ground_cells``);
+        there ``heights`` is the bilinear interpolation of :meth:`height_at` over the ground
+        cells only among the four cell centres around the position (their weights renormalised;
+        the position's own cell weighs at least a quarter), so no height borrowed from a cell
+        metres away and no plane enters it. Elsewhere (other cells, outside the grid, a model
+        without a grid: plane, road plane or flat fallback) ``heights`` is NaN.
+        """
+        xy = _check_xy(xy)
+        heights = np.full(len(xy), np.nan)
+        observed = np.zeros(len(xy), dtype=bool)
+        if self.heights is None:
+            return heights, observed
+        _interpolate_observed(
+            xy,
+            self.heights,
+            self.ground_cells,
+            float(self.origin[0]),
+            float(self.origin[1]),
+            float(self.cell_size),
+            float(self.plane[0] * self.cell_size),
+            float(self.plane[1] * self.cell_size),
+            heights,
+            observed,
+        )
+        return heights, observed
+
     def is_ground(self, points: np.ndarray, tolerance: float = 0.2) -> np.ndarray:
         """``bool (N,)``: points at most ``tolerance`` metres above the ground estimate.
 
@@ -245,6 +278,36 @@ def _interpolate(xy, heights, x0, y0, cell_size, slope_x, slope_y, out):  # prag
         top = heights[hx, ly] * (1 - fy) + heights[hx, hy] * fy
         inside = bottom * (1 - fx) + top * fx
         out[k] = inside + (gx - cx) * slope_x + (gy - cy) * slope_y
+
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate_observed(
+    xy, heights, ground, x0, y0, cell_size, slope_x, slope_y, out, observed
+):  # pragma: no cover - numba
+    # As _interpolate, with the weights of non-ground corners dropped; only in ground cells.
+    nx, ny = heights.shape
+    for k in range(xy.shape[0]):
+        ux = (xy[k, 0] - x0) / cell_size
+        uy = (xy[k, 1] - y0) / cell_size
+        if not (0.0 <= ux < nx and 0.0 <= uy < ny):  # NaN fails too
+            continue
+        if not ground[min(int(ux), nx - 1), min(int(uy), ny - 1)]:
+            continue
+        gx, gy = ux - 0.5, uy - 0.5
+        cx = min(max(gx, 0.0), nx - 1.0)
+        cy = min(max(gy, 0.0), ny - 1.0)
+        lx = min(int(cx), max(nx - 2, 0))
+        ly = min(int(cy), max(ny - 2, 0))
+        fx, fy = cx - lx, cy - ly
+        hx, hy = min(lx + 1, nx - 1), min(ly + 1, ny - 1)
+        total = weight = 0.0
+        for i, wx in ((lx, 1.0 - fx), (hx, fx)):
+            for j, wy in ((ly, 1.0 - fy), (hy, fy)):
+                if ground[i, j]:
+                    total += wx * wy * heights[i, j]
+                    weight += wx * wy
+        out[k] = total / weight + (gx - cx) * slope_x + (gy - cy) * slope_y
+        observed[k] = True
 
 
 def road_plane_to_lidar(plane: np.ndarray, calib) -> np.ndarray:
