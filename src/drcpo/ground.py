@@ -19,7 +19,8 @@ Method (over a bird's-eye-view grid; about a millisecond for a KITTI sweep):
    outside the grid use the nearest edge cell with the same plane correction.
    :meth:`GroundModel.observed_height_at` answers only where the frame saw the ground: in a
    ground cell, from the ground cells among the four it interpolates between (no height
-   borrowed in step 4, no plane).
+   borrowed in step 4, no plane); optionally also between two scan rings, where ground cells
+   lie on the sensor's ray both before and beyond the position (``max_gap``).
 
 The estimates sit slightly low (a cell's lowest point is about 1.5 noise sigmas below the mean
 surface, i.e. 2-4 cm for a Velodyne HDL-64E).
@@ -215,7 +216,9 @@ class GroundModel:
         )
         return out
 
-    def observed_height_at(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def observed_height_at(
+        self, xy: np.ndarray, max_gap: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Ground height where the frame observed the ground, at BEV positions ``(K, 2+)``.
 
         Returns ``(heights float64 (K,), observed bool (K,))``: ``observed`` where the position
@@ -225,7 +228,16 @@ class GroundModel:
         the position's own cell weighs at least a quarter), so no height borrowed from a cell
         metres away and no plane enters it. Elsewhere (other cells, outside the grid, a model
         without a grid: plane, road plane or flat fallback) ``heights`` is NaN.
+
+        ``max_gap`` > 0 also bridges the gaps between scan rings (a 64-beam sensor's rings lie
+        about 2 m apart on the road at 20 m, 7 m at 40 m): a position in a cell without ground
+        counts as observed when, along its ray from the sensor (the BEV origin), ground cells
+        lie both nearer and farther within ``max_gap`` times its range; its height is then
+        interpolated linearly by distance between those two cells' heights. The farther ring
+        was seen over the gap, so nothing taller than that ray stands in it.
         """
+        if not (np.isfinite(max_gap) and max_gap >= 0):
+            raise DataError(f"max_gap must be a finite number >= 0, got {max_gap}")
         xy = _check_xy(xy)
         heights = np.full(len(xy), np.nan)
         observed = np.zeros(len(xy), dtype=bool)
@@ -243,6 +255,18 @@ class GroundModel:
             heights,
             observed,
         )
+        if max_gap > 0:
+            _bridge_rings(
+                xy,
+                self.heights,
+                self.ground_cells,
+                float(self.origin[0]),
+                float(self.origin[1]),
+                float(self.cell_size),
+                float(max_gap),
+                heights,
+                observed,
+            )
         return heights, observed
 
     def is_ground(self, points: np.ndarray, tolerance: float = 0.2) -> np.ndarray:
@@ -307,6 +331,44 @@ def _interpolate_observed(
                     total += wx * wy * heights[i, j]
                     weight += wx * wy
         out[k] = total / weight + (gx - cx) * slope_x + (gy - cy) * slope_y
+        observed[k] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_ground(
+    x, y, ux, uy, sign, reach, heights, ground, x0, y0, cell_size
+):  # pragma: no cover - numba
+    # The first ground cell along the ray (unit (ux, uy)) from (x, y), towards the sensor
+    # (sign -1) or away (+1), in half-cell steps up to reach: (distance, height) or (-1, 0).
+    nx, ny = ground.shape
+    step = cell_size / 2.0
+    t = step
+    while t <= reach:
+        i = math.floor((x + sign * ux * t - x0) / cell_size)
+        j = math.floor((y + sign * uy * t - y0) / cell_size)
+        if 0 <= i < nx and 0 <= j < ny and ground[i, j]:
+            return t, heights[i, j]
+        t += step
+    return -1.0, 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _bridge_rings(
+    xy, heights, ground, x0, y0, cell_size, max_gap, out, observed
+):  # pragma: no cover - numba
+    for k in range(xy.shape[0]):
+        x, y = xy[k, 0], xy[k, 1]
+        reach = max_gap * math.hypot(x, y)
+        if observed[k] or not reach > 0:  # NaN too
+            continue
+        ux, uy = x / math.hypot(x, y), y / math.hypot(x, y)
+        near, near_z = _ray_ground(x, y, ux, uy, -1.0, reach, heights, ground, x0, y0, cell_size)
+        if near < 0:
+            continue
+        far, far_z = _ray_ground(x, y, ux, uy, 1.0, reach, heights, ground, x0, y0, cell_size)
+        if far < 0:
+            continue
+        out[k] = (near_z * far + far_z * near) / (near + far)
         observed[k] = True
 
 

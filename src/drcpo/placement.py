@@ -53,7 +53,7 @@ import numpy as np
 from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
 from drcpo.frame import Frame
-from drcpo.geometry import bev_corners, box_members, heading_terms, in_box
+from drcpo.geometry import box_members, heading_terms, in_box
 from drcpo.ground import GroundModel
 
 __all__ = [
@@ -83,7 +83,7 @@ _FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first ten fields.
+    section ``drcpo.placement``, whose keys are the first eleven fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -94,6 +94,10 @@ class PlacementConfig(Checked):
         attempts: poses tried per object.
         max_slope: with ``"observed"``: most ground rise over the footprint's diagonal
             (the spread of the five sampled heights over the diagonal; 0.1 = 5.7 degrees).
+        ground_gap: with ``"observed"``: a sampled point in a cell without ground still
+            stands on observed ground between two scan rings, when ground cells lie on its
+            sensor ray nearer and farther within this share of its range (``max_gap`` of
+            :meth:`drcpo.ground.GroundModel.observed_height_at`; 0: its own cell only).
         max_attempts_per_frame: poses tried in all per call, over every object (``None``: no
             cap); a count, not a time budget, so that the same seed gives the same output.
         occluded_fraction: for the caller's occlusion test (``occluded`` of
@@ -147,6 +151,17 @@ class PlacementConfig(Checked):
             'height "observed": most ground rise under a footprint over its diagonal',
             low=0.0,
             high=10.0,
+        ),
+    )
+    ground_gap: float = field(
+        default=0.3,
+        metadata=spec(
+            "float",
+            'height "observed": a footprint point between scan rings stands on observed ground '
+            "when ground cells lie on its sensor ray before and beyond it within this share of "
+            "its range (0: its own cell only)",
+            low=0.0,
+            high=1.0,
         ),
     )
     max_attempts_per_frame: int | None = field(
@@ -328,10 +343,7 @@ class PlacementRounds:
         if ground is None:
             ground = frame_ground(frame)
         observed = config.height == "observed"
-        # One round (the paper) tests the frame's points once; more rounds index them first.
-        self._obstacles = _Obstacles(
-            frame.points, ground, config.ground_tolerance, observed, config.attempts > 1
-        )
+        self._obstacles = _Obstacles(frame.points, ground, config.ground_tolerance, observed)
         self._placed = np.full((len(dims), 7), np.nan)
         # 0: placed, else 1 + REASONS index; "budget" until an object gets its first pose
         self._verdicts = np.full(len(dims), _BUDGET, dtype=np.int64)
@@ -444,9 +456,7 @@ def _judge(
     verdict[live[hit]] = _COLLISION
     live = live[~hit]
     if config.height == "observed":
-        boxes[live, 2], standing = _on_observed_ground(
-            boxes[live], obstacles.ground, config.max_slope
-        )
+        boxes[live, 2], standing = _on_observed_ground(boxes[live], obstacles.ground, config)
         verdict[live] = standing
         live = live[standing == 0]
     own = boxes[live]
@@ -464,20 +474,24 @@ def _judge(
 
 
 def _on_observed_ground(
-    boxes: np.ndarray, ground: GroundModel, max_slope: float
+    boxes: np.ndarray, ground: GroundModel, config: PlacementConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each box's centre z standing on the observed ground (``float64 (L,)``, NaN where it
     cannot) and its verdict (``int64 (L,)``: 0, ``_NO_GROUND`` or ``_SLOPE``), from the
     ground under the four corners and the centre of the ``(L, 7)`` footprints."""
-    samples = np.concatenate([bev_corners(boxes), boxes[:, None, :2]], axis=1)
-    heights, seen = ground.observed_height_at(samples.reshape(-1, 2))
-    heights = heights.reshape(-1, 5)
+    cos, sin = heading_terms(boxes)
+    along = _CORNERS[:, 0] * boxes[:, 3:4]  # (L, 4) corner offsets in the box frame
+    across = _CORNERS[:, 1] * boxes[:, 4:5]
+    samples = np.empty((len(boxes), 5, 2))
+    samples[:, :4, 0] = boxes[:, 0:1] + (cos[:, None] * along - sin[:, None] * across)
+    samples[:, :4, 1] = boxes[:, 1:2] + (sin[:, None] * along + cos[:, None] * across)
+    samples[:, 4] = boxes[:, :2]
+    heights, seen = ground.observed_height_at(samples.reshape(-1, 2), config.ground_gap)
+    heights = np.sort(heights.reshape(-1, 5), axis=1)  # NaN last
     seen = seen.reshape(-1, 5).all(axis=1)
-    heights[~seen] = 0.0  # rejected below; keeps NaN out of the reductions
-    spread = heights.max(axis=1) - heights.min(axis=1)
-    steep = spread > max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
+    steep = heights[:, 4] - heights[:, 0] > config.max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
     verdict = np.where(seen, np.where(steep, _SLOPE, 0), _NO_GROUND).astype(np.int64)
-    z = np.median(heights, axis=1) + boxes[:, 5] / 2.0
+    z = heights[:, 2] + boxes[:, 5] / 2.0  # the median
     z[verdict != 0] = np.nan
     return z, verdict
 
@@ -485,14 +499,14 @@ def _on_observed_ground(
 class _Obstacles:
     """Counts of non-ground frame points in candidate boxes.
 
-    Unindexed (one round): the points in each box are found in one pass over the frame (a
-    coarse BEV grid of the boxes' bounding squares, see :func:`drcpo.geometry.box_members`);
-    only those are tested against the ground, with :meth:`GroundModel.is_ground`. Indexed
-    (several rounds, and always with ``observed``): on the first count the frame's non-ground
-    candidates are tested once and sorted into 1 m BEV cells, and each box then tests only
-    the candidates of the cells under it; the counts are the same. With ``observed`` a point
-    is non-ground when above the observed ground at it plus ``tolerance``, or, where its cell
-    observed no ground, above the box's bottom plus ``tolerance``.
+    The points in each box are found with a coarse BEV grid: for the first rounds in one pass
+    over the frame each (:func:`drcpo.geometry.box_members`); from round ``_INDEX_AFTER`` on
+    (a frame that needs many rounds) the frame's points are sorted once into 1 m cells
+    (about five such passes) and each box visits only the cells under it: the same pairs,
+    so the same counts. Only those points are tested against the ground, with
+    :meth:`GroundModel.is_ground`. With ``observed`` a point is non-ground when it lies more
+    than ``tolerance`` above the observed ground at it, or, where its cell observed no ground,
+    above the box's bottom (:meth:`GroundModel.observed_height_at`).
     """
 
     def __init__(
@@ -501,85 +515,98 @@ class _Obstacles:
         ground: GroundModel,
         tolerance: float,
         observed: bool = False,
-        indexed: bool = False,
     ) -> None:
         self.points = points
         self.ground = ground
         self.tolerance = tolerance
         self.observed = observed
-        self.indexed = indexed or observed
         self._index: tuple | None = None
+        self._calls = 0
 
     def count(self, boxes: np.ndarray) -> np.ndarray:
         """Non-ground frame points inside each of ``boxes`` ``(M, 7)``: ``int64 (M,)``."""
         if len(boxes) == 0 or len(self.points) == 0:
             return np.zeros(len(boxes), dtype=np.int64)
-        if self.indexed:
-            if self._index is None:
-                self._index = self._build_index()
-            out = np.zeros(len(boxes), dtype=np.int64)
-            boxes = np.ascontiguousarray(boxes, dtype=np.float64)
-            _count_indexed(*self._index, boxes, *heading_terms(boxes), self.tolerance, out)
-            return out
-        point, box = box_members(self.points, boxes)
-        above = ~self.ground.is_ground(self.points.take(point, axis=0), self.tolerance)
+        point, box = self.members(boxes)
+        inside = self.points.take(point, axis=0)
+        if self.observed:
+            heights, seen = self.ground.observed_height_at(inside[:, :2])
+            bottom = boxes[box, 2] - boxes[box, 5] / 2.0
+            above = inside[:, 2] > np.where(seen, heights, bottom) + self.tolerance
+        else:
+            above = ~self.ground.is_ground(inside, self.tolerance)
         return np.bincount(box[above], minlength=len(boxes)).astype(np.int64)
 
-    def _build_index(self) -> tuple:
-        """The candidates' ``float64 (C, 3)`` xyz sorted by cell, their rule ``float64 (C,)``
-        (-inf: counted in any box; NaN: only above the box bottom + tolerance), the cells'
-        first candidates ``int64 (nx * ny + 1,)`` and the grid (x0, y0, per metre, nx, ny)."""
-        points = self.points
-        if self.observed:
-            heights, seen = self.ground.observed_height_at(points[:, :2])
-            candidate = ~(seen & (points[:, 2] <= heights + self.tolerance))
-            rule = np.where(seen, -np.inf, np.nan)
-        else:
-            candidate = ~self.ground.is_ground(points, self.tolerance)
-            rule = np.full(len(points), -np.inf)
-        xyz = points[:, :3].astype(np.float64)
-        candidate &= np.isfinite(xyz[:, :2]).all(axis=1)
-        xyz, rule = xyz[candidate], rule[candidate]
-        if len(xyz) == 0:
-            return xyz, rule, np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
-        x0, y0 = xyz[:, 0].min(), xyz[:, 1].min()
-        extent = max(xyz[:, 0].max() - x0, xyz[:, 1].max() - y0)
-        per_metre = 1.0 / max(1.0, extent / _INDEX_CELLS)
-        nx = int((xyz[:, 0].max() - x0) * per_metre) + 1
-        ny = int((xyz[:, 1].max() - y0) * per_metre) + 1
-        order, start = _sort_into_cells(xyz, float(x0), float(y0), per_metre, nx, ny)
-        return xyz[order], rule[order], start, float(x0), float(y0), per_metre, nx, ny
+    def members(self, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(point, box)`` ``int64`` pairs of frame points inside ``(M, 7)`` boxes."""
+        self._calls += 1
+        if self._calls < _INDEX_AFTER:
+            return box_members(self.points, boxes)
+        if self._index is None:
+            self._index = _index_points(self.points)
+        boxes = np.ascontiguousarray(boxes, dtype=np.float64)
+        return _indexed_members(*self._index, boxes, *heading_terms(boxes))
 
 
-_INDEX_CELLS = 512  # most index cells along x or y (cells of 1 m, larger for huge frames)
+_CORNERS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # as bev_corners
+_INDEX_AFTER = 3  # the round from which the frame's points are indexed
+_INDEX_CELLS = 512  # most index cells along x or y (1 m cells, larger for a huge frame)
+
+
+def _index_points(points: np.ndarray) -> tuple:
+    """The finite-(x, y) points' ``float64 (C, 3)`` xyz sorted by 1 m BEV cell, their rows,
+    each cell's first slot ``int64 (nx * ny + 1,)`` and the grid: x0, y0, cells per metre,
+    nx, ny."""
+    points = np.asarray(points)
+    if points.dtype not in (np.float32, np.float64):
+        points = points.astype(np.float64)
+    return _sort_into_cells(points, _INDEX_CELLS)
 
 
 @numba.njit(cache=True, nogil=True)
-def _sort_into_cells(xyz, x0, y0, per_metre, nx, ny):  # pragma: no cover - numba
-    # Counting sort by BEV cell (stable): the order and each cell's first slot.
-    cells = np.empty(xyz.shape[0], np.int64)
+def _sort_into_cells(points, max_cells):  # pragma: no cover - numba
+    # One pass for the bounds, two for a counting sort by cell (stable).
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    for i in range(points.shape[0]):
+        x, y = np.float64(points[i, 0]), np.float64(points[i, 1])
+        if np.isfinite(x) and np.isfinite(y):
+            x0, x1, y0, y1 = min(x0, x), max(x1, x), min(y0, y), max(y1, y)
+    if not x0 <= x1:
+        return np.empty((0, 3)), np.empty(0, np.int64), np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
+    per_metre = 1.0 / max(1.0, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
+    nx, ny = int((x1 - x0) * per_metre) + 1, int((y1 - y0) * per_metre) + 1
+    cells = np.full(points.shape[0], -1, np.int64)
     start = np.zeros(nx * ny + 1, np.int64)
-    for i in range(xyz.shape[0]):
-        cx = min(int((xyz[i, 0] - x0) * per_metre), nx - 1)
-        cy = min(int((xyz[i, 1] - y0) * per_metre), ny - 1)
-        cells[i] = cx * ny + cy
-        start[cells[i] + 1] += 1
+    for i in range(points.shape[0]):
+        x, y = np.float64(points[i, 0]), np.float64(points[i, 1])
+        if np.isfinite(x) and np.isfinite(y):
+            cell = min(int((x - x0) * per_metre), nx - 1) * ny
+            cells[i] = cell + min(int((y - y0) * per_metre), ny - 1)
+            start[cells[i] + 1] += 1
     for c in range(nx * ny):
         start[c + 1] += start[c]
     fill = start[:-1].copy()
-    order = np.empty(xyz.shape[0], np.int64)
-    for i in range(xyz.shape[0]):
-        order[fill[cells[i]]] = i
-        fill[cells[i]] += 1
-    return order, start
+    xyz = np.empty((start[nx * ny], 3))
+    rows = np.empty(start[nx * ny], np.int64)
+    for i in range(points.shape[0]):
+        if cells[i] >= 0:
+            k = fill[cells[i]]
+            xyz[k, 0], xyz[k, 1], xyz[k, 2] = points[i, 0], points[i, 1], points[i, 2]
+            rows[k] = i
+            fill[cells[i]] += 1
+    return xyz, rows, start, x0, y0, per_metre, nx, ny
 
 
 @numba.njit(cache=True, nogil=True)
-def _count_indexed(
-    xyz, rule, start, x0, y0, per_metre, nx, ny, boxes, cos, sin, tolerance, out
+def _indexed_members(
+    xyz, rows, start, x0, y0, per_metre, nx, ny, boxes, cos, sin
 ):  # pragma: no cover - numba
-    # Per box, the candidates of the cells its BEV bounds cover (with the slack of
+    # Per box, the points of the cells its BEV bounds cover (with the slack of
     # geometry.box_members, so that rounding never drops a point inside), tested exactly.
+    found_point = np.empty(64, np.int64)
+    found_box = np.empty(64, np.int64)
+    found = 0
     for m in range(boxes.shape[0]):
         c, s = abs(cos[m]), abs(sin[m])
         reach_x = (boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 * (1.0 + 1e-9) + 1e-6
@@ -588,19 +615,22 @@ def _count_indexed(
         i1 = min(math.floor((boxes[m, 0] + reach_x - x0) * per_metre), nx - 1)
         j0 = max(math.floor((boxes[m, 1] - reach_y - y0) * per_metre), 0)
         j1 = min(math.floor((boxes[m, 1] + reach_y - y0) * per_metre), ny - 1)
-        limit = (boxes[m, 2] - boxes[m, 5] / 2.0) + tolerance
-        found = 0
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                for k in range(start[i * ny + j], start[i * ny + j + 1]):
-                    if in_box(
-                        xyz[k, 0], xyz[k, 1], xyz[k, 2],
-                        boxes[m, 0], boxes[m, 1], boxes[m, 2],
-                        boxes[m, 3], boxes[m, 4], boxes[m, 5],
-                        cos[m], sin[m], 0.0,
-                    ) and (not np.isnan(rule[k]) or xyz[k, 2] > limit):  # fmt: skip
-                        found += 1
-        out[m] = found
+        if j0 > j1:
+            continue
+        for i in range(i0, i1 + 1):  # a row's cells j0..j1 are one run of slots
+            for k in range(start[i * ny + j0], start[i * ny + j1 + 1]):
+                if in_box(
+                    xyz[k, 0], xyz[k, 1], xyz[k, 2],
+                    boxes[m, 0], boxes[m, 1], boxes[m, 2],
+                    boxes[m, 3], boxes[m, 4], boxes[m, 5],
+                    cos[m], sin[m], 0.0,
+                ):  # fmt: skip
+                    if found == found_point.shape[0]:
+                        found_point = np.concatenate((found_point, np.empty_like(found_point)))
+                        found_box = np.concatenate((found_box, np.empty_like(found_box)))
+                    found_point[found], found_box[found] = rows[k], m
+                    found += 1
+    return found_point[:found].copy(), found_box[:found].copy()
 
 
 def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
