@@ -6,11 +6,11 @@ view: every footprint corner at an azimuth ``|atan2(y, x)| <= fov_half_angle``; 
 sees about 41 degrees to each side). The box bottom is put on the ground estimated from the
 frame's own points (``height="ground"``), or the box keeps its source height (``"source"``, the
 reference implementation), or it stands on the ground the frame observed under its footprint
-(``"observed"``): the footprint's four corners and centre (the footprint grown by the
-clearance) must lie on ground cells (:meth:`drcpo.ground.GroundModel.observed_height_at`, no
-height borrowed from cells metres away, no plane), and the bottom goes to the median of those
-five heights: on a plane the median is the centre's height (the corners pair around it), and
-unlike the mean it ignores one corner on a kerb or a low noise cell.
+(``"observed"``): the footprint's four corners and centre (with the clearance) must lie on
+ground cells or between two scan rings on their sensor ray (``ground_gap``; see
+:meth:`drcpo.ground.GroundModel.observed_height_at`: no height borrowed from cells metres away,
+no plane); the bottom goes to the median of the five heights: on a plane it is the centre's
+height (the corners pair around it), and unlike the mean it ignores one corner on a kerb.
 
 A placement is rejected, for one reason counted per attempt, when
 
@@ -39,7 +39,7 @@ depend on the machine's speed, and the same seed must give the same output.
 The hot loops are numba kernels that reproduce the reference numpy arithmetic operation for
 operation (same boxes, same verdicts, bit for bit): collisions are a separating-axis test
 (:func:`bev_collisions`, interiors intersect exactly when the overlap area is positive), the
-points in each box come from one pass with a coarse cell index (:func:`box_members`).
+points in each box come from a coarse cell index (:func:`box_members`, see ``_Obstacles``).
 """
 
 from __future__ import annotations
@@ -94,10 +94,8 @@ class PlacementConfig(Checked):
         attempts: poses tried per object.
         max_slope: with ``"observed"``: most ground rise over the footprint's diagonal
             (the spread of the five sampled heights over the diagonal; 0.1 = 5.7 degrees).
-        ground_gap: with ``"observed"``: a sampled point in a cell without ground still
-            stands on observed ground between two scan rings, when ground cells lie on its
-            sensor ray nearer and farther within this share of its range (``max_gap`` of
-            :meth:`drcpo.ground.GroundModel.observed_height_at`; 0: its own cell only).
+        ground_gap: with ``"observed"``: bridge the gaps between scan rings up to this share
+            of the range (``max_gap`` of :meth:`drcpo.ground.GroundModel.observed_height_at`).
         max_attempts_per_frame: poses tried in all per call, over every object (``None``: no
             cap); a count, not a time budget, so that the same seed gives the same output.
         occluded_fraction: for the caller's occlusion test (``occluded`` of
@@ -499,26 +497,16 @@ def _on_observed_ground(
 class _Obstacles:
     """Counts of non-ground frame points in candidate boxes.
 
-    The points in each box are found with a coarse BEV grid: for the first rounds in one pass
-    over the frame each (:func:`drcpo.geometry.box_members`); from round ``_INDEX_AFTER`` on
-    (a frame that needs many rounds) the frame's points are sorted once into 1 m cells
-    (about five such passes) and each box visits only the cells under it: the same pairs,
-    so the same counts. Only those points are tested against the ground, with
-    :meth:`GroundModel.is_ground`. With ``observed`` a point is non-ground when it lies more
-    than ``tolerance`` above the observed ground at it, or, where its cell observed no ground,
-    above the box's bottom (:meth:`GroundModel.observed_height_at`).
+    The points in each box: in the first rounds one pass over the frame each
+    (:func:`drcpo.geometry.box_members`); from round ``_INDEX_AFTER`` on, the points sorted
+    once into 1 m cells (about five passes' time), each box visiting only the cells under it
+    (the same pairs). Only those are tested against the ground (:meth:`GroundModel.is_ground`;
+    with ``observed``: more than ``tolerance`` above the observed ground at the point, or above
+    the box's bottom where its cell observed none, :meth:`GroundModel.observed_height_at`).
     """
 
-    def __init__(
-        self,
-        points: np.ndarray,
-        ground: GroundModel,
-        tolerance: float,
-        observed: bool = False,
-    ) -> None:
-        self.points = points
-        self.ground = ground
-        self.tolerance = tolerance
+    def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float, observed=False):
+        self.points, self.ground, self.tolerance = points, ground, tolerance
         self.observed = observed
         self._index: tuple | None = None
         self._calls = 0
@@ -543,7 +531,7 @@ class _Obstacles:
         if self._calls < _INDEX_AFTER:
             return box_members(self.points, boxes)
         if self._index is None:
-            self._index = _index_points(self.points)
+            self._index = _sort_into_cells(np.asarray(self.points), _INDEX_CELLS)
         boxes = np.ascontiguousarray(boxes, dtype=np.float64)
         return _indexed_members(*self._index, boxes, *heading_terms(boxes))
 
@@ -553,19 +541,10 @@ _INDEX_AFTER = 3  # the round from which the frame's points are indexed
 _INDEX_CELLS = 512  # most index cells along x or y (1 m cells, larger for a huge frame)
 
 
-def _index_points(points: np.ndarray) -> tuple:
-    """The finite-(x, y) points' ``float64 (C, 3)`` xyz sorted by 1 m BEV cell, their rows,
-    each cell's first slot ``int64 (nx * ny + 1,)`` and the grid: x0, y0, cells per metre,
-    nx, ny."""
-    points = np.asarray(points)
-    if points.dtype not in (np.float32, np.float64):
-        points = points.astype(np.float64)
-    return _sort_into_cells(points, _INDEX_CELLS)
-
-
 @numba.njit(cache=True, nogil=True)
 def _sort_into_cells(points, max_cells):  # pragma: no cover - numba
-    # One pass for the bounds, two for a counting sort by cell (stable).
+    # The finite-(x, y) points' xyz sorted by BEV cell (a stable counting sort), their rows,
+    # each cell's first slot and the grid: x0, y0, cells per metre, nx, ny.
     x0 = y0 = np.inf
     x1 = y1 = -np.inf
     for i in range(points.shape[0]):
