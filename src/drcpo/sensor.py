@@ -284,9 +284,8 @@ def estimate_sensor(points: np.ndarray, base: Sensor | None = None) -> Sensor:
             f"sensor auto: {used} of {len(x)} points{sampled} lie {_NEAR} m or more from the "
             f"sensor; at least {_MIN_POINTS} are needed to estimate its beams"
         )
-    slope = z / np.maximum(horizontal, 1e-6)
-    starts = _ring_starts(azimuth, slope, horizontal >= _FAR)
-    beams = None if starts is None else _fit_rings(z, horizontal, starts)
+    slope = z / np.maximum(horizontal, _NEAR)  # bounded for the returns off the car itself
+    beams = _ring_beams(azimuth, slope, z, horizontal)
     if beams is not None:
         elevations, offsets = beams
         # successive firings: a stretch of the scan as recorded (a few rings' worth)
@@ -348,18 +347,27 @@ def _turned(azimuth: np.ndarray, start: float) -> np.ndarray:
     return turned
 
 
-def _ring_starts(azimuth: np.ndarray, slope: np.ndarray, far: np.ndarray) -> np.ndarray | None:
-    """Index of each ring's first point in scan order (``int64 (R + 1,)``, the last entry
-    ``N``), or ``None`` when the order shows no ring structure.
+def _ring_beams(
+    azimuth: np.ndarray, slope: np.ndarray, z: np.ndarray, horizontal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Elevations and origin heights of the rings of a frame in scan order (see
+    :func:`_fit_rings`), or ``None`` when the order shows no ring structure.
 
     Cut anywhere, the sweep falls into whole turns; the rings' own start (KITTI's near 0, the
-    synthetic world's at -180 degrees) is where, in most turns, the points' elevation
-    (``slope`` = z / d of the ``far`` returns) jumps from one ring to the next.
+    synthetic world's at -180 degrees) is where the points' elevation (``slope`` = z / d)
+    changes from one ring to the next in every turn. An object spanning all the rings can do
+    that too, so of the few best such places the one whose rings fit their lines best wins.
     """
     turns = _cut_rings(azimuth, -math.pi)
     if turns is None:
         return None
-    return _cut_rings(azimuth, _sweep_start(azimuth, slope, far, turns) - 1e-6)
+    best, best_fit = None, 0.0
+    for start in _sweep_starts(azimuth, slope, turns):
+        starts = _cut_rings(azimuth, start - 1e-6)
+        fitted = None if starts is None else _fit_rings(z, horizontal, starts)
+        if fitted is not None and fitted[2] > best_fit:
+            best, best_fit = fitted[:2], fitted[2]
+    return best
 
 
 def _cut_rings(azimuth: np.ndarray, start: float) -> np.ndarray | None:
@@ -381,33 +389,49 @@ def _cut_rings(azimuth: np.ndarray, start: float) -> np.ndarray | None:
     return starts
 
 
-def _sweep_start(
-    azimuth: np.ndarray, slope: np.ndarray, far: np.ndarray, turns: np.ndarray
-) -> float:
-    """Azimuth (radians) where the rings start: of the 1-degree bins of the turns ``turns``
-    (cut at -180 degrees), the one whose mean elevation differs from the bin before it by most,
-    in the median over the turns."""
-    turn = np.repeat(np.arange(len(turns) - 1), np.diff(turns))[far]
+def _sweep_starts(azimuth: np.ndarray, slope: np.ndarray, turns: np.ndarray) -> list[float]:
+    """Azimuths (radians) where the rings may start, best first: of the 1-degree bins of the
+    turns ``turns`` (cut at -180 degrees), the (at most 3, 5 degrees apart) where the most
+    turns change their mean elevation (over the 3 degrees after it against the 3 degrees
+    before it): an object's edge changes it in the rings that meet the object, a new ring in
+    all of them."""
+    turn = np.repeat(np.arange(len(turns) - 1), np.diff(turns))
     column = np.minimum(
-        (_turned(azimuth[far], -math.pi) * (_START_BINS / (2.0 * math.pi))).astype(np.int64),
+        (_turned(azimuth, -math.pi) * (_START_BINS / (2.0 * math.pi))).astype(np.int64),
         _START_BINS - 1,
     )
     cell = turn * _START_BINS + column
     size = (len(turns) - 1) * _START_BINS
-    count = np.bincount(cell, minlength=size)
-    mean = np.bincount(cell, weights=slope[far], minlength=size) / np.maximum(count, 1)
-    # An empty bin takes the mean of the last one with points (the sweep passed it unseen).
-    filled = np.maximum.accumulate(np.where(count > 0, np.arange(size), 0))
-    jump = np.abs(np.diff(mean[filled], prepend=mean[filled[0]])).reshape(-1, _START_BINS)
-    score = np.median(jump, axis=0)
-    return -math.pi + float(np.argmax(score)) * (2.0 * math.pi / _START_BINS)
+    total = np.concatenate([[0.0], np.cumsum(np.bincount(cell, weights=slope, minlength=size))])
+    count = np.concatenate([[0], np.cumsum(np.bincount(cell, minlength=size))])
+    here = np.arange(size)
+    before, after = np.maximum(here - 3, 0), np.minimum(here + 3, size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_before = (total[here] - total[before]) / (count[here] - count[before])
+        mean_after = (total[after] - total[here]) / (count[after] - count[here])
+    change = np.abs(mean_after - mean_before).reshape(-1, _START_BINS)
+    seen = ~np.isnan(change)
+    # the share of turns (with returns there) whose elevation changes by over 0.1 degree;
+    # the mean change (capped, in z / d) breaks ties
+    change = np.where(seen, change, 0.0)
+    turns_seen = np.maximum(seen.sum(axis=0), 1)
+    share = (change > math.radians(0.1)).sum(axis=0) / turns_seen
+    score = share + np.minimum(change, 0.01).sum(axis=0) / turns_seen
+    chosen: list[int] = []
+    for b in np.argsort(-score, kind="stable")[:20].tolist():
+        if score[b] < 0.9 * score.max() or len(chosen) == 3:
+            break
+        if all(min(abs(b - c), _START_BINS - abs(b - c)) >= 5 for c in chosen):
+            chosen.append(b)
+    return [-math.pi + b * (2.0 * math.pi / _START_BINS) for b in chosen]
 
 
 def _fit_rings(
     z: np.ndarray, horizontal: np.ndarray, starts: np.ndarray
-) -> tuple[np.ndarray, np.ndarray] | None:
+) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Per ring, the elevation (radians) and origin height (metres) of ``z = d tan(e) + h``
-    fitted robustly; ``None`` when the fits say the rings are not beams.
+    fitted robustly, and the share of the returns that fit their ring's line; ``None`` when
+    the fits say the rings are not beams.
 
     The fit is linear in ``z / d = tan(e) + h / d``, so each point counts by its angular
     error; a weak pull draws ``h`` to the other rings' when the ring's returns span too few
@@ -438,12 +462,13 @@ def _fit_rings(
         tan_e, height, spread = _line_fit(x, y, first, inlier, prior)
         determined = spread > 10.0 * _PRIOR
         prior = float(np.median(height[determined])) if determined.any() else 0.0
-    if inlier.mean() < 0.5:
+    share = float(inlier.mean())
+    if share < 0.5:
         return None  # most returns fit no ring's line: these are not beams
     elevations = np.arctan(tan_e)
     if len(np.unique(np.round(np.degrees(elevations), 2))) < len(elevations):
         return None  # two rings at one elevation: the order cut a beam in pieces
-    return elevations, height
+    return elevations, height, share
 
 
 def _ring_mode(y: np.ndarray, ring: np.ndarray, rings: int, far: np.ndarray) -> np.ndarray:
@@ -522,7 +547,10 @@ def _histogram_beams(z: np.ndarray, horizontal: np.ndarray) -> tuple[np.ndarray,
     window = 12
     padded = np.pad(smooth, window)
     local = np.lib.stride_tricks.sliding_window_view(padded, 2 * window + 1).max(axis=1)
-    peaks = np.flatnonzero((smooth == local) & (smooth >= max(8.0, 0.02 * smooth.max())))
+    # ... and stands well above the returns between the beams
+    floor = np.median(np.lib.stride_tricks.sliding_window_view(padded, 2 * window + 1), axis=1)
+    tall = (smooth >= max(8.0, 0.02 * smooth.max())) & (smooth >= 4.0 * (floor + 1.0))
+    peaks = np.flatnonzero((smooth == local) & tall)
     if len(peaks) == 0:
         raise DataError("sensor auto: the points' elevations show no beams")
     peaks = peaks[np.concatenate([[True], np.diff(peaks) > window])]  # one bin per flat top
