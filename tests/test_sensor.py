@@ -276,6 +276,18 @@ def test_auto_finds_where_the_rings_start(synthetic_frames, start_deg):
     _assert_recovers(estimate_sensor(reordered), config, sweep)
 
 
+def test_auto_tries_the_other_ring_starts_when_the_best_fits_badly(synthetic_frames, monkeypatch):
+    """An object spanning every ring can look like the rings' start; the cut whose rings fit
+    their lines wins then."""
+    import drcpo.sensor as sensor_module
+
+    config, sweep = synthetic_frames[0]
+    found = sensor_module._sweep_starts
+    wrong = [math.radians(-100.0), math.radians(40.0)]
+    monkeypatch.setattr(sensor_module, "_sweep_starts", lambda *args: [*wrong, *found(*args)][:3])
+    _assert_recovers(estimate_sensor(sweep.points), config, sweep)
+
+
 @pytest.mark.parametrize("index", [0, 2, 3])
 def test_auto_falls_back_on_the_elevation_histogram_for_shuffled_points(synthetic_frames, index):
     config, sweep = synthetic_frames[index]
