@@ -16,6 +16,7 @@ import functools
 import math
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 
 from drcpo.config_fields import Checked, spec
@@ -147,12 +148,14 @@ class Sensor:
         beams whose elevation band (:meth:`beam_edges`) holds it, the one whose elevation it is
         nearest; -1 when no band does. Without offsets this is the band it lies in.
         """
-        xyz = np.asarray(points)[:, :3].astype(np.float64) - self.mount
-        horizontal = np.hypot(xyz[:, 0], xyz[:, 1])
-        beam = self._beams(xyz[:, 2], horizontal)
-        azimuth = np.arctan2(xyz[:, 1], xyz[:, 0]) - self.phase
+        points = np.asarray(points)
+        x, y, z = (points[:, i].astype(np.float64) - self.mount[i] for i in range(3))
+        squared = x * x + y * y
+        horizontal = np.sqrt(squared)
+        beam = self._beams(z, horizontal)
+        azimuth = np.arctan2(y, x) - self.phase
         column = np.floor(azimuth / self.azimuth_step + 0.5).astype(np.int64) % self.num_columns
-        return beam, column, np.linalg.norm(xyz, axis=1)
+        return beam, column, np.sqrt(squared + z * z)
 
     def _beams(self, z: np.ndarray, horizontal: np.ndarray) -> np.ndarray:
         """Beam of each point (see :meth:`cells`) from its height ``z`` over the mount and
@@ -161,21 +164,8 @@ class Sensor:
         low, high = float(self.offsets.min()), float(self.offsets.max())
         if low == high:
             return _nearest_beam(edges, np.arctan2(z - low, horizontal))
-        # Only beams between these two can hold a point: seen from any beam's origin its
-        # elevation lies between the views from the lowest and from the highest origin.
-        first = np.maximum(_band(edges, np.arctan2(z - low, horizontal)), 0)
-        last = np.minimum(_band(edges, np.arctan2(z - high, horizontal)), self.num_beams - 1)
-        beam = np.full(len(z), -1, dtype=np.int64)
-        best = np.full(len(z), np.inf)
-        rows = np.flatnonzero(first <= last)
-        for step in range(int((last - first).max(initial=-1)) + 1):
-            rows = rows[first[rows] + step <= last[rows]]
-            candidate = first[rows] + step
-            own = np.arctan2(z[rows] - self.offsets[candidate], horizontal[rows])
-            miss = np.abs(own - self.elevations[candidate])
-            better = (own > edges[candidate + 1]) & (own <= edges[candidate]) & (miss < best[rows])
-            beam[rows[better]] = candidate[better]
-            best[rows[better]] = miss[better]
+        beam = np.empty(len(z), dtype=np.int64)
+        _own_origin_beams(z, horizontal, self.offsets, self.elevations, edges, beam)
         return beam
 
     def ray_directions(self, beam: np.ndarray, column: np.ndarray) -> np.ndarray:
@@ -205,6 +195,39 @@ def _nearest_beam(edges: np.ndarray, elevation: np.ndarray) -> np.ndarray:
     k = _band(edges, elevation)
     k[k >= len(edges) - 1] = -1
     return k
+
+
+@nb.njit(cache=True, nogil=True)
+def _own_origin_beams(z, horizontal, offsets, elevations, edges, out):  # pragma: no cover
+    """:meth:`Sensor.cells`' beams when the beams' origins differ: per point, of the beams
+    between those its elevation seen from the lowest and from the highest origin falls in (no
+    other can hold it), the band holding its elevation seen from the beam's own origin,
+    nearest the beam's elevation; -1 when none does."""
+    low, high = offsets.min(), offsets.max()
+    beams = len(elevations)
+    for i in range(len(z)):
+        first = max(_band_of(edges, math.atan2(z[i] - low, horizontal[i])), 0)
+        last = min(_band_of(edges, math.atan2(z[i] - high, horizontal[i])), beams - 1)
+        best, best_miss = -1, math.inf
+        for b in range(first, last + 1):
+            own = math.atan2(z[i] - offsets[b], horizontal[i])
+            miss = abs(own - elevations[b])
+            if edges[b + 1] < own <= edges[b] and miss < best_miss:
+                best, best_miss = b, miss
+        out[i] = best
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _band_of(edges, elevation):  # pragma: no cover - numba
+    """:func:`_band` of one elevation: -1 above ``edges[0]``, ``B`` at or below ``edges[-1]``."""
+    lo, hi = 0, len(edges)  # first edge below the elevation: the band is that index - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if edges[mid] < elevation:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo - 1
 
 
 def _hdl64e() -> Sensor:
