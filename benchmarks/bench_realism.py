@@ -626,7 +626,10 @@ def run_synthetic(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         with ProcessPoolExecutor(
             args.workers, initializer=_init_worker, initargs=(str(database.path), args.presets)
         ) as pool:
-            results = list(pool.map(_score_job, jobs))
+            results = []
+            for done, result in enumerate(pool.map(_score_job, jobs), 1):
+                results.append(result)
+                print(f"frame {done}/{len(jobs)}", file=sys.stderr, flush=True)
     else:
         _init_worker(str(database.path), args.presets)
         results = []
