@@ -68,6 +68,9 @@ CLASSES = ("Car", "Pedestrian", "Cyclist")
 BIN_EDGES = np.arange(0.0, 80.0, 10.0)  # 7 bins of 10 m, 0-70 m
 RATIO_BAND = 0.25
 BEAM_TOLERANCE_DEG = 0.1
+# A tolerance well under the beam spacing too: at 0.1 degree, chance alone puts about half of
+# any points on a beam (HDL-64E beams are 0.33 / 0.52 degree apart).
+FINE_BEAM_TOLERANCE_DEG = 0.02
 GROUND_LIMIT = 0.3
 SOLID_KINDS = ("building", "pole", "trunk")
 INSERTING_STAGES = ("gt_sampling", "drcpo")
@@ -377,29 +380,33 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
                 "solids": sorted(cut),
             }
         )
-    elevations = LidarConfig().elevations_deg
-    for kind in (GT_SAMPLING, DRCPO_SOURCE):
-        mine = out.points[new][(owner >= 0) & (kinds[owner.clip(0)] == kind)]
-        hits = on_beam(mine, np.radians(elevations), BEAM_TOLERANCE_DEG)
-        total = tally.beam.setdefault(kind, [0, 0])
-        total[0] += int(hits.sum())
-        total[1] += len(hits)
-    truth_hits = on_beam(truth.returns, np.radians(elevations), BEAM_TOLERANCE_DEG)
-    total = tally.beam.setdefault("truth", [0, 0])
-    total[0] += int(truth_hits.sum())
-    total[1] += len(truth_hits)
+    beams = np.radians(LidarConfig().elevations_deg)
+    sets = {kind: out.points[new][(owner >= 0) & (kinds[owner.clip(0)] == kind)] for kind in
+            (GT_SAMPLING, DRCPO_SOURCE)}  # fmt: skip
+    sets["truth"] = truth.returns
+    for kind, points in sets.items():
+        for suffix, tolerance in (("", BEAM_TOLERANCE_DEG), ("_fine", FINE_BEAM_TOLERANCE_DEG)):
+            total = tally.beam.setdefault(kind + suffix, [0, 0])
+            total[0] += int(on_beam(points, beams, tolerance).sum())
+            total[1] += len(points)
 
     kept = np.zeros(len(frame.points), dtype=bool)
     kept[rows[~new]] = True
     hidden_by = truth.hidden_by[case.sweep_rows]
-    deleted_visible = ~kept & (hidden_by < 0)
-    # GT sampling clears the points inside its boxes; which of the deletions were its own
-    by_gt = np.ones(len(frame.points), dtype=bool)
-    survived_gt = match_rows(frame.points, after_gt.points)
-    by_gt[survived_gt[survived_gt >= 0]] = False
-    in_box = points_per_box(frame.points[deleted_visible], boxes, margin=0.0) >= 0
-    nothing_in_front = ~segments_cross_boxes(frame.points[deleted_visible], boxes)
     hidden = hidden_by >= 0
+    # GT sampling clears the points inside its boxes; which deletions were whose
+    kept_by_gt = np.zeros(len(frame.points), dtype=bool)
+    survived_gt = match_rows(frame.points, after_gt.points)
+    kept_by_gt[survived_gt[survived_gt >= 0]] = True
+    deleted = {"all": ~kept, GT_SAMPLING: ~kept_by_gt, DRCPO_SOURCE: kept_by_gt & ~kept}
+    deletions = {}
+    for stage, gone in deleted.items():
+        visible = frame.points[gone & ~hidden]
+        deletions[stage] = {
+            "visible": len(visible),
+            "in_box": int((points_per_box(visible, boxes, margin=0.0) >= 0).sum()),
+            "nothing_in_front": int((~segments_cross_boxes(visible, boxes)).sum()),
+        }
     by_source = {}
     for kind in (GT_SAMPLING, DRCPO_SOURCE):
         mine = hidden & (kinds[hidden_by.clip(0)] == kind)
@@ -408,10 +415,7 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
     tally.frames.append(
         {
             "frame": frame.frame_id,
-            "deleted_visible": int(deleted_visible.sum()),
-            "deleted_visible_nothing_in_front": int(nothing_in_front.sum()),
-            "deleted_visible_in_box": int(in_box.sum()),
-            "deleted_visible_by_gt_sampling": int((deleted_visible & by_gt).sum()),
+            "deleted_visible": deletions,
             "hidden": int(hidden.sum()),
             "hidden_removed": int((hidden & ~kept).sum()),
             "hidden_by_source": by_source,
@@ -484,16 +488,13 @@ def summarise(tally: Tally) -> dict[str, Any]:
         "frames": len(frames),
         **object_figures(drcpo_objects),
         "on_beam": {k: _share(a, b) for k, (a, b) in sorted(tally.beam.items())},
-        "deleted_visible_per_frame": round(sum(f["deleted_visible"] for f in frames) / n, 2),
-        "deleted_visible_nothing_in_front_per_frame": round(
-            sum(f["deleted_visible_nothing_in_front"] for f in frames) / n, 2
-        ),
-        "deleted_visible_in_box_per_frame": round(
-            sum(f["deleted_visible_in_box"] for f in frames) / n, 2
-        ),
-        "deleted_visible_by_gt_sampling_per_frame": round(
-            sum(f["deleted_visible_by_gt_sampling"] for f in frames) / n, 2
-        ),
+        "deleted_visible_per_frame": {
+            stage: {
+                key: round(sum(f["deleted_visible"][stage][key] for f in frames) / n, 2)
+                for key in ("visible", "in_box", "nothing_in_front")
+            }
+            for stage in ("all", GT_SAMPLING, DRCPO_SOURCE)
+        },
         "hidden_removed": _share(removed, hidden),
         "hidden_per_frame": round(hidden / n, 1),
         "hidden_removed_by_source": by_source,
@@ -506,12 +507,20 @@ def summarise(tally: Tally) -> dict[str, Any]:
     }
 
 
+def _total_reasons(counts: dict[str, Any]) -> dict[str, float]:
+    total: dict[str, float] = {}
+    for entry in counts.values():
+        for reason, count in entry.get("rejected_per_frame", {}).items():
+            total[reason] = total.get(reason, 0.0) + count
+    return total
+
+
 def print_table(results: dict[str, dict[str, Any]]) -> None:
     """The figures of every preset, side by side."""
     presets = list(results)
 
     def row(label: str, values: list[Any]) -> None:
-        print(f"{label:<58}" + "".join(f"{v!s:>22}" for v in values))
+        print(f"{label:<74}" + "".join(f"{v!s:>30}" for v in values))
 
     row("figure", presets)
 
@@ -543,9 +552,16 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
             ],
         )
     row(
-        "inserted points on a beam (DR.CPO / GT sampling)",
+        f"inserted points within {BEAM_TOLERANCE_DEG} deg of a beam (DR.CPO / GT sampling)",
         [
             f"{get(r, 'on_beam', 'drcpo')} / {get(r, 'on_beam', 'gt_sampling')}"
+            for r in results.values()
+        ],
+    )
+    row(
+        f"  within {FINE_BEAM_TOLERANCE_DEG} deg (DR.CPO / GT sampling)",
+        [
+            f"{get(r, 'on_beam', 'drcpo_fine')} / {get(r, 'on_beam', 'gt_sampling_fine')}"
             for r in results.values()
         ],
     )
@@ -560,22 +576,31 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
         "boxes in buildings / poles / trunks",
         [" / ".join(str(get(r, "solids", k)) for k in SOLID_KINDS) for r in results.values()],
     )
+    for stage, label in (("all", "all"), (DRCPO_SOURCE, "by DR.CPO"), (GT_SAMPLING, "by GT s.")):
+        row(
+            f"truly visible original points deleted per frame, {label} (in box, none in front)",
+            [
+                "{visible} ({in_box}, {nothing_in_front})".format(
+                    **r["deleted_visible_per_frame"][stage]
+                )
+                for r in results.values()
+            ],
+        )
     row(
-        "visible original points deleted per frame (none in front)",
+        "truly hidden original points removed (behind GT s. / DR.CPO objects)",
         [
-            f"{r['deleted_visible_per_frame']} ({r['deleted_visible_nothing_in_front_per_frame']})"
+            "{} ({} / {})".format(
+                r["hidden_removed"],
+                get(r, "hidden_removed_by_source", GT_SAMPLING),
+                get(r, "hidden_removed_by_source", DRCPO_SOURCE),
+            )
             for r in results.values()
         ],
     )
     row(
-        "  of them inside an inserted box / by GT sampling",
-        [
-            f"{r['deleted_visible_in_box_per_frame']} / "
-            f"{r['deleted_visible_by_gt_sampling_per_frame']}"
-            for r in results.values()
-        ],
+        "DR.CPO objects kept though the truth has no return of them",
+        [r.get("truly_unseen_kept") for r in results.values()],
     )
-    row("truly hidden original points removed", [r["hidden_removed"] for r in results.values()])
     for name in CLASSES:
         row(
             f"  DR.CPO {name} added / tried per frame",
@@ -587,6 +612,18 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
                 for r in results.values()
             ],
         )
+    row(
+        "  DR.CPO rejections per frame, all classes",
+        [
+            ", ".join(
+                f"{reason} {count:.2f}"
+                for reason, count in sorted(
+                    _total_reasons(r.get("counts", {})).items(), key=lambda x: -x[1]
+                )
+            )
+            for r in results.values()
+        ],
+    )
     row("median ms per frame (inserting stages)", [r["ms_median"] for r in results.values()])
 
 

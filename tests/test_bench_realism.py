@@ -197,17 +197,20 @@ def test_scoring_a_frame_against_its_truth(perfect):
         assert summary["density"]["table"]["Car"][1]["median"] == pytest.approx(1.0, abs=0.01)
         assert summary["on_beam"]["drcpo"] == 1.0
         assert summary["ground"]["above"] == 0.0 and abs(car["gap"]) < 1e-9
-        assert frame["deleted_visible"] == 0 and frame["hidden"] > 100
+        assert frame["deleted_visible"]["all"]["visible"] == 0 and frame["hidden"] > 100
         assert summary["hidden_removed"] == 1.0
     else:
         assert car["points"] == pytest.approx(car["true_points"] / 2, rel=0.01)
         assert summary["density"]["bins_within"] == 0
         assert summary["on_beam"]["drcpo"] < 0.2
         assert summary["ground"]["above"] == 1.0 and car["gap"] == pytest.approx(0.5)
-        assert frame["deleted_visible"] == 30
-        assert frame["deleted_visible_nothing_in_front"] == 30
+        deleted = frame["deleted_visible"]
+        assert deleted["all"] == deleted["drcpo"] == {
+            "visible": 30, "in_box": 0, "nothing_in_front": 30
+        }  # fmt: skip
+        assert deleted["gt_sampling"]["visible"] == 0
         assert summary["hidden_removed"] == 0.0
-    assert summary["on_beam"]["truth"] == 1.0
+    assert summary["on_beam"]["truth"] == summary["on_beam"]["truth_fine"] == 1.0
     assert summary["solids"]["building"] == 0.0
 
 
