@@ -71,6 +71,7 @@ BEAM_TOLERANCE_DEG = 0.1
 # A tolerance well under the beam spacing too: at 0.1 degree, chance alone puts about half of
 # any points on a beam (HDL-64E beams are 0.33 / 0.52 degree apart).
 FINE_BEAM_TOLERANCE_DEG = 0.02
+RAY_ANGLE_DEG = 0.2  # "on the same ray": about half the gap between two beams, over a column
 GROUND_LIMIT = 0.3
 SOLID_KINDS = ("building", "pole", "trunk")
 INSERTING_STAGES = ("gt_sampling", "drcpo")
@@ -216,6 +217,29 @@ def segments_cross_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         enter, leave = np.max(np.maximum(lo, 0.0), axis=1), np.min(np.minimum(hi, 1.0), axis=1)
         crossed |= enter < leave
     return crossed
+
+
+def nothing_nearer(
+    points: np.ndarray, others: np.ndarray, angle_deg: float = RAY_ANGLE_DEG
+) -> np.ndarray:
+    """``bool (N,)``: no point of ``others`` ``(M, 3+)`` lies within ``angle_deg`` of the
+    direction of a point of ``points`` ``(N, 3+)`` (seen from the origin) and nearer than it:
+    nothing the pipeline put there stands in front of it on its ray."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64)[:, :3]
+    others = np.asarray(others, dtype=np.float64)[:, :3]
+    out = np.ones(len(points), dtype=bool)
+    if len(points) == 0 or len(others) == 0:
+        return out
+    reach = np.linalg.norm(points, axis=1)
+    near = np.linalg.norm(others, axis=1)
+    tree = cKDTree(others / np.maximum(near, 1e-9)[:, None])
+    chord = 2.0 * np.sin(np.radians(angle_deg) / 2.0)
+    unit = points / np.maximum(reach, 1e-9)[:, None]
+    for i, found in enumerate(tree.query_ball_point(unit, chord)):
+        out[i] = not (near[found] < reach[i]).any()
+    return out
 
 
 def frame_ground_heights(
@@ -405,7 +429,8 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
         deletions[stage] = {
             "visible": len(visible),
             "in_box": int((points_per_box(visible, boxes, margin=0.0) >= 0).sum()),
-            "nothing_in_front": int((~segments_cross_boxes(visible, boxes)).sum()),
+            "nothing_in_front": int(nothing_nearer(visible, out.points[new]).sum()),
+            "no_box_on_ray": int((~segments_cross_boxes(visible, boxes)).sum()),
         }
     by_source = {}
     for kind in (GT_SAMPLING, DRCPO_SOURCE):
@@ -491,7 +516,7 @@ def summarise(tally: Tally) -> dict[str, Any]:
         "deleted_visible_per_frame": {
             stage: {
                 key: round(sum(f["deleted_visible"][stage][key] for f in frames) / n, 2)
-                for key in ("visible", "in_box", "nothing_in_front")
+                for key in ("visible", "in_box", "nothing_in_front", "no_box_on_ray")
             }
             for stage in ("all", GT_SAMPLING, DRCPO_SOURCE)
         },
@@ -578,9 +603,9 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
     )
     for stage, label in (("all", "all"), (DRCPO_SOURCE, "by DR.CPO"), (GT_SAMPLING, "by GT s.")):
         row(
-            f"truly visible original points deleted per frame, {label} (in box, none in front)",
+            f"visible original points deleted / frame, {label} (none in front, in box)",
             [
-                "{visible} ({in_box}, {nothing_in_front})".format(
+                "{visible} ({nothing_in_front}, {in_box})".format(
                     **r["deleted_visible_per_frame"][stage]
                 )
                 for r in results.values()
@@ -688,8 +713,9 @@ def run_synthetic(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     }
 
 
-def kitti_frame_figures(frame: Frame, stages: Sequence, seed: int, sensor_fn) -> dict[str, Any]:
-    """The truth-free figures of one KITTI frame: ground gaps, on-beam share, counts."""
+def kitti_frame_figures(frame: Frame, stages: Sequence, seed: int, sensor) -> dict[str, Any]:
+    """The truth-free figures of one KITTI frame: ground gaps, on-beam share (when ``sensor``,
+    the frame's estimated :class:`drcpo.sensor.Sensor`, is given), counts."""
     out, sources, _ = augment(stages, frame, np.random.default_rng(seed))
     inserted = sources != ORIGINAL
     boxes, kinds = out.boxes[inserted], sources[inserted]
@@ -698,8 +724,7 @@ def kitti_frame_figures(frame: Frame, stages: Sequence, seed: int, sensor_fn) ->
     new_points = out.points[rows < 0]
     owner = points_per_box(new_points, boxes)
     beam = {}
-    if sensor_fn is not None:
-        sensor = sensor_fn(frame.points)
+    if sensor is not None:
         for kind in (GT_SAMPLING, DRCPO_SOURCE):
             mine = new_points[(owner >= 0) & (kinds[owner.clip(0)] == kind)]
             beam[kind] = _sensor_on_beam(sensor, mine)
@@ -733,25 +758,33 @@ def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
 
     root = Path(args.kitti)
     dbinfos = root / "kitti_dbinfos_train.pkl"
-    database = import_openpcdet(dbinfos, work / "kitti_db")
-    build_index(database, IndexConfig(k=20, workers=1)).save(database.path, overwrite=True)
+    if not dbinfos.is_file():
+        raise SystemExit(f"--kitti {root}: no kitti_dbinfos_train.pkl there")
+    path = work / "kitti_db"
+    if (path / "index" / "manifest.json").is_file():
+        database = GroundTruthDatabase.open(path)
+    else:  # as tests/openpcdet_support.sample_database builds it
+        database = import_openpcdet(dbinfos, path)
+        build_index(database, IndexConfig(k=20, workers=1)).save(database.path, overwrite=True)
     index = load_index(database)
     try:
         from drcpo.sensor import estimate_sensor
     except ImportError:  # the sensor estimate lands with issue 14's sensor part
         estimate_sensor = None
     dataset = KittiDataset(root, "train")
-    frames = []
+    frames, sensors = [], []
     for frame_id in dataset.frame_ids:
         frame = dataset.frame(frame_id)
+        # the estimate reads the rings from the whole sweep in the sensor's own point order
+        sensors.append(None if estimate_sensor is None else estimate_sensor(frame.points))
         keep = fov_mask(frame.points, frame.metadata["calib"], dataset.image_shape(frame_id))
         frames.append(frame.replace(points=frame.points[keep]))
     results: dict[str, Any] = {}
     for preset in args.presets:
         stages = inserting_stages(build_pipeline(resolve_preset(preset), database, index))
         per_frame = [
-            kitti_frame_figures(f, stages, 7 * 100_003 + i, estimate_sensor)
-            for i, f in enumerate(frames)
+            kitti_frame_figures(f, stages, 7 * 100_003 + i, sensor)
+            for i, (f, sensor) in enumerate(zip(frames, sensors, strict=True))
         ]
         gaps = np.array([g for f in per_frame for g in f["gaps"]])
         sources = np.array([s for f in per_frame for s in f["sources"]])

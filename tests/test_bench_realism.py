@@ -206,7 +206,7 @@ def test_scoring_a_frame_against_its_truth(perfect):
         assert summary["ground"]["above"] == 1.0 and car["gap"] == pytest.approx(0.5)
         deleted = frame["deleted_visible"]
         assert deleted["all"] == deleted["drcpo"] == {
-            "visible": 30, "in_box": 0, "nothing_in_front": 30
+            "visible": 30, "in_box": 0, "nothing_in_front": 30, "no_box_on_ray": 30
         }  # fmt: skip
         assert deleted["gt_sampling"]["visible"] == 0
         assert summary["hidden_removed"] == 0.0
@@ -239,3 +239,27 @@ def test_quick_run_prints_the_figures_as_json(tmp_path):
     assert figures["frames"] == 2 and figures["density"]["bins"] == 21
     assert figures["on_beam"]["truth"] == 1.0
     assert set(figures["counts"]) == {"Car", "Pedestrian", "Cyclist"}
+
+
+@pytest.mark.slow
+def test_kitti_mode_scores_the_truth_free_figures(tmp_path):
+    sample = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_sample"
+    if not (sample / "kitti_dbinfos_train.pkl").is_file():
+        pytest.skip(f"the KITTI sample is not at {sample}")
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), "--kitti", str(sample), "--work", str(tmp_path)],
+        capture_output=True, text=True, timeout=1200,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    figures = json.loads(done.stdout.strip().splitlines()[-1])["presets"]["default"]
+    assert figures["frames"] == 6
+    ground = figures["ground_vs_frame"]["drcpo"]
+    assert ground["n"] + ground["unobserved"] > 0
+    assert set(figures["counts"]) == {"Car", "Pedestrian", "Cyclist"}
+
+
+def test_nothing_nearer_looks_along_each_ray_only():
+    points = np.array([[20.0, 0.0, 0.0], [20.0, 5.0, 0.0], [10.0, 0.0, -1.0]])
+    others = np.array([[10.0, 0.01, 0.0], [30.0, 7.5, 0.0]])  # 0.06 deg off ray 0; behind 1
+    np.testing.assert_array_equal(bench.nothing_nearer(points, others), [False, True, True])
+    assert bench.nothing_nearer(points, others[:0]).all()
