@@ -545,7 +545,7 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
     presets = list(results)
 
     def row(label: str, values: list[Any]) -> None:
-        print(f"{label:<74}" + "".join(f"{v!s:>30}" for v in values))
+        print(f"{label:<74}" + "".join(f"  {v!s:>36}" for v in values))
 
     row("figure", presets)
 
