@@ -229,14 +229,18 @@ def test_solids_share_sees_a_box_in_a_building():
 @pytest.mark.slow
 def test_quick_run_prints_the_figures_as_json(tmp_path):
     done = subprocess.run(
-        [sys.executable, str(SCRIPT), "--quick", "--frames", "2", "--train-frames", "3",
+        [sys.executable, str(SCRIPT), "--quick", "--presets", "paper", "default",
          "--work", str(tmp_path)],
         capture_output=True, text=True, timeout=1200,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
+    # the two presets run on the same frames with the same seeds: paper = default, bit for bit
+    assert report["presets"]["paper"] == report["presets"]["default"] | {
+        "ms_median": report["presets"]["paper"]["ms_median"]
+    }
     figures = report["presets"]["default"]
-    assert figures["frames"] == 2 and figures["density"]["bins"] == 21
+    assert figures["frames"] == 3 and figures["density"]["bins"] == 21
     assert figures["on_beam"]["truth"] == 1.0
     assert set(figures["counts"]) == {"Car", "Pedestrian", "Cyclist"}
 
