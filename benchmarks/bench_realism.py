@@ -12,13 +12,19 @@ frames with the same generator seeds):
 
 * ``density``: inserted / true points per DR.CPO object, median per class per 10 m bin
   (0-70 m of the box centre's bird's-eye range); a bin is good within +-25 %.
-* ``on_beam``: share of inserted points whose elevation lies within 0.1 degree of a beam's.
+* ``on_beam``: share of inserted points whose elevation lies within 0.1 degree of a beam's
+  (``*_fine``: within 0.02 degree; with beams 0.33-0.52 degree apart, 0.1 degree takes in
+  about half of any points by chance, 0.02 degree about a tenth). ``truth`` must give 1.
 * ``ground``: share of inserted boxes whose bottom is > 0.3 m above / below the true ground
   under the box centre (sidewalk top or ground), and the 99th percentile of bottom - ground.
 * ``solids``: share of inserted boxes cutting into a building / pole / trunk (and the rest).
-* ``deleted``: original points truly visible (no inserted object meets their ray first) that
-  the pipeline removed, per frame, and how many of them had no inserted box on their ray.
-* ``hidden``: of the original points an inserted object truly hides, the share removed.
+* ``deleted_visible_per_frame``: original points truly visible (no inserted object meets
+  their ray first) that the pipeline removed, per frame, in all and per stage; of them
+  ``nothing_in_front``: no inserted return of the output within 0.2 degree of their ray and
+  nearer; ``in_box``: inside an inserted box (cleared room); ``no_box_on_ray``: neither inside
+  nor behind any inserted box.
+* ``hidden_removed``: of the original points an inserted object truly hides, the share
+  removed (``hidden_removed_by_source``: behind ground-truth sampling's / DR.CPO's objects).
 * ``counts``: DR.CPO objects tried / added per class per frame, and the rejection reasons.
 
 "Inserted objects" are DR.CPO's in the per-object figures (``by_source`` gives ground-truth
