@@ -170,7 +170,7 @@ def test_returns_lie_on_their_rays() -> None:
     rng = np.random.default_rng(3)
     sensor = dataclasses.replace(EXACT, offsets=np.linspace(0.05, -0.05, 64), mount=(0.1, 0, 0.2))
     points = box_surface(rng, 3000, (12.0, -4.0, -0.9), (4.0, 1.7, 1.5), 0.7)
-    returns, source = render_object(points, sensor, rng)
+    returns, _ = render_object(points, sensor, rng)
     beam, column, _ = sensor.cells(returns)
     assert (beam >= 0).all()
     assert len(set(zip(beam.tolist(), column.tolist(), strict=True))) == len(returns)
@@ -195,7 +195,7 @@ def test_same_seed_same_output_and_noise_statistics() -> None:
     np.testing.assert_array_equal(first[0], again[0])
     np.testing.assert_array_equal(first[1], again[1])
     assert not np.array_equal(first[0], other[0])
-    exact, exact_source = render_object(points, EXACT, np.random.default_rng(11), radii)
+    exact, _ = render_object(points, EXACT, np.random.default_rng(11), radii)
     # dropout: about 20 % of the returns lost
     assert len(first[0]) / len(exact) == pytest.approx(0.8, abs=0.03)
     # noise: along the ray, N(0, 0.05)
@@ -228,7 +228,7 @@ def test_back_faces_give_no_returns() -> None:
     rng = np.random.default_rng(5)
     dims, centre = np.array([4.0, 1.8, 1.5]), np.array([10.0, 0.0, -0.98])
     points = box_grid(rng, 0.05, centre, dims, 0.0)
-    returns, source = render_object(points, EXACT, rng)
+    _, source = render_object(points, EXACT, rng)
     face = points[source, 3].astype(int)
     # faces 2 * axis + (sign > 0): the sensor sees the near end (-x) and the top (+z)
     assert np.isin(face, [0, 5]).mean() > 0.9
