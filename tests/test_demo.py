@@ -204,3 +204,20 @@ def test_closest_match_needs_a_distance_in_every_group():
         closest_match(np.array([5.0]), [np.array([1.0]), np.array([])])
     with pytest.raises(ValueError, match="every group"):
         closest_match(np.array([]), [np.array([1.0])])
+
+
+@pytest.mark.parametrize(
+    ("presets", "message"),
+    [
+        (("default", "default"), "preset default: its name 'default' is already taken"),
+        (("original",), "its name 'original' is already taken"),
+        (("default", "missing.yaml"), "missing.yaml: config file not found"),
+        ((), "no DR.CPO preset given"),
+    ],
+)
+def test_a_bad_preset_stops_the_demo_before_any_work(tmp_path, presets, message):
+    out = tmp_path / "out"
+    with pytest.raises(drcpo.demo.DemoError, match="demo stage 'presets' failed") as failure:
+        drcpo.demo.run_demo(out, frames=2, augment_frames=1, presets=presets)
+    assert message in str(failure.value)
+    assert not out.exists()  # nothing ray-cast, nothing written

@@ -193,7 +193,10 @@ def _presets(
             raise DemoError("no DR.CPO preset given")
         for label, source in zip(labels, presets, strict=True):
             if label in configs or label in ("original", "gt sampling"):
-                raise DemoError(f"preset name {label!r} ({source}) is used twice")
+                raise DemoError(
+                    f"preset {source!s}: its name {label!r} is already taken (by another "
+                    "preset or a column of the summary: original, gt sampling)"
+                )
             configs[label] = (source, load_config(source).drcpo)
     return configs
 
@@ -421,7 +424,8 @@ def _density_series(
             real["names"],
         )
     ]
-    for (label, group), (colour, marker) in zip(results.items(), PRESET_STYLES, strict=False):
+    for k, (label, group) in enumerate(results.items()):
+        colour, marker = PRESET_STYLES[k % len(PRESET_STYLES)]
         new = _objects(group, originals)
         text = f"inserted, preset {label}"
         series.append(
