@@ -286,3 +286,128 @@ def test_real_kitti_ground_is_plausible(kitti_sample):
         near_high = (np.hypot(points[:, 0], points[:, 1]) < 40) & (points[:, 2] > 0.3)
         assert not model.is_ground(points[near_high]).any(), path.name
         assert 0.2 < model.is_ground(points).mean() < 0.9
+
+
+# --------------------------------------------------------------------------------------------
+# Observed ground: heights from the frame's own ground cells only
+# --------------------------------------------------------------------------------------------
+def frame_with_hole(rng, surface=uneven):
+    """Ground with a patch the sensor saw nothing of, and a parked car hiding the ground."""
+    ground = ground_points(rng, surface)
+    hole = (abs(ground[:, 0] - 25) < 5) & (abs(ground[:, 1]) < 5)
+    under_car = (abs(ground[:, 0] - 42) < 2.5) & (abs(ground[:, 1] - 11) < 1.5)
+    car_xy = np.column_stack([rng.uniform(40, 44, 3000), rng.uniform(10, 12, 3000)])
+    car = np.column_stack([car_xy, surface(car_xy) + rng.uniform(0.5, 1.5, 3000)])
+    return np.concatenate([ground[~hole & ~under_car], car])
+
+
+def observed_reference(model, xy):
+    """Bilinear over the ground cells among the four around each position, in its own ground
+    cell only (positions at least half a cell inside the grid)."""
+    cs, (ox, oy) = model.cell_size, model.origin
+    heights, observed = np.full(len(xy), np.nan), np.zeros(len(xy), bool)
+    for k, (x, y) in enumerate(xy):
+        i, j = int(np.floor((x - ox) / cs)), int(np.floor((y - oy) / cs))
+        if not model.ground_cells[i, j]:
+            continue
+        gx, gy = (x - ox) / cs - 0.5, (y - oy) / cs - 0.5
+        total = weight = 0.0
+        for a in (int(np.floor(gx)), int(np.floor(gx)) + 1):
+            for b in (int(np.floor(gy)), int(np.floor(gy)) + 1):
+                w = (1 - abs(gx - a)) * (1 - abs(gy - b))
+                if model.ground_cells[a, b]:
+                    total, weight = total + w * model.heights[a, b], weight + w
+        heights[k], observed[k] = total / weight, True
+    return heights, observed
+
+
+def test_observed_heights_come_from_ground_cells_only(rng):
+    model = GroundModel.from_points(frame_with_hole(rng))
+    xy = rng.uniform([3, -27], [57, 27], (3000, 2))
+    heights, observed = model.observed_height_at(xy)
+    expected, expected_observed = observed_reference(model, xy)
+    np.testing.assert_array_equal(observed, expected_observed)
+    np.testing.assert_allclose(heights[observed], expected[observed], rtol=0, atol=1e-12)
+    assert np.isnan(heights[~observed]).all()
+    # Where all four cells around a position are ground, it is height_at's interpolation;
+    # next to a cell with a borrowed height it is not.
+    corner = np.floor((xy - model.origin) / model.cell_size - 0.5).astype(int)
+    all_four = np.ones(len(xy), bool)
+    for a in (0, 1):
+        for b in (0, 1):
+            all_four &= model.ground_cells[corner[:, 0] + a, corner[:, 1] + b]
+    plain = model.height_at(xy)
+    np.testing.assert_allclose(heights[all_four], plain[all_four], rtol=0, atol=1e-9)
+    some = observed & ~all_four
+    assert some.sum() > 20 and (~observed).sum() > 100
+    assert (np.abs(heights[some] - plain[some]) > 1e-4).mean() > 0.5
+    # The hole and the ground under the car were never seen: height_at borrows a height
+    # there, observed_height_at does not.
+    unseen = np.array([[25.0, 0.0], [22.0, 3.0], [28.5, -4.0], [42.0, 11.0]])
+    heights, observed = model.observed_height_at(unseen)
+    assert not observed.any() and np.isnan(heights).all()
+    assert np.isfinite(model.height_at(unseen)).all()
+    assert np.abs(model.height_at(unseen) - uneven(unseen)).max() < 0.5
+    # Outside the grid, and for models without a grid, nothing is observed.
+    outside = np.array([[-30.0, 0.0], [100.0, 0.0], [30.0, 80.0], [np.nan, 0.0]])
+    assert not model.observed_height_at(outside)[1].any()
+    for flat in (GroundModel.flat(), GroundModel.from_plane(np.array([0.01, 0.0, -1.7]))):
+        heights, observed = flat.observed_height_at(xy[:5])
+        assert not observed.any() and np.isnan(heights).all()
+
+
+def scan_rings(rng, surface=tilted, ranges=(6, 8, 10, 12, 14, 17, 20, 24, 29, 35, 42, 50)):
+    """Ground returns on the rings of a spinning sensor: far rings lie metres apart."""
+    rings = []
+    for r in ranges:
+        azimuth = rng.uniform(-1.0, 1.0, int(600 * r / 10))
+        xy = r * np.column_stack([np.cos(azimuth), np.sin(azimuth)])
+        rings.append(np.column_stack([xy, surface(xy) + rng.normal(0, 0.01, len(xy))]))
+    return np.concatenate(rings)
+
+
+def bridged_reference(model, xy, max_gap):
+    """The nearest ground cells on each position's ray, nearer and farther, in half-cell steps."""
+    cs, (ox, oy) = model.cell_size, model.origin
+    out = np.full(len(xy), np.nan)
+    for k, (x, y) in enumerate(xy):
+        r = np.hypot(x, y)
+        found = []
+        for sign in (-1, 1):
+            for t in np.arange(1, int(max_gap * r / (cs / 2)) + 1) * (cs / 2):
+                i = int(np.floor((x + sign * x / r * t - ox) / cs))
+                j = int(np.floor((y + sign * y / r * t - oy) / cs))
+                inside = 0 <= i < model.heights.shape[0] and 0 <= j < model.heights.shape[1]
+                if inside and model.ground_cells[i, j]:
+                    found.append((t, model.heights[i, j]))
+                    break
+        if len(found) == 2:
+            (near, near_z), (far, far_z) = found
+            out[k] = (near_z * far + far_z * near) / (near + far)
+    return out
+
+
+def test_gaps_between_scan_rings_are_bridged_along_the_sensor_ray(rng):
+    points = scan_rings(rng)
+    model = GroundModel.from_points(points)
+    azimuth = rng.uniform(-0.9, 0.9, 400)
+    r = rng.uniform(6, 49, 400)
+    xy = r[:, None] * np.column_stack([np.cos(azimuth), np.sin(azimuth)])
+    strict, own = model.observed_height_at(xy)
+    heights, observed = model.observed_height_at(xy, max_gap=0.3)
+    assert own.mean() < 0.5 and observed.mean() > 0.95 and (observed >= own).all()
+    np.testing.assert_array_equal(heights[own], strict[own])
+    bridged = observed & ~own
+    expected = bridged_reference(model, xy[bridged], 0.3)
+    np.testing.assert_allclose(heights[bridged], expected, rtol=0, atol=1e-12)
+    assert np.abs(heights[observed] - tilted(xy[observed])).max() < 0.1
+    # Between two rings 7 m apart, 3.5 m from each, 5 % of the range (1.9 m) is too short.
+    between = np.array([[38.5, 0.0], [38.5 * np.cos(0.5), 38.5 * np.sin(0.5)]])
+    assert model.observed_height_at(between, max_gap=0.3)[1].all()
+    assert not model.observed_height_at(between, max_gap=0.05)[1].any()
+    # Behind a wall the sensor saw no farther ring: nothing to bridge to.
+    shadow = (np.hypot(points[:, 0], points[:, 1]) > 30) & (np.abs(points[:, 1]) < 6)
+    shadowed = GroundModel.from_points(points[~shadow])
+    assert not shadowed.observed_height_at(between[:1], max_gap=0.3)[1].any()
+    with pytest.raises(DataError, match="max_gap"):
+        model.observed_height_at(xy, max_gap=-0.1)

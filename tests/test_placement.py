@@ -5,10 +5,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drcpo import placement
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_corners, bev_overlap_area, box_members, points_in_boxes
-from drcpo.ground import GroundModel
+from drcpo.ground import GroundConfig, GroundModel
 from drcpo.occlusion.zbuffer import (
     _DIRECTIONS,
     OcclusionMap,
@@ -24,6 +25,7 @@ from drcpo.placement import (
     _in_fov,
     _Obstacles,
     bev_collisions,
+    frame_ground,
     place_objects,
     sample_poses,
 )
@@ -235,7 +237,7 @@ def test_obstacle_counts_match_brute_force(rng):
 def test_every_rejection_reason(rng):
     frame = scene(rng)
     too_big = place_objects(frame, [[120.0, 2.0, 2.0], [2.0, 150.0, 2.0]], None, rng)
-    assert too_big.rejected == {"out_of_range": 2, "collision": 0, "obstacle": 0, "occluded": 0}
+    assert too_big.rejected == dict.fromkeys(REASONS, 0) | {"out_of_range": 2}
     assert too_big.reasons.tolist() == ["out_of_range", "out_of_range"]
     assert len(too_big.accepted) == 0 and too_big.boxes.shape == (0, 7)
 
@@ -582,3 +584,240 @@ def test_occlusion_map_matches_a_full_z_buffer(rng):
             shares.append(share)
     assert 0 < (shares[0] == 1).sum() < len(boxes) and ((shares[0] > 0) & (shares[0] < 1)).any()
     assert (shares[3][::3] <= shares[0][::3]).all()  # cleared boxes hide less of themselves
+
+
+# --------------------------------------------------------------------------------------------
+# height "observed": on the ground the frame saw, in free space, within a pose budget
+# --------------------------------------------------------------------------------------------
+OBSERVED = {"height": "observed", "max_non_ground_points": 0}
+
+
+def footprint_samples(boxes):
+    """Corners and centre of each footprint, ``(K, 5, 2)``."""
+    return np.concatenate([bev_corners(boxes), boxes[:, None, :2]], axis=1)
+
+
+def observed_reference_counts(points, ground, boxes, tolerance=0.2):
+    """Points per box above the observed ground at them (else above the box bottom)."""
+    inside = points_in_boxes(points, boxes)
+    heights, seen = ground.observed_height_at(points[:, :2])
+    out = []
+    for j, box in enumerate(boxes):
+        reference = np.where(seen, heights, box[2] - box[5] / 2)
+        out.append(int((inside[:, j] & (points[:, 2] > reference + tolerance)).sum()))
+    return np.array(out)
+
+
+def test_observed_boxes_stand_on_the_median_of_their_footprint_ground(rng):
+    frame = scene(rng)
+    ground = GroundModel.from_points(frame.points)
+    config = PlacementConfig(attempts=3, **OBSERVED)
+    result = place_objects(frame, sizes(30), None, rng, config, ground)
+    assert len(result.accepted) >= 20
+    samples = footprint_samples(result.boxes).reshape(-1, 2)
+    heights, seen = ground.observed_height_at(samples, config.ground_gap)
+    assert seen.all()
+    bottom = result.boxes[:, 2] - result.boxes[:, 5] / 2
+    np.testing.assert_allclose(bottom, np.median(heights.reshape(-1, 5), axis=1), atol=1e-12)
+    assert np.abs(bottom - uneven(result.boxes[:, :2])).max() < 0.15
+    # Ground returns lie inside the boxes (a box reaches down to the ground), yet with
+    # max_non_ground_points 0 they are no obstacle.
+    inside = points_in_boxes(frame.points, result.boxes).sum(axis=0)
+    assert (inside > 0).mean() > 0.5
+    np.testing.assert_array_equal(observed_reference_counts(frame.points, ground, result.boxes), 0)
+
+
+def test_no_ground_where_the_frame_saw_none(rng):
+    ground_xyz = ground_cloud(rng, n=60000)
+    hole = (np.abs(ground_xyz[:, 0] - 30) < 10) & (np.abs(ground_xyz[:, 1]) < 10)
+    frame = Frame(ground_xyz[~hole].astype(np.float32))
+    ground = GroundModel.from_points(frame.points)
+    over_hole = {"x_range": (21.0, 39.0), "y_range": (-9.0, 9.0)}
+    observed = PlacementConfig(ground_gap=0.0, **over_hole, **OBSERVED)
+    result = place_objects(frame, sizes(12), None, rng, observed, ground)
+    assert result.rejected["no_ground"] == 12 and len(result.accepted) == 0
+    assert set(result.reasons) == {"no_ground"}
+    # The default mode places them on heights borrowed from the hole's rim.
+    assert len(place_objects(frame, sizes(12), None, rng, PlacementConfig(**over_hole)).accepted)
+    # From the hole's middle, the ground beyond it (14 m on) is farther than the gap
+    # bridged between scan rings (0.3 of the range, 8 to 10 m).
+    middle = PlacementConfig(x_range=(26.0, 34.0), y_range=(-4.0, 4.0), **OBSERVED)
+    assert set(place_objects(frame, sizes(12), None, rng, middle, ground).reasons) == {"no_ground"}
+    # Across the rim, only footprints whose five samples all saw ground are placed.
+    rim = PlacementConfig(
+        x_range=(10.0, 50.0), y_range=(-20.0, 20.0), attempts=4, ground_gap=0.0, **OBSERVED
+    )
+    result = place_objects(frame, sizes(40), None, rng, rim, ground)
+    assert result.rejected["no_ground"] > 0 and len(result.accepted) > 0
+    samples = footprint_samples(result.boxes)
+    assert ~((np.abs(samples[..., 0] - 30) < 9.5) & (np.abs(samples[..., 1]) < 9.5)).any()
+
+
+def ramp(xy):
+    return -1.7 + 0.35 * (xy[:, 0] - 30)
+
+
+def test_slope_rejects_footprints_on_steep_ground(rng):
+    frame = Frame(ground_cloud(rng, n=60000, surface=ramp).astype(np.float32))
+    ground = GroundModel.from_points(frame.points, config=GroundConfig(max_slope=0.5))
+    # 0.35 rise per metre: at least 0.56 m over a car's 4.2 m diagonal, 0.21 m over a
+    # cyclist's 1.9 m (along its 0.6 m width), more than the default limit of 0.1 allows.
+    area = {"x_range": (5.0, 60.0), "y_range": (-20.0, 20.0), "attempts": 3}
+    steep = place_objects(frame, sizes(20), None, rng, PlacementConfig(**area, **OBSERVED), ground)
+    assert steep.rejected["slope"] > 0 and len(steep.accepted) == 0
+    assert set(steep.reasons) <= {"slope", "no_ground"}
+    lenient = PlacementConfig(max_slope=0.5, **area, **OBSERVED)
+    placed = place_objects(frame, sizes(20), None, rng, lenient, ground)
+    assert len(placed.accepted) > 10 and placed.rejected["slope"] == 0
+    # Each placed footprint's heights spread by at most max_slope x its diagonal.
+    heights, _ = ground.observed_height_at(footprint_samples(placed.boxes).reshape(-1, 2))
+    spread = np.ptp(heights.reshape(-1, 5), axis=1)
+    diagonal = np.hypot(placed.boxes[:, 3], placed.boxes[:, 4])
+    assert (spread <= 0.5 * diagonal).all() and (spread > 0.1 * diagonal).all()
+
+
+def test_observed_obstacles_are_measured_from_the_ground_under_them(rng):
+    blocks = [wall(rng, 10, 30, -20, 20, height=2.0, n=20000), wall(rng, 40, 45, 0, 8, n=2000)]
+    frame = scene(rng, extra=blocks)
+    ground = GroundModel.from_points(frame.points)
+    boxes = sample_poses(sizes(200), rng)
+    boxes[:, 2] = ground.height_at(boxes[:, :2]) + boxes[:, 5] / 2 + rng.uniform(-0.3, 0.3, 200)
+    obstacles = _Obstacles(frame.points, ground, 0.2, observed=True)
+    for _ in range(4):  # unindexed, then indexed: the same counts
+        counts = obstacles.count(boxes)
+        np.testing.assert_array_equal(
+            counts, observed_reference_counts(frame.points, ground, boxes)
+        )
+    assert obstacles._index is not None and counts.max() > 10 and (counts == 0).sum() > 20
+    config = PlacementConfig(attempts=4, **OBSERVED)
+    result = place_objects(frame, sizes(40), None, rng, config, ground)
+    assert result.rejected["obstacle"] > 0 and len(result.accepted) > 10
+    np.testing.assert_array_equal(observed_reference_counts(frame.points, ground, result.boxes), 0)
+
+
+def test_indexed_members_are_box_members(rng):
+    points = ground_cloud(rng, n=20000).astype(np.float32)
+    points[:50, :2] = np.nan  # never inside
+    boxes = sample_poses(sizes(300), rng, PlacementConfig(x_range=(-20, 90), y_range=(-60, 60)))
+    boxes[:, 2] = rng.uniform(-2.5, -1.0, 300)
+    boxes[:3, :2] = [[500.0, 0.0], [0.0, -500.0], [-300.0, 300.0]]  # beyond the frame
+    obstacles = _Obstacles(points, GroundModel.from_points(points), 0.2)
+    expected = {tuple(pair) for pair in np.column_stack(box_members(points, boxes))}
+    for _ in range(4):
+        pairs = {tuple(pair) for pair in np.column_stack(obstacles.members(boxes))}
+        assert pairs == expected
+    assert obstacles._index is not None and len(expected) > 300
+    empty = _Obstacles(np.full((5, 4), np.nan, np.float32), GroundModel.flat(), 0.2)
+    for _ in range(4):
+        assert len(empty.members(boxes)[0]) == 0
+
+
+def test_many_rounds_give_the_same_placements_indexed_or_not(rng, monkeypatch):
+    frame = scene(rng, existing_boxes(), extra=[wall(rng, 10, 30, -20, 20, n=20000)])
+    config = PlacementConfig(attempts=8, x_range=(0, 35), y_range=(-25, 25))
+    indexed = place_objects(frame, sizes(40), None, np.random.default_rng(4), config)
+    monkeypatch.setattr(placement, "_INDEX_AFTER", 10**9)
+    plain = place_objects(frame, sizes(40), None, np.random.default_rng(4), config)
+    np.testing.assert_array_equal(indexed.boxes, plain.boxes)
+    assert indexed.rejected == plain.rejected and indexed.rejected["obstacle"] > 0
+
+
+def test_max_attempts_per_frame_caps_the_poses(rng):
+    frame = scene(rng)
+
+    def run(cap, seed=3, attempts=6, hide=True):
+        config = PlacementConfig(attempts=attempts, max_attempts_per_frame=cap)
+        rounds = PlacementRounds(frame, sizes(30), None, np.random.default_rng(seed), config)
+        drawn = []
+        while (round_ := rounds.next_round()) is not None:
+            drawn.append(len(round_.boxes))
+            rounds.settle(np.ones(len(round_.boxes), bool) if hide else None)
+        return rounds.result(), drawn
+
+    capped, drawn = run(100)  # rounds of 30, 30, 30 and 10 poses
+    assert capped.attempts == 100 and len(drawn) == 4 and drawn[-1] <= 10
+    assert capped.attempts == len(capped.accepted) + sum(capped.rejected.values())
+    # A cap below the objects asked: those never tried end as "budget", one per object.
+    starved, _ = run(12)
+    assert starved.attempts == 12 and starved.rejected["budget"] == 18
+    assert starved.reasons[12:].tolist() == ["budget"] * 18
+    assert (starved.reasons[:12] != "budget").all()
+    assert starved.attempts == sum(starved.rejected.values()) - 18
+    # A cap never reached draws exactly what no cap draws.
+    free, _ = run(None, hide=False)
+    roomy, _ = run(10_000, hide=False)
+    np.testing.assert_array_equal(free.boxes, roomy.boxes)
+    assert free.rejected == roomy.rejected and free.rejected["budget"] == 0
+    # Same seed, same capped output.
+    again, _ = run(100)
+    assert again.reasons.tolist() == capped.reasons.tolist()
+
+
+def test_new_keys_are_checked():
+    assert REASONS[:4] == ("out_of_range", "collision", "obstacle", "occluded")
+    assert PlacementConfig(height="observed").height == "observed"
+    for key, value in (
+        ("max_slope", -0.1),
+        ("ground_gap", 1.5),
+        ("max_attempts_per_frame", 0),
+        ("max_attempts_per_frame", 2.5),
+    ):
+        with pytest.raises(ConfigError, match=f"placement.{key}"):
+            PlacementConfig(**{key: value})
+    assert PlacementConfig(max_attempts_per_frame=None).max_attempts_per_frame is None
+    defaults = PlacementConfig()
+    assert (defaults.max_attempts_per_frame, defaults.height) == (None, "ground")
+
+
+def test_frame_ground_leaves_out_the_points_in_excluded_boxes(rng):
+    cloud = ground_cloud(rng, n=40000)
+    # An object pasted from another frame, its bottom 0.6 m below this frame's ground.
+    pasted_xy = np.column_stack([rng.uniform(20, 24, 3000), rng.uniform(-1, 1, 3000)])
+    pasted = np.column_stack(
+        [pasted_xy, uneven(pasted_xy) - 0.6 + rng.uniform(0, 1.5, 3000), np.ones(3000)]
+    )
+    frame = Frame(np.concatenate([cloud, pasted]).astype(np.float32))
+    box = np.array(
+        [[22.0, 0.0, float(uneven(np.array([[22.0, 0.0]]))[0]) + 0.15, 4.2, 2.2, 1.6, 0]]
+    )
+    under = np.array([[21.0, 0.0], [22.5, 0.5], [23.0, -0.5]])
+    plain = frame_ground(frame)
+    assert (plain.height_at(under) - uneven(under) < -0.4).all()  # it rides on the pasted one
+    cleaned = frame_ground(frame, exclude=box)
+    assert np.abs(cleaned.height_at(under) - uneven(under)).max() < 0.1
+    outside = ~points_in_boxes(frame.points, box)[:, 0]
+    reference = GroundModel.from_points(frame.points[outside])
+    np.testing.assert_array_equal(cleaned.heights, reference.heights)
+    for nothing in (None, np.zeros((0, 7))):
+        np.testing.assert_array_equal(frame_ground(frame, exclude=nothing).heights, plain.heights)
+    with pytest.raises(DataError, match=r"exclude boxes must have shape \(M, 7\)"):
+        frame_ground(frame, exclude=np.zeros((2, 6)))
+    with pytest.raises(DataError, match="non-finite"):
+        frame_ground(frame, exclude=np.full((1, 7), np.nan))
+
+
+def test_observed_placement_on_real_kitti_frames(kitti_sample):
+    from drcpo.datasets.kitti import KittiDataset
+
+    rng = np.random.default_rng(0)
+    config = PlacementConfig(attempts=10, fov_only=True, **OBSERVED)
+    touching = placed = 0
+    for frame in KittiDataset(kitti_sample, "train"):
+        ground = frame_ground(frame)
+        result = place_objects(frame, sizes(30), None, rng, config, ground)
+        # Frame 000000 is a street closed by buildings 20 m ahead: little ground to stand on.
+        assert len(result.accepted) >= 3, (frame.frame_id, result.rejected)
+        placed += len(result.accepted)
+        counts = observed_reference_counts(frame.points, ground, result.boxes)
+        np.testing.assert_array_equal(counts, 0, err_msg=frame.frame_id)
+        touching += int((points_in_boxes(frame.points, result.boxes).sum(axis=0) > 0).sum())
+        # The bottom lies on the frame's own ground returns under the footprint.
+        columns = result.boxes.copy()
+        columns[:, 5] = 1.0
+        columns[:, 2] = result.boxes[:, 2] - result.boxes[:, 5] / 2
+        inside = points_in_boxes(frame.points, columns)
+        for j in np.flatnonzero(inside.sum(axis=0) >= 5):
+            gap = np.median(frame.points[inside[:, j], 2]) - columns[j, 2]
+            assert abs(gap) < 0.15, (frame.frame_id, j, gap)
+    # Ground returns under a box are no obstacle: boxes holding some are placed.
+    assert touching >= 30 and placed >= 80

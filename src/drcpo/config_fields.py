@@ -46,7 +46,7 @@ __all__ = [
 class Spec:
     """How one config key is checked: its kind, inclusive/exclusive bounds or choices."""
 
-    kind: str  # int, float, bool, choice, range, per_class, names, ints, grids, section
+    kind: str  # int, float, bool, choice, range, per_class, names, ints, floats, grids, section
     low: float | None = None
     high: float | None = None
     low_open: bool = False
@@ -56,7 +56,8 @@ class Spec:
     scalar_ok: bool = False  # per_class: a plain number means {"default": n}
     strict: bool = False  # range: low < high (an empty interval is meaningless)
     classes: bool = False  # names / per_class / grids: class names, checked vs known_classes
-    nonempty: bool = False  # names: at least one
+    nonempty: bool = False  # names, floats: at least one
+    length: int = 0  # floats: exactly this many (0: any number)
     set_by: str = ""  # not a config file key: who sets it (shown when a file tries to)
 
     def describe_range(self) -> str:
@@ -216,6 +217,8 @@ def check(value: Any, field_spec: Spec, where: str) -> Any:
         if isinstance(value, str) or not isinstance(value, list | tuple):
             raise ConfigError(f"config key {where!r} must be a list of integers")
         return [_number(v, field_spec, f"{where}[{i}]", integer=True) for i, v in enumerate(value)]
+    if kind == "floats":
+        return _floats(value, field_spec, where)
     if kind == "grids":
         return _grids(value, where)
     raise AssertionError(f"unknown spec kind {kind}")
@@ -295,6 +298,18 @@ def _names(value: Any, field_spec: Spec, where: str) -> list[str]:
             raise ConfigError(f"config key {f'{where}[{i}]'!r} = {name!r} is listed twice")
         seen.add(name)
     return list(value)
+
+
+def _floats(value: Any, field_spec: Spec, where: str) -> list[float]:
+    if isinstance(value, str) or not isinstance(value, list | tuple):
+        raise ConfigError(f"config key {where!r} must be a list of numbers, got {shown(value)}")
+    if field_spec.length and len(value) != field_spec.length:
+        raise ConfigError(
+            f"config key {where!r} must be a list of {field_spec.length} numbers, got {len(value)}"
+        )
+    if field_spec.nonempty and not value:
+        raise ConfigError(f"config key {where!r} must list at least one number")
+    return [_number(v, field_spec, f"{where}[{i}]", integer=False) for i, v in enumerate(value)]
 
 
 def _grids(value: Any, where: str) -> dict[str, list[int]]:

@@ -4,8 +4,13 @@ A pose is a heading uniform in ``[-pi, pi)`` and a position uniform over the pla
 that the whole BEV footprint lies inside it (with ``fov_only``, also inside the camera's field of
 view: every footprint corner at an azimuth ``|atan2(y, x)| <= fov_half_angle``; KITTI's camera 2
 sees about 41 degrees to each side). The box bottom is put on the ground estimated from the
-frame's own points (``height="ground"``) or the box keeps its source height (``"source"``, the
-reference implementation).
+frame's own points (``height="ground"``), or the box keeps its source height (``"source"``, the
+reference implementation), or it stands on the ground the frame observed under its footprint
+(``"observed"``): the footprint's four corners and centre (with the clearance) must lie on
+ground cells or between two scan rings on their sensor ray (``ground_gap``; see
+:meth:`drcpo.ground.GroundModel.observed_height_at`: no height borrowed from cells metres away,
+no plane); the bottom goes to the median of the five heights: on a plane it is the centre's
+height (the corners pair around it), and unlike the mean it ignores one corner on a kerb.
 
 A placement is rejected, for one reason counted per attempt, when
 
@@ -13,18 +18,28 @@ A placement is rejected, for one reason counted per attempt, when
 * ``"collision"``: its BEV box overlaps (area > 0) an existing box of the frame, a box placed
   earlier in this call, or an earlier box of the same batch (first come, first placed);
 * ``"obstacle"``: its box holds more than ``max_non_ground_points`` frame points that are more
-  than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects);
+  than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects); with
+  ``"observed"``, above the observed ground at the point (above the box bottom where the point's
+  cell saw no ground), so that ground returns under the box are never obstacles;
+* ``"no_ground"`` (``"observed"`` only): a sampled footprint point has no observed ground;
+* ``"slope"`` (``"observed"`` only): the five heights spread (max - min) by more than
+  ``max_slope`` times the footprint's diagonal;
 * ``"occluded"``: the caller rejects it after the checks above (:class:`PlacementRounds` hands
   each round's boxes to the caller and takes its verdict; DR.CPO's test: the box would be
   hidden behind the frame's points, see :class:`drcpo.transforms.drcpo.DRCPO`;
   :class:`drcpo.occlusion.zbuffer.OcclusionMap` is a z-buffer for such a test).
 
 Objects are tried up to ``attempts`` times (a fresh pose each time); the paper tries once.
+``max_attempts_per_frame`` caps the poses of one call in all, so that a crowded frame cannot
+loop for long: the round that reaches the cap draws poses for the first pending objects only,
+and objects that never got a pose end with the reason ``"budget"`` (counted per object, not per
+attempt). The budget counts poses, not seconds: a wall-clock budget would make the output
+depend on the machine's speed, and the same seed must give the same output.
 
 The hot loops are numba kernels that reproduce the reference numpy arithmetic operation for
 operation (same boxes, same verdicts, bit for bit): collisions are a separating-axis test
 (:func:`bev_collisions`, interiors intersect exactly when the overlap area is positive), the
-points in each box come from one pass with a coarse cell index (:func:`box_members`).
+points in each box come from a coarse cell index (:func:`box_members`, see ``_Obstacles``).
 """
 
 from __future__ import annotations
@@ -38,7 +53,7 @@ import numpy as np
 from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
 from drcpo.frame import Frame
-from drcpo.geometry import box_members, heading_terms
+from drcpo.geometry import box_members, heading_terms, in_box
 from drcpo.ground import GroundModel
 
 __all__ = [
@@ -57,8 +72,8 @@ __all__ = [
 ]
 
 
-REASONS = ("out_of_range", "collision", "obstacle", "occluded")
-HEIGHT_MODES = ("ground", "source")
+REASONS = ("out_of_range", "collision", "obstacle", "occluded", "no_ground", "slope", "budget")
+HEIGHT_MODES = ("ground", "source", "observed")
 CAMERA_FOV_MODES = ("auto", "always", "never")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
@@ -68,14 +83,21 @@ _FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first eight fields.
+    section ``drcpo.placement``, whose keys are the first eleven fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
-        height: ``"ground"`` (bottom on the estimated ground) or ``"source"``.
+        height: ``"ground"`` (bottom on the estimated ground), ``"source"`` or ``"observed"``
+            (bottom on the ground the frame observed under the footprint, see the module).
         max_non_ground_points: most non-ground frame points a placed box may hold.
         ground_tolerance: points more than this (metres) above the ground are non-ground.
         attempts: poses tried per object.
+        max_slope: with ``"observed"``: most ground rise over the footprint's diagonal
+            (the spread of the five sampled heights over the diagonal; 0.1 = 5.7 degrees).
+        ground_gap: with ``"observed"``: bridge the gaps between scan rings up to this share
+            of the range (``max_gap`` of :meth:`drcpo.ground.GroundModel.observed_height_at`).
+        max_attempts_per_frame: poses tried in all per call, over every object (``None``: no
+            cap); a count, not a time budget, so that the same seed gives the same output.
         occluded_fraction: for the caller's occlusion test (``occluded`` of
             :func:`place_objects`; DR.CPO's rejects a box once e-HPR would hide this share of
             its sensor-facing surface; ``None``: no test).
@@ -119,6 +141,37 @@ class PlacementConfig(Checked):
     attempts: int = field(
         default=1,
         metadata=spec("int", "poses tried per sampled object (the paper: 1)", low=1, high=1000),
+    )
+    max_slope: float = field(
+        default=0.1,
+        metadata=spec(
+            "float",
+            'height "observed": most ground rise under a footprint over its diagonal',
+            low=0.0,
+            high=10.0,
+        ),
+    )
+    ground_gap: float = field(
+        default=0.3,
+        metadata=spec(
+            "float",
+            'height "observed": a footprint point between scan rings stands on observed ground '
+            "when ground cells lie on its sensor ray before and beyond it within this share of "
+            "its range (0: its own cell only)",
+            low=0.0,
+            high=1.0,
+        ),
+    )
+    max_attempts_per_frame: int | None = field(
+        default=None,
+        metadata=spec(
+            "int",
+            "poses tried in all per frame, every object together (a count, not a time budget, "
+            "so that the same seed gives the same output; null: no cap)",
+            low=1,
+            high=1_000_000,
+            optional=True,
+        ),
     )
     occluded_fraction: float | None = field(
         default=1.0,
@@ -170,8 +223,11 @@ class PlacementResult:
     Attributes:
         boxes: ``float64 (A, 7)`` placed boxes, in the order of ``accepted``.
         accepted: ``int64 (A,)`` ascending indices (into the ``dims`` given) of placed objects.
-        rejected: attempts rejected per reason (every reason in :data:`REASONS` present).
-        reasons: ``(K,)`` per object: ``""`` when placed, else the reason of its last attempt.
+        rejected: attempts rejected per reason (every reason in :data:`REASONS` present);
+            ``"budget"``: the objects that got no pose (``max_attempts_per_frame``), so
+            ``attempts == len(accepted) + sum(rejected.values()) - rejected["budget"]``.
+        reasons: ``(K,)`` per object: ``""`` when placed, else the reason of its last attempt
+            (``"budget"``: it had none).
         attempts: poses tried in all.
     """
 
@@ -284,9 +340,11 @@ class PlacementRounds:
         self._rng = rng
         if ground is None:
             ground = frame_ground(frame)
-        self._obstacles = _Obstacles(frame.points, ground, config.ground_tolerance)
+        observed = config.height == "observed"
+        self._obstacles = _Obstacles(frame.points, ground, config.ground_tolerance, observed)
         self._placed = np.full((len(dims), 7), np.nan)
-        self._verdicts = np.zeros(len(dims), dtype=np.int64)  # 0: placed, else 1 + REASONS index
+        # 0: placed, else 1 + REASONS index; "budget" until an object gets its first pose
+        self._verdicts = np.full(len(dims), _BUDGET, dtype=np.int64)
         self._counts = np.zeros(len(REASONS) + 1, dtype=np.int64)
         self._occupied = frame.boxes
         # each footprint with its clearance: sampled and checked for collisions
@@ -299,13 +357,17 @@ class PlacementRounds:
 
     def next_round(self) -> Round | None:
         """Draw and check the next round's poses; ``None`` when every object is placed or has
-        had its ``attempts`` poses. Call :meth:`settle` before the next round."""
+        had its ``attempts`` poses, or ``max_attempts_per_frame`` poses were drawn in all (the
+        round reaching it draws for the first pending objects only). Call :meth:`settle`
+        before the next round."""
         if self._open is not None:
             raise RuntimeError("settle the current round before drawing the next")
-        if self._rounds == self._config.attempts or len(self._pending) == 0:
+        cap = self._config.max_attempts_per_frame
+        spent = cap is not None and self._attempts >= cap
+        if self._rounds == self._config.attempts or len(self._pending) == 0 or spent:
             return None
         self._rounds += 1
-        pending = self._pending
+        pending = self._pending if cap is None else self._pending[: cap - self._attempts]
         self._attempts += len(pending)
         boxes = sample_poses(self._room[pending], self._rng, self._config)
         verdict = _judge(
@@ -320,7 +382,7 @@ class PlacementRounds:
         own = boxes.copy()  # the objects' own footprints, without the clearance
         own[:, 3:5] = self._dims[pending, :2]
         passed = np.flatnonzero(verdict == 0)
-        self._open = (boxes, own, verdict, passed)
+        self._open = (pending, boxes, own, verdict, passed)
         placed = self._placed[np.isfinite(self._placed[:, 0])]
         return Round(boxes=own[passed], placed=placed)
 
@@ -329,7 +391,7 @@ class PlacementRounds:
         (reason ``"occluded"``; tried again like the others), ``None``: none."""
         if self._open is None:
             raise RuntimeError("no round to settle: call next_round first")
-        boxes, own, verdict, passed = self._open
+        tried, boxes, own, verdict, passed = self._open
         if occluded is not None:
             hidden = np.asarray(occluded, dtype=bool).reshape(-1)
             if len(hidden) != len(passed):
@@ -337,27 +399,32 @@ class PlacementRounds:
             verdict[passed[hidden]] = _OCCLUDED
         self._open = None
         self._counts += np.bincount(verdict, minlength=len(self._counts))
-        self._verdicts[self._pending] = verdict
+        self._verdicts[tried] = verdict
         ok = verdict == 0
         self._occupied = np.concatenate([self._occupied, boxes[ok]])
-        self._placed[self._pending[ok]] = own[ok]
-        self._pending = self._pending[~ok]
+        self._placed[tried[ok]] = own[ok]
+        left = np.ones(len(self._pending), dtype=bool)  # those tried lead the pending ones
+        left[: len(tried)] = ~ok
+        self._pending = self._pending[left]
 
     def result(self) -> PlacementResult:
         """The outcome of the rounds settled so far."""
         if self._open is not None:
             raise RuntimeError("settle the current round first")
         accepted = np.flatnonzero(self._verdicts == 0)
+        counts = self._counts.copy()
+        counts[_BUDGET] = np.count_nonzero(self._verdicts == _BUDGET)  # objects, not attempts
         return PlacementResult(
             boxes=self._placed[accepted],
             accepted=accepted.astype(np.int64),
-            rejected={reason: int(n) for reason, n in zip(REASONS, self._counts[1:], strict=True)},
+            rejected={reason: int(n) for reason, n in zip(REASONS, counts[1:], strict=True)},
             reasons=_REASON_NAMES[self._verdicts].astype(str),
             attempts=self._attempts,
         )
 
 
-_OUT_OF_RANGE, _COLLISION, _OBSTACLE, _OCCLUDED = 1, 2, 3, 4  # verdicts: 1 + index in REASONS
+# verdicts: 1 + index in REASONS
+_OUT_OF_RANGE, _COLLISION, _OBSTACLE, _OCCLUDED, _NO_GROUND, _SLOPE, _BUDGET = range(1, 8)
 _REASON_NAMES = np.array(["", *REASONS], dtype=object)  # by verdict
 
 
@@ -382,10 +449,14 @@ def _judge(
         hit = bev_collisions(boxes[live], occupied).any(axis=1)
     if config.height == "ground":
         boxes[live, 2] = obstacles.ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
-    else:
+    elif config.height == "source":
         boxes[live, 2] = source_z[pending[live]]
     verdict[live[hit]] = _COLLISION
     live = live[~hit]
+    if config.height == "observed":
+        boxes[live, 2], standing = _on_observed_ground(boxes[live], obstacles.ground, config)
+        verdict[live] = standing
+        live = live[standing == 0]
     own = boxes[live]
     own[:, 3:5] = dims[pending[live], :2]
     blocked = obstacles.count(own) > config.max_non_ground_points
@@ -400,26 +471,145 @@ def _judge(
     return verdict
 
 
+def _on_observed_ground(
+    boxes: np.ndarray, ground: GroundModel, config: PlacementConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each box's centre z standing on the observed ground (``float64 (L,)``, NaN where it
+    cannot) and its verdict (``int64 (L,)``: 0, ``_NO_GROUND`` or ``_SLOPE``), from the
+    ground under the four corners and the centre of the ``(L, 7)`` footprints."""
+    cos, sin = heading_terms(boxes)
+    along = _CORNERS[:, 0] * boxes[:, 3:4]  # (L, 4) corner offsets in the box frame
+    across = _CORNERS[:, 1] * boxes[:, 4:5]
+    samples = np.empty((len(boxes), 5, 2))
+    samples[:, :4, 0] = boxes[:, 0:1] + (cos[:, None] * along - sin[:, None] * across)
+    samples[:, :4, 1] = boxes[:, 1:2] + (sin[:, None] * along + cos[:, None] * across)
+    samples[:, 4] = boxes[:, :2]
+    heights, seen = ground.observed_height_at(samples.reshape(-1, 2), config.ground_gap)
+    heights = np.sort(heights.reshape(-1, 5), axis=1)  # NaN last
+    seen = seen.reshape(-1, 5).all(axis=1)
+    steep = heights[:, 4] - heights[:, 0] > config.max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
+    verdict = np.where(seen, np.where(steep, _SLOPE, 0), _NO_GROUND).astype(np.int64)
+    z = heights[:, 2] + boxes[:, 5] / 2.0  # the median
+    z[verdict != 0] = np.nan
+    return z, verdict
+
+
 class _Obstacles:
     """Counts of non-ground frame points in candidate boxes.
 
-    The points in each box are found in one pass over the frame (a coarse BEV grid of the
-    boxes' bounding squares, see :func:`drcpo.geometry.box_members`); only those are tested
-    against the ground, with :meth:`GroundModel.is_ground`.
+    The points in each box: in the first rounds one pass over the frame each
+    (:func:`drcpo.geometry.box_members`); from round ``_INDEX_AFTER`` on, the points sorted
+    once into 1 m cells (about five passes' time), each box visiting only the cells under it
+    (the same pairs). Only those are tested against the ground (:meth:`GroundModel.is_ground`;
+    with ``observed``: more than ``tolerance`` above the observed ground at the point, or above
+    the box's bottom where its cell observed none, :meth:`GroundModel.observed_height_at`).
     """
 
-    def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float) -> None:
-        self.points = points
-        self.ground = ground
-        self.tolerance = tolerance
+    def __init__(self, points: np.ndarray, ground: GroundModel, tolerance: float, observed=False):
+        self.points, self.ground, self.tolerance = points, ground, tolerance
+        self.observed = observed
+        self._index: tuple | None = None
+        self._calls = 0
 
     def count(self, boxes: np.ndarray) -> np.ndarray:
         """Non-ground frame points inside each of ``boxes`` ``(M, 7)``: ``int64 (M,)``."""
         if len(boxes) == 0 or len(self.points) == 0:
             return np.zeros(len(boxes), dtype=np.int64)
-        point, box = box_members(self.points, boxes)
-        above = ~self.ground.is_ground(self.points.take(point, axis=0), self.tolerance)
+        point, box = self.members(boxes)
+        inside = self.points.take(point, axis=0)
+        if self.observed:
+            heights, seen = self.ground.observed_height_at(inside[:, :2])
+            bottom = boxes[box, 2] - boxes[box, 5] / 2.0
+            above = inside[:, 2] > np.where(seen, heights, bottom) + self.tolerance
+        else:
+            above = ~self.ground.is_ground(inside, self.tolerance)
         return np.bincount(box[above], minlength=len(boxes)).astype(np.int64)
+
+    def members(self, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(point, box)`` ``int64`` pairs of frame points inside ``(M, 7)`` boxes."""
+        self._calls += 1
+        if self._calls < _INDEX_AFTER:
+            return box_members(self.points, boxes)
+        if self._index is None:
+            self._index = _sort_into_cells(np.asarray(self.points), _INDEX_CELLS)
+        boxes = np.ascontiguousarray(boxes, dtype=np.float64)
+        return _indexed_members(*self._index, boxes, *heading_terms(boxes))
+
+
+_CORNERS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # as bev_corners
+_INDEX_AFTER = 3  # the round from which the frame's points are indexed
+_INDEX_CELLS = 512  # most index cells along x or y (1 m cells, larger for a huge frame)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sort_into_cells(points, max_cells):  # pragma: no cover - numba
+    # The finite-(x, y) points' xyz sorted by BEV cell (a stable counting sort), their rows,
+    # each cell's first slot and the grid: x0, y0, cells per metre, nx, ny.
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    for i in range(points.shape[0]):
+        x, y = np.float64(points[i, 0]), np.float64(points[i, 1])
+        if np.isfinite(x) and np.isfinite(y):
+            x0, x1, y0, y1 = min(x0, x), max(x1, x), min(y0, y), max(y1, y)
+    if not x0 <= x1:
+        return np.empty((0, 3)), np.empty(0, np.int64), np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
+    per_metre = 1.0 / max(1.0, (x1 - x0) / max_cells, (y1 - y0) / max_cells)
+    nx, ny = int((x1 - x0) * per_metre) + 1, int((y1 - y0) * per_metre) + 1
+    cells = np.full(points.shape[0], -1, np.int64)
+    start = np.zeros(nx * ny + 1, np.int64)
+    for i in range(points.shape[0]):
+        x, y = np.float64(points[i, 0]), np.float64(points[i, 1])
+        if np.isfinite(x) and np.isfinite(y):
+            cell = min(int((x - x0) * per_metre), nx - 1) * ny
+            cells[i] = cell + min(int((y - y0) * per_metre), ny - 1)
+            start[cells[i] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    xyz = np.empty((start[nx * ny], 3))
+    rows = np.empty(start[nx * ny], np.int64)
+    for i in range(points.shape[0]):
+        if cells[i] >= 0:
+            k = fill[cells[i]]
+            xyz[k, 0], xyz[k, 1], xyz[k, 2] = points[i, 0], points[i, 1], points[i, 2]
+            rows[k] = i
+            fill[cells[i]] += 1
+    return xyz, rows, start, x0, y0, per_metre, nx, ny
+
+
+@numba.njit(cache=True, nogil=True)
+def _indexed_members(
+    xyz, rows, start, x0, y0, per_metre, nx, ny, boxes, cos, sin
+):  # pragma: no cover - numba
+    # Per box, the points of the cells its BEV bounds cover (with the slack of
+    # geometry.box_members, so that rounding never drops a point inside), tested exactly.
+    found_point = np.empty(64, np.int64)
+    found_box = np.empty(64, np.int64)
+    found = 0
+    for m in range(boxes.shape[0]):
+        c, s = abs(cos[m]), abs(sin[m])
+        reach_x = (boxes[m, 3] * c + boxes[m, 4] * s) / 2.0 * (1.0 + 1e-9) + 1e-6
+        reach_y = (boxes[m, 3] * s + boxes[m, 4] * c) / 2.0 * (1.0 + 1e-9) + 1e-6
+        i0 = max(math.floor((boxes[m, 0] - reach_x - x0) * per_metre), 0)
+        i1 = min(math.floor((boxes[m, 0] + reach_x - x0) * per_metre), nx - 1)
+        j0 = max(math.floor((boxes[m, 1] - reach_y - y0) * per_metre), 0)
+        j1 = min(math.floor((boxes[m, 1] + reach_y - y0) * per_metre), ny - 1)
+        if j0 > j1:
+            continue
+        for i in range(i0, i1 + 1):  # a row's cells j0..j1 are one run of slots
+            for k in range(start[i * ny + j0], start[i * ny + j1 + 1]):
+                if in_box(
+                    xyz[k, 0], xyz[k, 1], xyz[k, 2],
+                    boxes[m, 0], boxes[m, 1], boxes[m, 2],
+                    boxes[m, 3], boxes[m, 4], boxes[m, 5],
+                    cos[m], sin[m], 0.0,
+                ):  # fmt: skip
+                    if found == found_point.shape[0]:
+                        found_point = np.concatenate((found_point, np.empty_like(found_point)))
+                        found_box = np.concatenate((found_box, np.empty_like(found_box)))
+                    found_point[found], found_box[found] = rows[k], m
+                    found += 1
+    return found_point[:found].copy(), found_box[:found].copy()
 
 
 def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
@@ -580,12 +770,30 @@ def _source_heights(
     return source_boxes[:, 2]
 
 
-def frame_ground(frame: Frame) -> GroundModel:
+def frame_ground(frame: Frame, exclude: np.ndarray | None = None) -> GroundModel:
     """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
 
     Uses a fixed RANSAC seed, so a frame always gets the same ground.
+
+    Args:
+        frame: the frame.
+        exclude: ``(M, 7)`` boxes whose points are not the frame's ground (e.g. the objects
+            ground-truth sampling added, standing on the ground of the frames they came
+            from): the points inside them (:func:`drcpo.geometry.box_members`; grow the boxes
+            to leave out more) are left out of the estimate. ``None`` or no box: every point.
     """
+    points = frame.points
+    if exclude is not None:
+        exclude = np.asarray(exclude, dtype=np.float64)
+        if exclude.size and (exclude.ndim != 2 or exclude.shape[1] != 7):
+            raise DataError(f"exclude boxes must have shape (M, 7), got {exclude.shape}")
+        if not np.isfinite(exclude).all():
+            raise DataError("exclude boxes hold a non-finite value")
+        if exclude.size:
+            keep = np.ones(len(points), dtype=bool)
+            keep[box_members(points, exclude.reshape(-1, 7))[0]] = False
+            points = points[keep]
     plane, calib = frame.metadata.get("plane"), frame.metadata.get("calib")
     if plane is not None and calib is not None:
-        return GroundModel.from_points(frame.points, plane=plane, calib=calib)
-    return GroundModel.from_points(frame.points)
+        return GroundModel.from_points(points, plane=plane, calib=calib)
+    return GroundModel.from_points(points)

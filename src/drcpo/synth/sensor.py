@@ -6,24 +6,21 @@ The sensor sits at the origin of the LiDAR frame (x forward, y left, z up) and i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from drcpo.errors import ConfigError
+from drcpo.sensor import Sensor, hdl64e_elevations_deg
 
 __all__ = ["LidarConfig", "RayGrid", "hdl64e_elevations", "ray_grid"]
 
 
 def hdl64e_elevations() -> tuple[float, ...]:
-    """The 64 beam elevations (degrees) of an HDL-64E, +2.0 down to -24.9.
-
-    The HDL-64E has two laser blocks: the upper 32 beams are packed about 1/3 degree apart
-    (+2.0 to -8.33), the lower 32 about 1/2 degree apart (-8.87 to -24.9).
-    """
-    upper = np.linspace(2.0, -8.33, 32)
-    lower = np.linspace(-8.87, -24.9, 32)
-    return tuple(float(round(v, 4)) for v in np.concatenate([upper, lower]))
+    """The 64 beam elevations (degrees) of an HDL-64E, +2.0 down to -24.9 (the ``hdl64e``
+    preset's, :func:`drcpo.sensor.hdl64e_elevations_deg`)."""
+    return hdl64e_elevations_deg()
 
 
 @dataclass(frozen=True)
@@ -82,6 +79,27 @@ class LidarConfig:
     @property
     def num_rays(self) -> int:
         return self.num_beams * self.num_columns
+
+    def sensor(self, azimuth_offset: float = 0.0) -> Sensor:
+        """The :class:`~drcpo.sensor.Sensor` firing exactly the rays of
+        ``ray_grid(self, azimuth_offset)``: ray (beam ``b``, column ``c``) of the grid is the
+        sensor's ray cell (beam rank of ``b`` by elevation, top first; the column of its
+        azimuth), with this range noise, dropout and range limits, at the origin.
+        """
+        step = 2.0 * math.pi / self.num_columns
+        elevations = np.sort(np.radians(np.asarray(self.elevations_deg, dtype=np.float64)))
+        return Sensor(
+            elevations=elevations[::-1],
+            offsets=None,
+            azimuth_step=step,
+            # ray_grid's column c points at -pi + (c + 1/2) step + offset
+            phase=float((0.5 * step + azimuth_offset - math.pi) % step) % step,
+            range_noise=self.range_noise,
+            dropout=self.dropout,
+            min_range=self.min_range,
+            max_range=self.max_range,
+            name="synthetic",
+        )
 
 
 @dataclass(frozen=True, eq=False)
