@@ -40,7 +40,6 @@ from drcpo.geometry import points_in_boxes
 from drcpo.index import CandidateIndex, build_index
 from drcpo.outputs import atomic_write_bytes
 from drcpo.partitions import partition_counts
-from drcpo.sensor import sensor_preset
 from drcpo.synth.dataset import matches, synth_parameters, write_synthetic_kitti
 from drcpo.synth.sensor import LidarConfig
 from drcpo.synth.world import WorldConfig
@@ -489,7 +488,7 @@ def _side_view(originals: list[Frame], results: dict[str, list[Frame]], path: Pa
         box = frame.boxes[int(pool["box"][row])]
         inside = points_in_boxes(frame.points, box[None])[:, 0]
         views.append(ObjectView(frame.points[inside], box, f"{title} (frame {frame.frame_id})"))
-    sensor = sensor_preset("hdl64e")  # the synthetic world's sensor
+    sensor = LidarConfig().sensor()  # the synthetic world's, which recorded the frames
     return side_view_figure(
         views,
         path,
