@@ -65,12 +65,14 @@ from drcpo.index import IndexConfig
 from drcpo.occlusion.presets import HPR_PRESETS
 from drcpo.occlusion.presets import HPRPreset as EHPRSetting
 from drcpo.placement import PlacementConfig
+from drcpo.sensor import SensorConfig
 
 __all__ = [
     "DETECTOR_PRESETS",
     "EXTERNAL_OCCLUSION_MODES",
     "KITTI_CLASSES",
     "PIPELINES",
+    "PIPELINE_PRESETS",
     "PRESETS",
     "SELF_OCCLUSION_MODES",
     "AugmentConfig",
@@ -97,6 +99,9 @@ __all__ = [
 #: The detector presets (``drcpo/configs/<name>.yaml``) and their e-HPR settings: the one table,
 #: kept as data in :mod:`drcpo.occlusion.presets` (which the occlusion functions read too).
 DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
+#: Whole-pipeline presets (config files in drcpo/configs): ``paper`` is the method as
+#: published (today's defaults), ``realistic`` adds the sensor-true steps (docs/realism.md).
+PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "realistic")
 SELF_OCCLUSION_MODES = ("hpr", "sensor")
 EXTERNAL_OCCLUSION_MODES = ("hpr", "range_image", "sensor")
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
@@ -276,6 +281,16 @@ class ExternalOcclusionConfig(Checked):
             "float", "override viewpoint height (m)", low=-100.0, high=100.0, optional=True
         ),
     )
+    min_visible_rays: int = field(
+        default=12,
+        metadata=spec(
+            "int",
+            "mode sensor: placement rejects, before building it, a box that fewer of the "
+            "sensor's rays would reach in front of the frame and the boxes placed before",
+            low=0,
+            high=1_000_000,
+        ),
+    )
 
     @property
     def setting(self) -> EHPRSetting:
@@ -333,6 +348,7 @@ class DRCPOConfig(Checked):
     external_occlusion: ExternalOcclusionConfig = field(
         default_factory=ExternalOcclusionConfig, metadata=SECTION
     )
+    sensor: SensorConfig = field(default_factory=SensorConfig, metadata=SECTION)
 
 
 @dataclass(frozen=True, eq=False)
@@ -493,9 +509,10 @@ def _read_yaml(path: Path) -> dict[str, Any]:
 
 
 def preset_path(name: str) -> Path:
-    """Path of a packaged config file (``default`` or a detector preset name)."""
-    if name != "default" and name not in PRESETS:
-        raise ConfigError(f"unknown preset {name!r}; choose one of: default, {', '.join(PRESETS)}")
+    """Path of a packaged config file (a pipeline or a detector preset's name)."""
+    if name not in PIPELINE_PRESETS and name not in PRESETS:
+        names = ", ".join((*PIPELINE_PRESETS, *PRESETS))
+        raise ConfigError(f"unknown preset {name!r}; choose one of: {names}")
     return Path(str(resources.files("drcpo") / "configs" / f"{name}.yaml"))
 
 
@@ -504,8 +521,9 @@ def load_config(source: str | os.PathLike | Mapping[str, Any] | AugmentConfig | 
 
     Args:
         source: ``None`` (the paper defaults), a mapping, a YAML file path, or the name of a
-            packaged preset (``default``, ``second``, ``pointrcnn``, ``pv_rcnn``,
-            ``pv_rcnn_plusplus``) when no file of that name exists.
+            packaged preset when no file of that name exists: a pipeline preset
+            (:data:`PIPELINE_PRESETS`: ``default``, ``paper``, ``realistic``) or a detector
+            preset (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``).
 
     The keys given are applied on top of the defaults; a ``preset`` key first applies that
     detector preset. Raises :class:`ConfigError` naming the file and key on any bad value.
@@ -535,14 +553,15 @@ def _config_path(source: str | os.PathLike) -> Path:
     """The YAML file ``source`` names: itself, else the packaged preset of that name."""
     path = Path(source)
     try:
-        if not path.exists() and str(source) in ("default", *PRESETS):
+        if not path.exists() and str(source) in (*PIPELINE_PRESETS, *PRESETS):
             path = preset_path(str(source))
         found = path.is_file()
     except (OSError, ValueError) as exc:  # e.g. a name too long, a NUL byte
         raise ConfigError(f"{shown(str(source))}: not a usable config file path ({exc})") from None
     if not found:
         raise ConfigError(
-            f"{path}: config file not found (or give a preset: default, {', '.join(PRESETS)})"
+            f"{path}: config file not found (or give a preset: "
+            f"{', '.join((*PIPELINE_PRESETS, *PRESETS))})"
         )
     return path
 

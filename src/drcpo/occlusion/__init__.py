@@ -9,7 +9,8 @@ z-buffer alternative that is *not* the paper's method; :class:`OcclusionMap` is 
 that rejects placements hidden behind the frame before anything is built.
 
 Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
-:mod:`drcpo.geometry`), never anything above (:mod:`drcpo.placement`, :mod:`drcpo.transforms`):
+:mod:`drcpo.geometry`, :mod:`drcpo.sensor`), never anything above (:mod:`drcpo.placement`,
+:mod:`drcpo.transforms`):
 
 * :mod:`~drcpo.occlusion.presets`: the paper's ``(R, z)`` per detector.
 * :mod:`~drcpo.occlusion.checks`: input checks.
@@ -27,6 +28,10 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.scopes`: s-HPR.
 * :mod:`~drcpo.occlusion.external`: e-HPR, its scopes (``frame``, ``inserted`` in two steps)
   and modes (``hpr``, ``range_image``).
+* :mod:`~drcpo.occlusion.render`: objects rendered through a :class:`~drcpo.sensor.Sensor`
+  (``self_occlusion.mode: sensor``): :func:`render_object`, :func:`surfel_radii`.
+* :mod:`~drcpo.occlusion.rays`: occlusion along the sensor's rays (``external_occlusion.mode:
+  sensor``): :func:`ray_occlusion`, and :class:`RangeImage`, placement's visible-ray count.
 
 Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
 pool outlives a call, and numba kernels are compiled without a threading layer.
@@ -52,6 +57,8 @@ from drcpo.occlusion.hpr import (
     hidden_point_removal,
 )
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
+from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.occlusion.scopes import self_occlusion, self_occlusion_many
 from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
 
@@ -67,14 +74,18 @@ __all__ = [
     "HPRPreset",
     "InsertedScope",
     "OcclusionMap",
+    "RangeImage",
     "azimuth_focus",
     "external_occlusion",
     "hidden_by_insertion",
     "hidden_point_removal",
     "inserted_scope",
     "range_image_occlusion",
+    "ray_occlusion",
+    "render_object",
     "self_occlusion",
     "self_occlusion_many",
     "surface_samples",
+    "surfel_radii",
     "thread_grid_memory",
 ]

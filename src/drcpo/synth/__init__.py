@@ -5,7 +5,8 @@ of an object placed in a frame the sensor truly sees (the reference for HPR occl
 
 Modules: :mod:`.sensor` (sensor model), :mod:`.solids` (primitives), :mod:`.raycast`,
 :mod:`.actors` (Car, Pedestrian, Cyclist), :mod:`.world` (procedural street), :mod:`.scan`
-(sweeps and per-object visibility), :mod:`.truth` (visibility of arbitrary points),
+(sweeps and per-object visibility), :mod:`.truth` (visibility of arbitrary points; the truth
+of an inserted object: its returns, what it hides, the ground under it, solids it cuts into),
 :mod:`.dataset` (KITTI data sets).
 """
 
@@ -20,13 +21,24 @@ from drcpo.synth.raycast import Ground, RayHits, Scene
 from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
 from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, ray_grid
 from drcpo.synth.solids import Solids
-from drcpo.synth.truth import PlacedObjectTruth, free_pose, place_object, visible_points
+from drcpo.synth.truth import (
+    InsertedTruth,
+    PlacedObjectTruth,
+    free_pose,
+    place_object,
+    solids_in_box,
+    true_ground_height,
+    true_inserted_returns,
+    true_object_returns,
+    visible_points,
+)
 from drcpo.synth.world import World, WorldConfig, generate_world
 
 __all__ = [
     "CLASSES",
     "Actor",
     "Ground",
+    "InsertedTruth",
     "LidarConfig",
     "PlacedObjectTruth",
     "RayGrid",
@@ -48,7 +60,11 @@ __all__ = [
     "place_object",
     "ray_grid",
     "scan",
+    "solids_in_box",
     "synthesize_frame",
+    "true_ground_height",
+    "true_inserted_returns",
+    "true_object_returns",
     "visible_points",
     "write_synthetic_kitti",
 ]

@@ -22,6 +22,7 @@ from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
 from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
+from drcpo.transforms import sensor_steps
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.insertion import (
     BOX_SOURCE,
@@ -183,6 +184,32 @@ class DRCPO(Transform):
         margin = built.margin if built.mode == "partition" else 0
         return float(margin) + 2.0 * _FIT_PAD
 
+    @property
+    def _sensor_true(self) -> bool:
+        """Whether a step uses the sensor model or the ground before earlier stages (see
+        :mod:`drcpo.transforms.sensor_steps`)."""
+        c = self.config
+        return (
+            self._render_objects or self._occlusion_along_rays or c.placement.height == "observed"
+        )
+
+    @property
+    def _render_objects(self) -> bool:
+        s = self.config.self_occlusion
+        return s.enabled and s.mode == "sensor"
+
+    @property
+    def _occlusion_along_rays(self) -> bool:
+        e = self.config.external_occlusion
+        return e.enabled and e.mode == "sensor"
+
+    def _render_seeds(self, count: int, rng: np.random.Generator) -> np.ndarray | None:
+        """One seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in
+        object order whatever thread renders it; ``None`` (and no draw) in the other modes."""
+        if not self._render_objects:
+            return None
+        return rng.integers(0, 2**63 - 1, size=count, dtype=np.int64)
+
     def _two_threads(self) -> bool:
         """Whether this call runs work on a second thread (see ``workers``)."""
         return self.workers == 2 or (self.workers is None and spare_core())
@@ -252,6 +279,7 @@ class DRCPO(Transform):
     def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
+        seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
         objects: list[Any] = []
         placed: Future | None = None  # of a _Placed
         with ThreadPoolExecutor(max_workers=1) as pool:
@@ -261,15 +289,18 @@ class DRCPO(Transform):
             if self.config.construction.mode == "partition":
                 with stats.stage("drcpo.placement", len(frame)):
                     boxes, accepted, owners = self._place(
-                        frame, rows, None, rng, stats, frame_grid, pool
+                        frame, rows, None, rng, stats, frame_grid, pool, seen
                     )
                     rows = rows[accepted]
                     placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
+                seeds = self._render_seeds(len(boxes), rng)
                 # With placement first, objects go to s-HPR chunk by chunk as they are built
                 # (the answers do not depend on it); the construction stage's time then
                 # includes the s-HPR work done meanwhile.
                 with stats.stage("drcpo.construction", 0) as record:
-                    queue = partial(self._queue_s_hpr, s_hpr, boxes, frame.points.shape[1])
+                    queue = partial(
+                        self._queue_s_hpr, s_hpr, boxes, frame.points.shape[1], seen, seeds
+                    )
                     objects = self._construct(rows, rng, stats, queue)
                     record["points_out"] = sum(len(o.points) for o in objects)
             else:  # whole: the box grows while constructing, so place with the final size
@@ -279,11 +310,12 @@ class DRCPO(Transform):
                 with stats.stage("drcpo.placement", len(frame)):
                     dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
                     boxes, accepted, owners = self._place(
-                        frame, rows, dims, rng, stats, frame_grid, pool
+                        frame, rows, dims, rng, stats, frame_grid, pool, seen
                     )
                     rows, objects = rows[accepted], [objects[i] for i in accepted]
                     placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
-                self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], 0, objects)
+                seeds = self._render_seeds(len(boxes), rng)
+                self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], seen, seeds, 0, objects)
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 done = s_hpr.results()
@@ -291,13 +323,22 @@ class DRCPO(Transform):
                 insertions = self._insertions(rows, boxes, visible, stats)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
-                points, owner, cleared_by = self._insert(frame, insertions, result_if_done(placed))
+                points, owner, cleared_by = self._insert(
+                    frame, insertions, result_if_done(placed), clear=seen is None
+                )
                 record["points_out"] = len(points)
             with stats.stage("drcpo.external_occlusion", len(points)) as record:
                 grid = frame_grid() if frame_grid is not None and insertions else None
                 helper = pool if self._two_threads() else None
                 keep, dropped = self._external_occlusion(
-                    points, owner, insertions, grid, cleared_by, helper, result_if_done(placed)
+                    points,
+                    owner,
+                    insertions,
+                    grid,
+                    cleared_by,
+                    helper,
+                    result_if_done(placed),
+                    seen,
                 )
                 record["points_out"] = int(keep.sum())
             with stats.stage("drcpo.labels", int(keep.sum())) as record:
@@ -305,6 +346,8 @@ class DRCPO(Transform):
                     frame, points, owner, keep, dropped, cleared_by, insertions, stats
                 )
                 record["points_out"] = len(out)
+        if seen is not None and (used := seen.record()) is not None:
+            stats.sensor_used(used)
         return out
 
     def _frame_grid(
@@ -370,10 +413,13 @@ class DRCPO(Transform):
         stats: Stats,
         frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
         pool: ThreadPoolExecutor | None = None,
+        seen: sensor_steps.SensorFrame | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Placed boxes ``(A, 7)``, the indices (into ``rows``) of the placed objects and, when
         worked out, the room (see :attr:`room`) each frame point lies in (``int64 (N,)``, -1:
-        none)."""
+        none). With ``seen`` (the sensor-true steps), the ground is the frame's before earlier
+        stages added objects, and with e-HPR mode ``sensor`` the occlusion test counts the rays
+        that would reach each box."""
         if len(rows) == 0:
             return np.zeros((0, 7)), np.zeros(0, np.int64), None
         source = np.asarray(self.database.boxes[rows], dtype=np.float64)
@@ -384,7 +430,16 @@ class DRCPO(Transform):
         check = limit is not None and self.config.external_occlusion.enabled
         # No ground given: placement estimates it from the frame's points (on this thread; see
         # docs/measurements.md for why not on the second one).
-        rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov])
+        ground = seen.ground if seen is not None else None
+        rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
+        if self._occlusion_along_rays:
+            minimum = self.config.external_occlusion.min_visible_rays
+            while (drawn := rounds.next_round()) is not None:
+                hidden = (
+                    seen.hidden(drawn.boxes, drawn.placed, minimum) if len(drawn.boxes) else None
+                )
+                rounds.settle(hidden)
+            return (*self._placement_result(rounds, rows, stats), None)
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
         while (drawn := rounds.next_round()) is not None:
             hidden = None
@@ -396,11 +451,7 @@ class DRCPO(Transform):
                 )
                 last = (len(drawn.placed), owners, hidden)
             rounds.settle(hidden)
-        result = rounds.result()
-        names = self.database.names[rows]
-        for i in np.flatnonzero(result.reasons != ""):
-            stats.rejected(self.name, names[i], str(result.reasons[i]))
-        boxes, accepted = result.boxes, result.accepted
+        boxes, accepted = self._placement_result(rounds, rows, stats)
         if last is None or not len(boxes):
             return boxes, accepted, None
         before, owners, hidden = last
@@ -409,6 +460,16 @@ class DRCPO(Transform):
         renumber = np.full(len(hidden) + 1, -1, dtype=np.int64)  # (index -1: no room)
         renumber[np.flatnonzero(~hidden)] = np.arange(len(boxes))
         return boxes, accepted, renumber[owners]
+
+    def _placement_result(
+        self, rounds: placement.PlacementRounds, rows: np.ndarray, stats: Stats
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The placed boxes and the indices of their objects; the others' reasons recorded."""
+        result = rounds.result()
+        names = self.database.names[rows]
+        for i in np.flatnonzero(result.reasons != ""):
+            stats.rejected(self.name, names[i], str(result.reasons[i]))
+        return result.boxes, result.accepted
 
     def _room_owners(self, frame: Frame, boxes: np.ndarray) -> np.ndarray:
         """``int64 (N,)``: the placed box whose room (see :attr:`room`) holds each frame point
@@ -472,25 +533,43 @@ class DRCPO(Transform):
         return objects
 
     def _queue_s_hpr(
-        self, work: WorkQueue, boxes: np.ndarray, dim: int, first: int, objects: Sequence[Any]
+        self,
+        work: WorkQueue,
+        boxes: np.ndarray,
+        dim: int,
+        seen: sensor_steps.SensorFrame | None,
+        seeds: np.ndarray | None,
+        first: int,
+        objects: Sequence[Any],
     ) -> None:
         """Queue on ``work`` the s-HPR of ``objects`` (numbers ``first``, ``first + 1``, ... of
-        ``boxes``), placed with the frame's ``dim`` columns."""
+        ``boxes``), placed with the frame's ``dim`` columns; mode ``sensor``: rendered through
+        ``seen``'s sensor, object ``k`` with ``seeds[k]``."""
+        sensor = seen.sensor if seeds is not None else None
         for k, built in enumerate(objects, first):
-            work.add(k, partial(self._object_s_hpr, built.points, boxes[k], dim))
+            seed = None if seeds is None else int(seeds[k])
+            work.add(k, partial(self._object_s_hpr, built.points, boxes[k], dim, sensor, seed))
         work.start()
 
     def _object_s_hpr(
-        self, canonical: np.ndarray, box: np.ndarray, dim: int
+        self,
+        canonical: np.ndarray,
+        box: np.ndarray,
+        dim: int,
+        sensor: Any = None,
+        seed: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull:
         the certified hull of drcpo.occlusion.hull, Qhull where it gives up; much faster than the
         per-point method for objects), and its label: ``box`` with the faces that points lie beyond
         (construction keeps points up to its margin outside; s-HPR keeps the outermost ones)
-        moved out to hold them, so that the label holds every point the object brings."""
+        moved out to hold them, so that the label holds every point the object brings. With a
+        ``sensor`` (mode ``sensor``), the object is rendered through it instead of s-HPR."""
         points = placed_object(canonical, box, dim)
         settings = self.config.self_occlusion
-        if settings.enabled and len(points):
+        if sensor is not None and len(points):
+            points = sensor_steps.render(points, sensor, seed)
+        elif settings.enabled and len(points):
             visible = occlusion.self_occlusion(
                 points, box, settings.radius_factor, method="reference", workers=1
             )
@@ -517,19 +596,24 @@ class DRCPO(Transform):
         return insertions
 
     def _insert(
-        self, frame: Frame, insertions: Sequence[_Insertion], placed: _Placed | None = None
+        self,
+        frame: Frame,
+        insertions: Sequence[_Insertion],
+        placed: _Placed | None = None,
+        clear: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points after insertion (the frame's points outside the objects' room, see
         :attr:`room`, then the objects'), each point's owner (-1: an original point, else the
         insertion's number) and, per frame point, the insertion it had to make room for (-1:
         none). ``placed``: see :meth:`_placed_task`; its owners are reused when every placed
-        object is inserted."""
+        object is inserted. ``clear=False`` (e-HPR mode ``sensor``, which decides each frame
+        point along its ray instead): no room is cleared."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
-        if placed is not None and len(placed.boxes) == len(insertions):  # the same boxes
+        if clear and placed is not None and len(placed.boxes) == len(insertions):  # same boxes
             cleared_by = placed.owners
-        else:
+        elif clear:
             cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
         original = cleared_by < 0
         points = np.concatenate(
@@ -550,9 +634,12 @@ class DRCPO(Transform):
         cleared_by: np.ndarray | None = None,
         pool: ThreadPoolExecutor | None = None,
         placed: _Placed | None = None,
+        seen: sensor_steps.SensorFrame | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
         and the insertions left with too few points in their box, ``bool (len(insertions),)``.
+        Mode ``sensor``: along the sensor's rays, with the objects earlier stages added
+        (:func:`~drcpo.transforms.sensor_steps.sensor_occlusion`; the scope does not apply).
 
         e-HPR itself is :mod:`drcpo.occlusion.external`'s; this applies the label rule. Scope
         ``frame``: every hidden point goes (:func:`~drcpo.occlusion.external_occlusion`).
@@ -565,6 +652,13 @@ class DRCPO(Transform):
         ``pool`` may lend a thread; ``placed``: see :meth:`_placed_task`.
         """
         settings = self.config.external_occlusion
+        if self._occlusion_along_rays and len(points):
+            first = int(np.count_nonzero(owner < 0))
+            count = partial(self._dropped, points[first:], owner[first:], insertions)
+            added = seen.added_owner[cleared_by < 0] if cleared_by is not None else None
+            return sensor_steps.sensor_occlusion(
+                points, owner, seen.added_owner if added is None else added, seen.sensor, count
+            )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()
         if settings.enabled and len(points) and settings.scope == "frame":

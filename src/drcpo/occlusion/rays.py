@@ -1,0 +1,744 @@
+"""Occlusion along the sensor's rays (``external_occlusion.mode: sensor``) and the cheap
+"would it be seen" check of placement.
+
+:class:`RangeImage` holds the frame's nearest return per ray cell (beam, column) of a
+:class:`~drcpo.sensor.Sensor`; :meth:`RangeImage.visible_rays` counts, per box, the rays that
+reach it. :func:`ray_occlusion` decides, after insertion, which points the sensor could not
+have recorded: an original point behind an inserted object's surface elements along its own
+ray, an inserted return behind a nearer return in its ray cell or behind another object's
+surface. The ray cells, surface elements and their windows are those of
+:mod:`~drcpo.occlusion.render`. Imports :mod:`drcpo.errors`, :mod:`drcpo.geometry`,
+:mod:`drcpo.sensor` and :mod:`drcpo.occlusion.render` only.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from drcpo.errors import ConfigError, DataError
+from drcpo.geometry import heading_terms
+from drcpo.occlusion.render import (
+    RADIUS_FACTOR,
+    RADIUS_RANGE,
+    VOXEL,
+    _check_radii,
+    _column_at,
+    _cone,
+    _lut_bin,
+    _point_cells,
+    _pseudo_bin,
+    _voxel_radii,
+    sensor_tables,
+)
+from drcpo.sensor import Sensor
+
+__all__ = ["RangeImage", "ray_occlusion"]
+
+
+class RangeImage:
+    """The frame's nearest return per sensor ray cell (beam, column).
+
+    Attributes:
+        sensor: the LiDAR whose cells these are.
+        ranges: ``float64 (B, C)`` distance of each cell's nearest return from its beam's
+            origin, metres; ``inf`` where the cell holds none (read-only).
+    """
+
+    def __init__(self, sensor: Sensor, ranges: np.ndarray) -> None:
+        ranges = np.asarray(ranges, dtype=np.float64)
+        if ranges.shape != (sensor.num_beams, sensor.num_columns):
+            raise DataError(
+                f"ranges must have shape ({sensor.num_beams}, {sensor.num_columns}) for "
+                f"sensor {sensor.name!r}, got {ranges.shape}"
+            )
+        ranges.setflags(write=False)
+        self.sensor, self.ranges = sensor, ranges
+
+    @classmethod
+    def build(cls, points: np.ndarray, sensor: Sensor) -> RangeImage:
+        """The range image of ``points`` ``(N, 3+)`` (metres, LiDAR frame): each point goes to
+        its cell (:meth:`Sensor.cells`); points outside every beam are left out."""
+        array = _frame_points(points)
+        ranges = np.full((sensor.num_beams, sensor.num_columns), np.inf)
+        bad = _fill_range_image(array, ranges, *sensor_tables(sensor).geometry)
+        if bad >= 0:
+            raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
+        return cls(sensor, ranges)
+
+    def visible_rays(
+        self,
+        boxes: np.ndarray,
+        occluders: np.ndarray | None = None,
+        tolerance: float = 0.1,
+    ) -> np.ndarray:
+        """``int64 (M,)``: per box ``(M, 7)``, the sensor rays that reach it.
+
+        A ray reaches a box when it crosses the box (slab test; entering it within the
+        sensor's ``max_range``), its cell's frame return, if any, is no nearer than where the
+        ray enters the box minus ``tolerance`` metres, and it enters none of ``occluders``
+        ``(K, 7)`` (boxes placed before) more than ``tolerance`` nearer. The cheap "would it
+        be seen" check of placement, before anything is built.
+        """
+        boxes = _check_boxes(boxes, "boxes")
+        occluders = _check_boxes(np.zeros((0, 7)) if occluders is None else occluders, "occluders")
+        tolerance = _check_tolerance(tolerance)
+        counts = np.zeros(len(boxes), dtype=np.int64)
+        if len(boxes) == 0:
+            return counts
+        tables = sensor_tables(self.sensor)
+        box_windows = _windows(boxes, *tables.geometry)
+        occluder_windows = _windows(occluders, *tables.geometry)
+        _visible_rays(
+            boxes,
+            *heading_terms(boxes),
+            box_windows,
+            occluders,
+            *heading_terms(occluders),
+            occluder_windows,
+            self.ranges,
+            np.array([tolerance, self.sensor.max_range]),
+            counts,
+            *tables.geometry,
+        )
+        return counts
+
+
+def ray_occlusion(
+    points: np.ndarray,
+    owner: np.ndarray,
+    sensor: Sensor,
+    radii: np.ndarray | None = None,
+    tolerance: float = 0.1,
+) -> np.ndarray:
+    """``bool (N,)``: the points the sensor could not have recorded after insertion.
+
+    An original point (``owner == -1``) is removed iff an inserted object's surface element
+    (point ``j`` with radius ``radii[j]``) lies within ``radii[j]`` of the point's own ray (from
+    its beam's origin, the mount outside every beam, through the point), more than
+    ``tolerance`` nearer than the point along it. An inserted return (``owner == k >= 0``) is
+    removed iff, in its ray cell (:meth:`Sensor.cells`), an original point or a return of
+    another object lies more than ``tolerance`` nearer, or another object's surface element
+    crosses its own ray so.
+
+    Args:
+        points: ``(N, 3+)`` the frame after insertion, metres.
+        owner: ``int (N,)``: -1 for the frame's own points, ``k`` for inserted object ``k``.
+        sensor: the LiDAR.
+        radii: the inserted points' surface-element radii, metres: ``(N,)`` (entries of
+            original points ignored) or one per inserted point in order; by default
+            :func:`~drcpo.occlusion.render.surfel_radii` of each object's points.
+        tolerance: metres a surface must lie nearer to hide a point.
+    """
+    array = _frame_points(points)
+    owner = _check_owner(owner, len(array))
+    tolerance = _check_tolerance(tolerance)
+    inserted = np.flatnonzero(owner >= 0)
+    removed = np.zeros(len(array), dtype=bool)
+    surfel = _inserted_radii(array, owner, inserted, radii)
+    bad = _ray_occlusion(
+        array,
+        owner,
+        inserted,
+        surfel,
+        tolerance,
+        removed,
+        *sensor_tables(sensor).geometry,
+    )
+    if bad >= 0:
+        raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
+    return removed
+
+
+def _frame_points(points: np.ndarray) -> np.ndarray:
+    """The points as given when they are a real ``(N, 3+)`` array (not copied: frames are
+    large; their finiteness is checked in the kernels)."""
+    array = np.asarray(points)
+    if array.ndim != 2 or array.shape[1] < 3:
+        raise DataError(f"points must have shape (N, 3 + C), got {array.shape}")
+    if array.dtype not in (np.float32, np.float64):
+        if not np.issubdtype(array.dtype, np.number) or np.issubdtype(
+            array.dtype, np.complexfloating
+        ):
+            raise DataError(f"points must be real numbers, got dtype {array.dtype}")
+        array = array.astype(np.float64)
+    return array
+
+
+def _check_owner(owner: np.ndarray, count: int) -> np.ndarray:
+    array = np.asarray(owner)
+    if array.shape != (count,):
+        raise DataError(f"owner must have shape ({count},), one per point, got {array.shape}")
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise DataError(f"owner must hold integers (-1: original point), got dtype {array.dtype}")
+    array = array.astype(np.int64, copy=False)
+    if array.size and array.min() < -1:
+        raise DataError(f"owner must be -1 (original point) or >= 0, got {int(array.min())}")
+    return array
+
+
+def _check_boxes(boxes: np.ndarray, name: str) -> np.ndarray:
+    array = np.asarray(boxes)
+    if array.ndim != 2 or array.shape[1] != 7:
+        raise DataError(f"{name} must have shape (M, 7), got {array.shape}")
+    array = np.ascontiguousarray(array, dtype=np.float64)
+    bad = ~np.isfinite(array).all(axis=1) | (array[:, 3:6] <= 0).any(axis=1)
+    if bad.any():
+        raise DataError(
+            f"{name} must be finite with positive sizes; row {int(np.flatnonzero(bad)[0])} is not"
+        )
+    return array
+
+
+def _check_tolerance(tolerance: float) -> float:
+    if not (isinstance(tolerance, (int, float)) and math.isfinite(tolerance) and tolerance >= 0):
+        raise ConfigError(f"tolerance must be a finite number of metres >= 0, got {tolerance!r}")
+    return float(tolerance)
+
+
+def _inserted_radii(
+    points: np.ndarray, owner: np.ndarray, inserted: np.ndarray, radii: np.ndarray | None
+) -> np.ndarray:
+    """``float64`` radii of the inserted points (in the order of ``inserted``)."""
+    if radii is not None:
+        radii = np.asarray(radii)
+        if radii.shape == (len(points),):
+            radii = radii[inserted]
+        return _check_radii(radii, len(inserted))
+    order = inserted[np.argsort(owner[inserted], kind="stable")]
+    xyz = np.ascontiguousarray(points[order, :3], dtype=np.float64)
+    if not np.isfinite(xyz).all():
+        row = int(order[np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0]])
+        raise DataError(f"points hold NaN/inf coordinates (first: row {row})")
+    sizes = np.bincount(owner[order])
+    starts = np.concatenate([[0], np.cumsum(sizes[sizes > 0])]).astype(np.int64)
+    sorted_radii = np.empty(len(order))
+    _voxel_radii(xyz, starts, VOXEL, RADIUS_FACTOR, *RADIUS_RANGE, sorted_radii)
+    radii = np.empty(len(inserted))
+    radii[np.argsort(np.argsort(owner[inserted], kind="stable"))] = sorted_radii
+    return radii
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_range_image(
+    points,
+    ranges,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # The nearest distance per cell, cells as render._point_cells finds them (the same code:
+    # a call per point would reference-count the tables); the first non-finite row, or -1.
+    beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
+    step, phase, shifted = constants[0], constants[1], constants[2] != 0 or constants[3] != 0
+    lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
+    for i in range(points.shape[0]):
+        x = np.float64(points[i, 0]) - mount[0]
+        y = np.float64(points[i, 1]) - mount[1]
+        z = np.float64(points[i, 2]) - mount[2]
+        if not np.isfinite(x + y + z):
+            return i
+        h2 = x * x + y * y
+        if h2 <= 0.0:
+            continue
+        inverse = 1.0 / math.sqrt(h2)
+        b, lift = -1, 0.0
+        for _attempt in range(2 if shifted else 1):
+            slope = (z - lift) * inverse
+            k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
+            if k < 0:
+                row = beams + 1
+            elif k >= lut_bins:
+                row = 0
+            else:
+                row = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
+            if row == 0 or row > beams:
+                b = -1
+                break
+            b = row - 1
+            lift = offsets[b]
+        if b < 0:
+            continue
+        k = _pseudo_bin(x, y, bins)
+        c = _column_at(x, y, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase)
+        dz = z - offsets[b]
+        distance = math.sqrt(h2 + dz * dz)
+        if distance < ranges[b, c]:
+            ranges[b, c] = distance
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _windows(
+    boxes,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # Per box: the beams (first, last; none when first > last) and columns (first, count,
+    # counter-clockwise) whose rays may cross it. Columns: the azimuths of its footprint's
+    # corners around the centre's, a column more on each side (all of them when the mount
+    # lies above or below the footprint); beams: the elevations, from the lowest and the
+    # highest beam origin, of its top and bottom at the footprint's nearest and farthest
+    # horizontal distance.
+    columns, step, phase = column_cos.shape[0], constants[0], constants[1]
+    lut_start, lut_scale, lut_bins = constants[7], constants[8], beam_lut.shape[0]
+    out = np.empty((boxes.shape[0], 4), np.int64)
+    for m in range(boxes.shape[0]):
+        cx, cy = boxes[m, 0] - mount[0], boxes[m, 1] - mount[1]
+        cos, sin = math.cos(boxes[m, 6]), math.sin(boxes[m, 6])
+        hx, hy = boxes[m, 3] / 2.0, boxes[m, 4] / 2.0
+        lx, ly = -cx * cos - cy * sin, cx * sin - cy * cos  # the mount in the box's frame
+        gap_x, gap_y = max(abs(lx) - hx, 0.0), max(abs(ly) - hy, 0.0)
+        nearest = math.sqrt(gap_x * gap_x + gap_y * gap_y)
+        farthest = math.sqrt((abs(lx) + hx) ** 2 + (abs(ly) + hy) ** 2)
+        if nearest <= 1e-9:
+            out[m, 2], out[m, 3] = 0, columns
+        else:
+            centre = math.atan2(cy, cx)
+            low, high = 0.0, 0.0
+            for sx in (-1.0, 1.0):
+                for sy in (-1.0, 1.0):
+                    px = cx + sx * hx * cos - sy * hy * sin
+                    py = cy + sx * hx * sin + sy * hy * cos
+                    turn = math.atan2(py, px) - centre
+                    turn = (turn + math.pi) % (2.0 * math.pi) - math.pi
+                    low, high = min(low, turn), max(high, turn)
+            lo = math.floor((centre + low - phase) / step + 0.5) - 1
+            hi = math.floor((centre + high - phase) / step + 0.5) + 1
+            out[m, 2] = lo % columns
+            out[m, 3] = min(hi - lo + 1, columns)
+        top, bottom = -np.inf, np.inf
+        for offset in (constants[2], constants[3]):
+            up = boxes[m, 2] + boxes[m, 5] / 2.0 - mount[2] - offset
+            down = boxes[m, 2] - boxes[m, 5] / 2.0 - mount[2] - offset
+            top = max(top, math.atan2(up, nearest if up > 0.0 else farthest))
+            bottom = min(bottom, math.atan2(down, nearest if down < 0.0 else farthest))
+        high_slope = math.tan(min(top + 1e-9, 1.5707963))
+        low_slope = math.tan(max(bottom - 1e-9, -1.5707963))
+        k = _lut_bin(high_slope, lut_start, lut_scale, lut_bins)
+        if k < 0:
+            b0 = offsets.shape[0]
+        elif k >= lut_bins:
+            b0 = 0
+        else:
+            b0 = int(beam_lut[k, 0]) + (beam_lut[k, 1] > high_slope)
+            b0 += beam_lut[k, 2] > high_slope
+        b1 = b0 - 1
+        while b1 + 1 < beam_slopes.shape[0] and beam_slopes[b1 + 1] >= low_slope:
+            b1 += 1
+        out[m, 0], out[m, 1] = b0, b1
+    return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _slab(ox, oy, oz, dx, dy, dz, cx, cy, cz, hx, hy, hz, cos, sin):  # pragma: no cover
+    # Where the ray o + t d (t >= 0) enters and leaves the box (centre c, half sizes h,
+    # heading terms): (enter, leave), enter > leave when it misses.
+    rx, ry, rz = ox - cx, oy - cy, oz - cz
+    lo = (rx * cos + ry * sin, -rx * sin + ry * cos, rz)
+    ld = (dx * cos + dy * sin, -dx * sin + dy * cos, dz)
+    half = (hx, hy, hz)
+    enter, leave = 0.0, np.inf
+    for axis in range(3):
+        if ld[axis] == 0.0:
+            if abs(lo[axis]) > half[axis]:
+                return 1.0, 0.0
+            continue
+        t1 = (-half[axis] - lo[axis]) / ld[axis]
+        t2 = (half[axis] - lo[axis]) / ld[axis]
+        enter = max(enter, min(t1, t2))
+        leave = min(leave, max(t1, t2))
+    return enter, leave
+
+
+@numba.njit(cache=True, nogil=True)
+def _visible_rays(
+    boxes,
+    box_cos,
+    box_sin,
+    box_windows,
+    occluders,
+    occluder_cos,
+    occluder_sin,
+    occluder_windows,
+    ranges,
+    settings,
+    counts,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    columns = column_cos.shape[0]
+    tolerance, max_range = settings[0], settings[1]
+    candidates = np.empty(occluders.shape[0], np.int64)
+    for m in range(boxes.shape[0]):
+        b0, b1 = box_windows[m, 0], box_windows[m, 1]
+        c0, width = box_windows[m, 2], box_windows[m, 3]
+        cx, cy, cz = boxes[m, 0], boxes[m, 1], boxes[m, 2]
+        hx, hy, hz = boxes[m, 3] / 2.0, boxes[m, 4] / 2.0, boxes[m, 5] / 2.0
+        # the occluders whose windows overlap this one's
+        found = 0
+        for k in range(occluders.shape[0]):
+            if occluder_windows[k, 0] > b1 or occluder_windows[k, 1] < b0:
+                continue
+            if occluder_windows[k, 0] > occluder_windows[k, 1]:
+                continue
+            into = (occluder_windows[k, 2] - c0) % columns
+            back = (c0 - occluder_windows[k, 2]) % columns
+            if into < width or back < occluder_windows[k, 3]:
+                candidates[found] = k
+                found += 1
+        for b in range(b0, b1 + 1):
+            ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+            c = c0
+            for _ in range(width):
+                dx = beam_cos[b] * column_cos[c]
+                dy = beam_cos[b] * column_sin[c]
+                dz = beam_sin[b]
+                enter, leave = _slab(
+                    ox, oy, oz, dx, dy, dz, cx, cy, cz, hx, hy, hz, box_cos[m], box_sin[m]
+                )
+                reaches = enter <= leave and enter <= max_range
+                if reaches and ranges[b, c] >= enter - tolerance:
+                    for n in range(found):
+                        k = candidates[n]
+                        near, far = _slab(
+                            ox,
+                            oy,
+                            oz,
+                            dx,
+                            dy,
+                            dz,
+                            occluders[k, 0],
+                            occluders[k, 1],
+                            occluders[k, 2],
+                            occluders[k, 3] / 2.0,
+                            occluders[k, 4] / 2.0,
+                            occluders[k, 5] / 2.0,
+                            occluder_cos[k],
+                            occluder_sin[k],
+                        )
+                        if near <= far and near < enter - tolerance:
+                            reaches = False
+                            break
+                    if reaches:
+                        counts[m] += 1
+                c = c + 1 if c + 1 < columns else 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_occlusion(
+    points,
+    owner,
+    inserted,
+    radii,
+    tolerance,
+    removed,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # Sets `removed`; returns the first row with a non-finite coordinate, or -1.
+    beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
+    step, phase, per_radian = constants[0], constants[1], constants[4]
+    lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
+    cells, m = beams * columns, inserted.shape[0]
+    # 1. The inserted points: their cells, distances and offsets from the mount.
+    own_beam, own_column, own_distance, rel, bad = _point_cells(
+        points,
+        inserted,
+        edge_slopes,
+        edge_lut,
+        beam_slopes,
+        beam_lut,
+        offsets,
+        mount,
+        beam_cos,
+        beam_sin,
+        column_cos,
+        column_sin,
+        first,
+        crosses,
+        bound_cos,
+        bound_sin,
+        constants,
+    )
+    if bad >= 0:
+        return bad
+    element_owner = np.empty(m, np.int64)
+    # per cell: the nearest inserted return, its object, and the nearest of another object
+    nearest = np.full(cells, np.inf)
+    nearest_owner = np.full(cells, -1, np.int64)
+    other = np.full(cells, np.inf)
+    wanted = np.zeros(columns, np.bool_)  # columns holding inserted returns
+    for j in range(m):
+        k = element_owner[j] = owner[inserted[j]]
+        if own_beam[j] < 0:
+            continue
+        cell, distance = own_beam[j] * columns + own_column[j], own_distance[j]
+        wanted[own_column[j]] = True
+        if distance < nearest[cell]:
+            if nearest_owner[cell] != k:
+                other[cell] = nearest[cell]
+            nearest[cell], nearest_owner[cell] = distance, k
+        elif k != nearest_owner[cell] and distance < other[cell]:
+            other[cell] = distance
+    # 2. Each element's window of cells: rows 0..B + 1 (above, in and below the beams) of the
+    #    edges' tangents its cone spans, columns from one end of its azimuths to the other;
+    #    the elements of each cell in one array, cell by cell.
+    window = np.empty((m, 4), np.int64)
+    start = np.zeros((beams + 2) * columns + 1, np.int64)
+    covered = np.zeros(columns, np.bool_)  # columns some window reaches
+    for j in range(m):
+        x, y, z = rel[j, 0], rel[j, 1], rel[j, 2]
+        half, low, high = _cone(x, y, z, radii[j], per_radian, constants[2], constants[3])
+        rows = np.empty(2, np.int64)
+        for e in range(2):
+            slope = high if e == 0 else low
+            k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
+            if k < 0:
+                rows[e] = beams + 1
+            elif k >= lut_bins:
+                rows[e] = 0
+            else:
+                rows[e] = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope)
+                rows[e] += edge_lut[k, 2] > slope
+        if half * 2.0 + 3.0 >= columns:
+            c0, count = 0, columns
+        else:
+            horizontal = math.sqrt(x * x + y * y)
+            s = min((radii[j] * (1.0 + 1e-9) + 1e-12) / horizontal, 1.0)
+            co = math.sqrt(1.0 - s * s)
+            ux, uy = x / horizontal, y / horizontal
+            ends = np.empty(2, np.int64)
+            for e in range(2):
+                turn = -s if e == 0 else s
+                ex, ey = ux * co - uy * turn, uy * co + ux * turn
+                k = _pseudo_bin(ex, ey, bins)
+                ends[e] = _column_at(
+                    ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
+                )
+            c0, count = ends[0], ends[1] - ends[0] + 1
+            if count <= 0:
+                count += columns
+        window[j, 0], window[j, 1], window[j, 2], window[j, 3] = rows[0], rows[1], c0, count
+        for r in range(rows[0], rows[1] + 1):
+            c = c0
+            for _ in range(count):
+                start[r * columns + c + 1] += 1
+                covered[c] = True
+                c = c + 1 if c + 1 < columns else 0
+    for b in range(1, start.shape[0]):
+        start[b] += start[b - 1]
+    entries = np.empty(start[-1], np.int64)
+    fill = start[:-1].copy()
+    for j in range(m):
+        for r in range(window[j, 0], window[j, 1] + 1):
+            c = window[j, 2]
+            for _ in range(window[j, 3]):
+                entries[fill[r * columns + c]] = j
+                fill[r * columns + c] += 1
+                c = c + 1 if c + 1 < columns else 0
+    # 3. The original points: most set aside by their azimuth's pseudo-angle bin alone; the
+    #    others give their cell's frame distance and are tested against the elements.
+    relevant = np.empty(bins, np.bool_)
+    for k in range(bins):
+        c = first[k]
+        after = c + 1 if c + 1 < columns else 0
+        relevant[k] = crosses[k] < 0 or wanted[c] or covered[c]
+        relevant[k] |= crosses[k] > 0 and (wanted[after] or covered[after])
+    candidates = np.empty(points.shape[0], np.int64)
+    found = 0
+    for i in range(points.shape[0]):
+        if owner[i] >= 0:
+            continue
+        x = np.float64(points[i, 0]) - mount[0]
+        y = np.float64(points[i, 1]) - mount[1]
+        if not (np.isfinite(x + y) and np.isfinite(points[i, 2])):
+            return i
+        if (x != 0.0 or y != 0.0) and relevant[_pseudo_bin(x, y, bins)]:
+            candidates[found] = i
+            found += 1
+    candidates = candidates[:found]
+    beam, column, distance, near, bad = _point_cells(
+        points,
+        candidates,
+        edge_slopes,
+        edge_lut,
+        beam_slopes,
+        beam_lut,
+        offsets,
+        mount,
+        beam_cos,
+        beam_sin,
+        column_cos,
+        column_sin,
+        first,
+        crosses,
+        bound_cos,
+        bound_sin,
+        constants,
+    )
+    frame = np.full(cells, np.inf)
+    for q in range(found):
+        if beam[q] >= 0 and wanted[column[q]]:
+            cell = beam[q] * columns + column[q]
+            frame[cell] = min(frame[cell], distance[q])
+    hidden = _behind_elements(
+        near,
+        beam,
+        column,
+        distance,
+        np.full(found, -1, np.int64),
+        covered,
+        offsets,
+        rel,
+        radii,
+        element_owner,
+        entries,
+        start,
+        tolerance,
+        edge_lut,
+        constants,
+    )
+    for q in range(found):
+        removed[candidates[q]] = hidden[q]
+    # 4. The inserted returns: behind the frame or another object in their cell, or behind
+    #    another object's elements along their ray.
+    for j in range(m):
+        if own_beam[j] < 0:
+            continue
+        cell, distance_j = own_beam[j] * columns + own_column[j], own_distance[j]
+        rival = other[cell] if nearest_owner[cell] == element_owner[j] else nearest[cell]
+        if frame[cell] < distance_j - tolerance or rival < distance_j - tolerance:
+            removed[inserted[j]] = True
+    hidden = _behind_elements(
+        rel,
+        own_beam,
+        own_column,
+        own_distance,
+        element_owner,
+        covered,
+        offsets,
+        rel,
+        radii,
+        element_owner,
+        entries,
+        start,
+        tolerance,
+        edge_lut,
+        constants,
+    )
+    for j in range(m):
+        removed[inserted[j]] |= hidden[j]
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _behind_elements(
+    queries,
+    beam,
+    column,
+    distance,
+    skip,
+    covered,
+    offsets,
+    rel,
+    radii,
+    element_owner,
+    entries,
+    start,
+    tolerance,
+    edge_lut,
+    constants,
+):  # pragma: no cover - numba
+    # Per query point q (offset from the mount, beam, column, distance from its beam's
+    # origin): whether an element not of object skip[q] lies within its radius of the ray
+    # from that origin (the mount outside every beam) through the point, more than
+    # `tolerance` nearer along it. The elements looked at are those of the cell of the ray's
+    # direction (its row among the beam edges, seen from that origin).
+    columns = covered.shape[0]
+    lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
+    beams = offsets.shape[0]
+    hidden = np.zeros(queries.shape[0], np.bool_)
+    for q in range(queries.shape[0]):
+        c = column[q]
+        if c < 0 or not covered[c]:
+            continue
+        lift = offsets[beam[q]] if beam[q] >= 0 else 0.0
+        x, y, dz = queries[q, 0], queries[q, 1], queries[q, 2] - lift
+        slope = dz / math.sqrt(x * x + y * y)
+        k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
+        if k < 0:
+            row = beams + 1
+        elif k >= lut_bins:
+            row = 0
+        else:
+            row = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
+        cell = row * columns + c
+        limit = distance[q] - tolerance
+        inverse = 1.0 / distance[q]
+        ux, uy, uz = x * inverse, y * inverse, dz * inverse
+        for e in range(start[cell], start[cell + 1]):
+            j = entries[e]
+            if element_owner[j] == skip[q]:
+                continue
+            vx, vy, vz = rel[j, 0], rel[j, 1], rel[j, 2] - lift
+            t = vx * ux + vy * uy + vz * uz
+            if t <= 0.0 or t >= limit:
+                continue
+            if vx * vx + vy * vy + vz * vz - t * t <= radii[j] * radii[j]:
+                hidden[q] = True
+                break
+    return hidden

@@ -1,0 +1,308 @@
+"""drcpo.occlusion.rays: the range image, the visible-ray count of boxes and occlusion along
+rays, each against a plain loop (Sensor.cells, a slab test, a loop over points and elements)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from drcpo.errors import ConfigError, DataError
+from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.render import render_object, surfel_radii
+from drcpo.sensor import Sensor, sensor_preset
+
+HDL64E = sensor_preset("hdl64e")
+
+
+def small_sensor() -> Sensor:
+    """8 beams, 1 degree columns, beam origins a few cm apart, mounted off the origin."""
+    return Sensor(
+        elevations=np.radians(np.linspace(4.0, -10.0, 8)),
+        offsets=np.linspace(0.03, -0.03, 8),
+        azimuth_step=math.radians(1.0),
+        phase=math.radians(0.3),
+        mount=(0.2, -0.1, 0.5),
+        range_noise=0.0,
+        dropout=0.0,
+    )
+
+
+def scene(rng: np.random.Generator, count: int, sensor: Sensor) -> np.ndarray:
+    """Ground and scattered clutter around the sensor, ``(count, 4)``."""
+    radius = np.sqrt(rng.uniform(4.0, 900.0, count))
+    angle = rng.uniform(-math.pi, math.pi, count)
+    z = np.where(rng.random(count) < 0.6, -1.7, rng.uniform(-1.7, 1.5, count))
+    return np.column_stack(
+        [radius * np.cos(angle), radius * np.sin(angle), z, rng.random(count)]
+    ).astype(np.float32)
+
+
+def reference_image(points: np.ndarray, sensor: Sensor) -> np.ndarray:
+    ranges = np.full((sensor.num_beams, sensor.num_columns), np.inf)
+    beam, column, _ = sensor.cells(points)
+    for i in range(len(points)):
+        if beam[i] < 0:
+            continue
+        origin = sensor.ray_origins(beam[i : i + 1])[0]
+        distance = np.linalg.norm(points[i, :3].astype(np.float64) - origin)
+        ranges[beam[i], column[i]] = min(ranges[beam[i], column[i]], distance)
+    return ranges
+
+
+def slab(origin, direction, box) -> tuple[float, float]:
+    cos, sin = math.cos(box[6]), math.sin(box[6])
+    rel = origin - box[:3]
+    lo = np.array([cos * rel[0] + sin * rel[1], -sin * rel[0] + cos * rel[1], rel[2]])
+    ld = np.array(
+        [
+            cos * direction[0] + sin * direction[1],
+            -sin * direction[0] + cos * direction[1],
+            direction[2],
+        ]
+    )
+    enter, leave = 0.0, math.inf
+    for axis in range(3):
+        half = box[3 + axis] / 2
+        if ld[axis] == 0:
+            if abs(lo[axis]) > half:
+                return 1.0, 0.0
+            continue
+        t1, t2 = (-half - lo[axis]) / ld[axis], (half - lo[axis]) / ld[axis]
+        enter, leave = max(enter, min(t1, t2)), min(leave, max(t1, t2))
+    return enter, leave
+
+
+def reference_visible(image: RangeImage, boxes, occluders, tolerance) -> list[int]:
+    sensor = image.sensor
+    counts = []
+    for box in boxes:
+        count = 0
+        for b in range(sensor.num_beams):
+            origin = sensor.ray_origins(np.array([b]))[0]
+            for c in range(sensor.num_columns):
+                direction = sensor.ray_directions(np.array([b]), np.array([c]))[0]
+                enter, leave = slab(origin, direction, box)
+                if enter > leave or enter > sensor.max_range:
+                    continue
+                if image.ranges[b, c] < enter - tolerance:
+                    continue
+                blocked = False
+                for other in occluders:
+                    near, far = slab(origin, direction, other)
+                    blocked |= near <= far and near < enter - tolerance
+                count += not blocked
+        counts.append(count)
+    return counts
+
+
+def reference_occlusion(points, owner, sensor, radii, tolerance) -> np.ndarray:
+    """A loop over the points: own ray against every element of the other objects, own cell
+    against every other point."""
+    xyz = points[:, :3].astype(np.float64)
+    beam, column, _ = sensor.cells(points)
+    origin = np.where((beam >= 0)[:, None], sensor.ray_origins(np.maximum(beam, 0)), sensor.mount)
+    distance = np.linalg.norm(xyz - origin, axis=1)
+    removed = np.zeros(len(points), bool)
+    inserted = np.flatnonzero(owner >= 0)
+    for i in range(len(points)):
+        if xyz[i, 0] == sensor.mount[0] and xyz[i, 1] == sensor.mount[1]:
+            continue
+        if owner[i] >= 0 and beam[i] >= 0:
+            same = (beam == beam[i]) & (column == column[i]) & (owner != owner[i])
+            if (distance[same] < distance[i] - tolerance).any():
+                removed[i] = True
+                continue
+        u = (xyz[i] - origin[i]) / distance[i]
+        for j in inserted:
+            if owner[j] == owner[i]:
+                continue
+            v = xyz[j] - origin[i]
+            t = v @ u
+            if 0 < t < distance[i] - tolerance and v @ v - t * t <= radii[j] ** 2:
+                removed[i] = True
+                break
+    return removed
+
+
+# ----------------------------------------------------------------------------------------------
+# RangeImage
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sensor", [HDL64E, small_sensor()], ids=["hdl64e", "small"])
+def test_range_image_matches_the_cells(sensor: Sensor) -> None:
+    points = scene(np.random.default_rng(0), 20000, sensor)
+    image = RangeImage.build(points, sensor)
+    np.testing.assert_allclose(image.ranges, reference_image(points, sensor), rtol=1e-12)
+    assert np.isfinite(image.ranges).sum() > 1000
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_visible_rays_match_the_slab_test(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    sensor = small_sensor()
+    image = RangeImage.build(scene(rng, 3000, sensor), sensor)
+    boxes = []
+    for _ in range(4):
+        angle, distance = rng.uniform(-math.pi, math.pi), rng.uniform(3, 20)
+        boxes.append(
+            [
+                distance * math.cos(angle),
+                distance * math.sin(angle),
+                rng.uniform(-1, 0.5),
+                rng.uniform(0.5, 4),
+                rng.uniform(0.5, 2),
+                rng.uniform(0.5, 2),
+                rng.uniform(-math.pi, math.pi),
+            ]
+        )
+    boxes.append([0.0, 0.0, 0.5, 3.0, 2.0, 1.0, 0.3])  # around the sensor
+    boxes = np.array(boxes)
+    occluders = boxes[:2] * np.array([0.6, 0.6, 1, 1, 1, 1, 1])  # nearer, in the same direction
+    for occ in (None, occluders):
+        got = image.visible_rays(boxes, occ, tolerance=0.1)
+        expected = reference_visible(image, boxes, [] if occ is None else occ, 0.1)
+        assert got.tolist() == expected
+    assert image.visible_rays(boxes).sum() > image.visible_rays(boxes, occluders).sum()
+
+
+def test_visible_rays_see_through_empty_space_only() -> None:
+    """A box behind a wall gets no rays; the same box in front of it gets them all."""
+    sensor = HDL64E
+    y, z = np.meshgrid(np.linspace(-6, 6, 400), np.linspace(-1.7, 2.0, 120))
+    wall = np.column_stack([np.full(y.size, 15.0), y.ravel(), z.ravel()])
+    image = RangeImage.build(wall, sensor)
+    behind = np.array([[20.0, 0.0, -0.9, 4.0, 1.8, 1.5, 0.0]])
+    front = np.array([[10.0, 0.0, -0.9, 4.0, 1.8, 1.5, 0.0]])
+    assert image.visible_rays(behind)[0] == 0
+    empty = RangeImage.build(np.zeros((0, 4), np.float32), sensor)
+    assert image.visible_rays(front)[0] == empty.visible_rays(front)[0] > 500
+    tall = front + np.array([0, 0, 1.0, 0, 0, 2.0, 0])  # up to 1.1 m above the sensor
+    assert empty.visible_rays(behind, occluders=tall)[0] == 0
+    assert 0 < empty.visible_rays(behind, occluders=front)[0] < empty.visible_rays(behind)[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# ray_occlusion
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(3))
+def test_ray_occlusion_matches_the_reference(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    sensor = small_sensor()
+    frame = scene(rng, 1500, sensor)
+    parts, owners = [frame], [np.full(len(frame), -1)]
+    for k in range(3):
+        angle, distance = rng.uniform(-math.pi, math.pi), rng.uniform(4, 12)
+        centre = (distance * math.cos(angle), distance * math.sin(angle), -0.9)
+        local = rng.uniform(-0.5, 0.5, (300, 3)) * (3.0, 1.6, 1.4)
+        parts.append(
+            np.column_stack([local + np.array(centre), rng.random(300)]).astype(np.float32)
+        )
+        owners.append(np.full(300, k))
+    points, owner = np.concatenate(parts), np.concatenate(owners)
+    radii = rng.uniform(0.05, 0.3, len(points))
+    removed = ray_occlusion(points, owner, sensor, radii=radii, tolerance=0.1)
+    expected = reference_occlusion(points, owner, sensor, radii, 0.1)
+    np.testing.assert_array_equal(removed, expected)
+    assert removed[owner == -1].sum() > 10 and removed[owner >= 0].sum() > 10
+    # radii given per inserted point only: the same
+    again = ray_occlusion(points, owner, sensor, radii=radii[owner >= 0], tolerance=0.1)
+    np.testing.assert_array_equal(again, removed)
+
+
+def test_rendered_object_hides_what_is_behind_it() -> None:
+    """A car rendered at 10 m in front of a wall: the wall behind it goes, the wall beside it
+    stays, the car stays; behind the wall, the car would go."""
+    sensor = dataclasses.replace(HDL64E, range_noise=0.0, dropout=0.0)
+    rng = np.random.default_rng(1)
+    y, z = np.meshgrid(np.linspace(-8, 8, 800), np.linspace(-1.7, 1.0, 150))
+    wall = np.column_stack([np.full(y.size, 20.0), y.ravel(), z.ravel(), np.zeros(y.size)])
+    local = rng.uniform(-0.5, 0.5, (4000, 3)) * (4.0, 1.8, 1.5)
+    side = rng.integers(0, 3, 4000)
+    local[np.arange(4000), side] = (
+        np.sign(local[np.arange(4000), side]) * np.array([2.0, 0.9, 0.75])[side]
+    )
+    car_points = np.column_stack([local + np.array([10.0, 0.0, -0.98]), np.ones(4000)]).astype(
+        np.float32
+    )
+    car, _ = render_object(car_points, sensor, rng)
+    points = np.concatenate([wall.astype(np.float32), car])
+    owner = np.concatenate([np.full(len(wall), -1), np.zeros(len(car), np.int64)])
+    removed = ray_occlusion(points, owner, sensor)
+    assert not removed[owner == 0].any()
+    shadow = (np.abs(wall[:, 1]) < 0.8 * 2 * 0.9) & (wall[:, 2] < -0.4) & (wall[:, 2] > -1.6)
+    shadow &= np.abs(wall[:, 1]) < 1.2
+    assert removed[: len(wall)][shadow].mean() > 0.95
+    assert not removed[: len(wall)][np.abs(wall[:, 1]) > 3.0].any()
+    behind = car.copy()
+    behind[:, 0] += 20.0  # now beyond the wall
+    points = np.concatenate([wall.astype(np.float32), behind])
+    removed = ray_occlusion(points, owner, sensor)
+    assert removed[owner == 0].mean() > 0.9
+    assert not removed[owner == -1].any()
+
+
+def test_objects_hide_each_other() -> None:
+    sensor = dataclasses.replace(HDL64E, range_noise=0.0, dropout=0.0)
+    rng = np.random.default_rng(2)
+    cube = rng.uniform(-0.5, 0.5, (3000, 3)) * 1.5
+    near, _ = render_object(
+        np.column_stack([cube + np.array([8.0, 0.0, -1.0]), np.ones(3000)]).astype(np.float32),
+        sensor,
+        rng,
+    )
+    far, _ = render_object(  # smaller, lower: within the near one's shadow
+        np.column_stack([cube / 1.5 + np.array([16.0, 0.0, -1.2]), np.ones(3000)]).astype(
+            np.float32
+        ),
+        sensor,
+        rng,
+    )
+    points = np.concatenate([near, far])
+    owner = np.concatenate([np.zeros(len(near), np.int64), np.ones(len(far), np.int64)])
+    removed = ray_occlusion(points, owner, sensor, radii=np.full(len(points), 0.05))
+    assert not removed[owner == 0].any()
+    assert removed[owner == 1].mean() > 0.95
+    assert surfel_radii(near).shape == (len(near),)
+
+
+def test_no_inserted_points_removes_nothing() -> None:
+    points = scene(np.random.default_rng(0), 500, HDL64E)
+    assert not ray_occlusion(points, np.full(500, -1), HDL64E).any()
+
+
+# ----------------------------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------------------------
+def test_bad_input() -> None:
+    points = scene(np.random.default_rng(0), 50, HDL64E)
+    owner = np.full(50, -1)
+    owner[:10] = 0
+    with pytest.raises(DataError, match="shape"):
+        RangeImage.build(points[:, :2], HDL64E)
+    with pytest.raises(DataError, match="shape"):
+        ray_occlusion(points, owner[:5], HDL64E)
+    with pytest.raises(DataError, match="-1"):
+        ray_occlusion(points, np.full(50, -2), HDL64E)
+    with pytest.raises(DataError, match="integers"):
+        ray_occlusion(points, owner.astype(float), HDL64E)
+    with pytest.raises(DataError, match="radii"):
+        ray_occlusion(points, owner, HDL64E, radii=np.ones(7))
+    for row in (3, 20):  # an inserted point, an original one
+        bad = points.copy()
+        bad[row, 2] = np.nan
+        with pytest.raises(DataError, match=f"row {row}"):
+            ray_occlusion(bad, owner, HDL64E)
+        with pytest.raises(DataError, match=f"row {row}"):
+            RangeImage.build(bad, HDL64E)
+    image = RangeImage.build(points, HDL64E)
+    with pytest.raises(DataError, match="boxes"):
+        image.visible_rays(np.zeros((2, 6)))
+    with pytest.raises(DataError, match="occluders"):
+        image.visible_rays(np.ones((1, 7)), occluders=np.full((1, 7), np.nan))
+    with pytest.raises(DataError, match="positive"):
+        image.visible_rays(np.array([[5, 0, 0, 1, -1, 1, 0.0]]))
+    with pytest.raises(ConfigError, match="tolerance"):
+        image.visible_rays(np.ones((1, 7)), tolerance=-1.0)
+    assert image.visible_rays(np.zeros((0, 7))).shape == (0,)
