@@ -221,3 +221,28 @@ def test_a_bad_preset_stops_the_demo_before_any_work(tmp_path, presets, message)
         drcpo.demo.run_demo(out, frames=2, augment_frames=1, presets=presets)
     assert message in str(failure.value)
     assert not out.exists()  # nothing ray-cast, nothing written
+
+
+def _pool(names, distance, points):
+    return {
+        "names": np.array(names),
+        "distance": np.array(distance, dtype=float),
+        "points": np.array(points),
+    }
+
+
+def test_side_view_picks_a_class_every_pool_has_and_a_dense_real_object():
+    real = _pool(["Car", "Car", "Pedestrian"], [20.0, 31.0, 12.0], [10, 300, 80])
+    paper = _pool(["Car", "Pedestrian"], [21.0, 13.0], [6, 9])
+    realistic = _pool(["Car", "Car", "Cyclist"], [30.0, 19.5, 8.0], [250, 90, 40])
+    # the real Car at 20 m is nearer both, but too sparse: the one at 31 m (and the inserted
+    # nearest it, however sparse the paper's is)
+    assert drcpo.demo._side_view_picks([real, paper, realistic]) == ("Car", [1, 0, 0])
+    # no Car inserted by one preset: the next class every pool has
+    no_car = _pool(["Pedestrian"], [14.0], [30])
+    assert drcpo.demo._side_view_picks([real, paper, no_car]) == ("Pedestrian", [2, 1, 0])
+    # no real object dense enough: the sparse ones
+    sparse = _pool(["Car", "Car"], [40.0, 21.5], [3, 5])
+    assert drcpo.demo._side_view_picks([sparse, paper, realistic]) == ("Car", [1, 0, 1])
+    with pytest.raises(drcpo.demo.DemoError, match="side view"):
+        drcpo.demo._side_view_picks([real, _pool(["Cyclist"], [5.0], [50])])

@@ -71,7 +71,7 @@ DEFAULT_AUGMENTED = 4
 DEFAULT_PRESETS: tuple[str, ...] = ("paper", "realistic")
 MAX_CONSTRUCTION_PANELS = 8
 CLASSES = ("Car", "Pedestrian", "Cyclist")
-#: Objects drawn in the side view have at least this many points when any has (scan lines show).
+#: The real object of the side view has at least this many points when one has (scan lines show).
 SIDE_VIEW_POINTS = 40
 #: Colour and marker of each preset's series, in the order the presets are given.
 PRESET_STYLES = (("#ff7f0e", "D"), ("#2ca02c", "s"), ("#9467bd", "^"), ("#8c564b", "v"))
@@ -461,11 +461,16 @@ def closest_match(reference: np.ndarray, candidates: Sequence[np.ndarray]) -> tu
 def _side_view_picks(pools: list[dict[str, np.ndarray]]) -> tuple[str, list[int]]:
     """``(class, [row of each pool])``: one object per pool (of :func:`_objects`; the first is
     the real ones), of one class, at about the same distance (:func:`closest_match`): Cars when
-    every pool has one, else the next class; objects with at least :data:`SIDE_VIEW_POINTS`
-    points when there are such."""
+    every pool has one, else the next class. The real object has at least
+    :data:`SIDE_VIEW_POINTS` points when one has; an inserted one has points, however few (a
+    sparse one shows what its preset does at that distance)."""
     for least in (SIDE_VIEW_POINTS, 1):
         for name in CLASSES:
-            rows = [np.flatnonzero((p["names"] == name) & (p["points"] >= least)) for p in pools]
+            fewest = [least] + [1] * (len(pools) - 1)
+            rows = [
+                np.flatnonzero((p["names"] == name) & (p["points"] >= n))
+                for p, n in zip(pools, fewest, strict=True)
+            ]
             if all(len(r) for r in rows):
                 distances = [p["distance"][r] for p, r in zip(pools, rows, strict=True)]
                 i, js = closest_match(distances[0], distances[1:])
@@ -557,8 +562,8 @@ def _construction_steps(
 def _print_summary(console: Console, summary: dict[str, Any], results: dict) -> None:
     groups = ["original", *results]
     table = Table(
-        title=f"drcpo demo: {summary['augmented_frames']} augmented frames (means)",
-        caption="(+n): objects of the class the transform added",
+        title=f"drcpo demo: {summary['augmented_frames']} augmented frames (means per frame)",
+        caption="objects per class; (+n): those the transform added",
     )
     table.add_column("")
     for group in groups:
@@ -572,7 +577,7 @@ def _print_summary(console: Console, summary: dict[str, Any], results: dict) -> 
             if g in summary["inserted_per_frame"]:
                 cell += f" (+{summary['inserted_per_frame'][g][name]:.1f})"
             cells.append(cell)
-        table.add_row(f"{name} per frame", *cells)
+        table.add_row(f"{name}s", *cells)
     stages = {p: f"DR.CPO {p}" for p in results} | {"gt sampling": "ground-truth sampling"}
     ms = ["", *(f"{summary['ms'][f'{stages[g]} per frame']:,.1f}" for g in groups[1:])]
     table.add_row("ms per frame", *ms)
