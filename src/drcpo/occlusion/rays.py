@@ -539,21 +539,22 @@ def _ray_occlusion(
     #    the elements of each cell in one array, cell by cell.
     window = np.empty((m, 4), np.int64)
     start = np.zeros((beams + 2) * columns + 1, np.int64)
-    covered = np.zeros(columns, np.bool_)  # columns some window reaches
+    # per column: the object whose windows reach it, -2 when several do, -1 when none
+    covered = np.full(columns, -1, np.int64)
     for j in range(m):
         x, y, z = rel[j, 0], rel[j, 1], rel[j, 2]
         half, low, high = _cone(x, y, z, radii[j], per_radian, constants[2], constants[3])
-        rows = np.empty(2, np.int64)
-        for e in range(2):
-            slope = high if e == 0 else low
-            k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
-            if k < 0:
-                rows[e] = beams + 1
-            elif k >= lut_bins:
-                rows[e] = 0
-            else:
-                rows[e] = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope)
-                rows[e] += edge_lut[k, 2] > slope
+        row_lo, row_hi = 0, beams + 1
+        k = _lut_bin(high, lut_start, lut_scale, lut_bins)
+        if k < 0:
+            row_lo = beams + 1
+        elif k < lut_bins:
+            row_lo = int(edge_lut[k, 0]) + (edge_lut[k, 1] > high) + (edge_lut[k, 2] > high)
+        k = _lut_bin(low, lut_start, lut_scale, lut_bins)
+        if k >= lut_bins:
+            row_hi = 0
+        elif k >= 0:
+            row_hi = int(edge_lut[k, 0]) + (edge_lut[k, 1] > low) + (edge_lut[k, 2] > low)
         if half * 2.0 + 3.0 >= columns:
             c0, count = 0, columns
         else:
@@ -561,23 +562,26 @@ def _ray_occlusion(
             s = min((radii[j] * (1.0 + 1e-9) + 1e-12) / horizontal, 1.0)
             co = math.sqrt(1.0 - s * s)
             ux, uy = x / horizontal, y / horizontal
-            ends = np.empty(2, np.int64)
-            for e in range(2):
-                turn = -s if e == 0 else s
-                ex, ey = ux * co - uy * turn, uy * co + ux * turn
-                k = _pseudo_bin(ex, ey, bins)
-                ends[e] = _column_at(
-                    ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
-                )
-            c0, count = ends[0], ends[1] - ends[0] + 1
+            ex, ey = ux * co + uy * s, uy * co - ux * s  # turned clockwise by asin(s)
+            k = _pseudo_bin(ex, ey, bins)
+            c0 = _column_at(
+                ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
+            )
+            ex, ey = ux * co - uy * s, uy * co + ux * s  # counter-clockwise
+            k = _pseudo_bin(ex, ey, bins)
+            end = _column_at(
+                ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
+            )
+            count = end - c0 + 1
             if count <= 0:
                 count += columns
-        window[j, 0], window[j, 1], window[j, 2], window[j, 3] = rows[0], rows[1], c0, count
-        for r in range(rows[0], rows[1] + 1):
+        window[j, 0], window[j, 1], window[j, 2], window[j, 3] = row_lo, row_hi, c0, count
+        for r in range(row_lo, row_hi + 1):
             c = c0
             for _ in range(count):
                 start[r * columns + c + 1] += 1
-                covered[c] = True
+                owner_j = element_owner[j]
+                covered[c] = owner_j if covered[c] == -1 or covered[c] == owner_j else -2
                 c = c + 1 if c + 1 < columns else 0
     for b in range(1, start.shape[0]):
         start[b] += start[b - 1]
@@ -596,8 +600,8 @@ def _ray_occlusion(
     for k in range(bins):
         c = first[k]
         after = c + 1 if c + 1 < columns else 0
-        relevant[k] = crosses[k] < 0 or wanted[c] or covered[c]
-        relevant[k] |= crosses[k] > 0 and (wanted[after] or covered[after])
+        relevant[k] = crosses[k] < 0 or wanted[c] or covered[c] != -1
+        relevant[k] |= crosses[k] > 0 and (wanted[after] or covered[after] != -1)
     candidates = np.empty(points.shape[0], np.int64)
     found = 0
     for i in range(points.shape[0]):
@@ -704,7 +708,8 @@ def _behind_elements(
     constants,
 ):  # pragma: no cover - numba
     # Per query point q (offset from the mount, beam, column, distance from its beam's
-    # origin): whether an element not of object skip[q] lies within its radius of the ray
+    # origin; covered: the object whose elements reach each column, -2 several, -1 none):
+    # whether an element not of object skip[q] lies within its radius of the ray
     # from that origin (the mount outside every beam) through the point, more than
     # `tolerance` nearer along it. The elements looked at are those of the cell of the ray's
     # direction (its row among the beam edges, seen from that origin).
@@ -714,8 +719,8 @@ def _behind_elements(
     hidden = np.zeros(queries.shape[0], np.bool_)
     for q in range(queries.shape[0]):
         c = column[q]
-        if c < 0 or not covered[c]:
-            continue
+        if c < 0 or covered[c] == -1 or covered[c] == skip[q]:
+            continue  # no element, or only the query's own object's
         lift = offsets[beam[q]] if beam[q] >= 0 else 0.0
         x, y, dz = queries[q, 0], queries[q, 1], queries[q, 2] - lift
         slope = dz / math.sqrt(x * x + y * y)
