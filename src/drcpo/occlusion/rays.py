@@ -525,10 +525,17 @@ def _ray_occlusion(
     window = np.empty((m, 4), np.int64)
     covered = np.full(columns, -1, np.int64)
     wanted = np.zeros(columns, np.bool_)
+    # per column, the elevation tangents (from any beam origin) an original point needs to
+    # matter: within some element's cone, or in the beam of an inserted return
+    slope_lo = np.full(columns, np.inf)
+    slope_hi = np.full(columns, -np.inf)
     for j in range(m):
         owner_j = element_owner[j] = owner[inserted[j]]
         if own_beam[j] >= 0:
-            wanted[own_column[j]] = True
+            c = own_column[j]
+            wanted[c] = True
+            slope_lo[c] = min(slope_lo[c], edge_slopes[own_beam[j] + 1])
+            slope_hi[c] = max(slope_hi[c], edge_slopes[own_beam[j]])
         x, y, z = rel[j, 0], rel[j, 1], rel[j, 2]
         half, low, high = _cone(x, y, z, radii[j], per_radian, constants[2], constants[3])
         row_lo, row_hi = 0, beams + 1
@@ -566,6 +573,7 @@ def _ray_occlusion(
         c = c0
         for _ in range(count):
             covered[c] = owner_j if covered[c] == -1 or covered[c] == owner_j else -2
+            slope_lo[c], slope_hi[c] = min(slope_lo[c], low), max(slope_hi[c], high)
             c = c + 1 if c + 1 < columns else 0
     # the rows any window or own cell reaches: the per-cell arrays cover those only
     top, bottom = beams + 1, 0
@@ -615,13 +623,21 @@ def _ray_occlusion(
                 entries[fill[cell]] = j
                 fill[cell] += 1
                 c = c + 1 if c + 1 < columns else 0
-    # 4. The original points: most set aside by their azimuth's pseudo-angle bin alone; the
-    #    others give their cell's frame distance and are tested against the elements.
-    relevant = np.empty(bins, np.bool_)
+    # 4. The original points: most set aside by their azimuth's pseudo-angle bin and their
+    #    elevation's tangent alone; the others give their cell's frame distance and are
+    #    tested against the elements.
+    bin_lo = np.full(bins, np.inf)  # the tangents that matter per pseudo-angle bin
+    bin_hi = np.full(bins, -np.inf)
     for k in range(bins):
         c = first[k]
         after = c + 1 if c + 1 < columns else 0
-        relevant[k] = crosses[k] < 0 or slot[c] >= 0 or (crosses[k] > 0 and slot[after] >= 0)
+        if crosses[k] < 0:
+            bin_lo[k], bin_hi[k] = -np.inf, np.inf
+        elif slot[c] >= 0 or (crosses[k] > 0 and slot[after] >= 0):
+            bin_lo[k], bin_hi[k] = slope_lo[c], slope_hi[c]
+            if crosses[k] > 0:
+                bin_lo[k] = min(bin_lo[k], slope_lo[after])
+                bin_hi[k] = max(bin_hi[k], slope_hi[after])
     candidates = np.empty(points.shape[0], np.int64)
     found = 0
     for i in range(points.shape[0]):
@@ -629,9 +645,20 @@ def _ray_occlusion(
             continue
         x = np.float64(points[i, 0]) - mount[0]
         y = np.float64(points[i, 1]) - mount[1]
-        if not (np.isfinite(x + y) and np.isfinite(points[i, 2])):
+        z = np.float64(points[i, 2]) - mount[2]
+        if not np.isfinite(x + y + z):
             return i
-        if (x != 0.0 or y != 0.0) and relevant[_pseudo_bin(x, y, bins)]:
+        if x == 0.0 and y == 0.0:
+            continue
+        k = _pseudo_bin(x, y, bins)
+        if not bin_lo[k] <= bin_hi[k]:
+            continue
+        # its tangent from some beam origin, (z - offset) / horizontal, within the bin's
+        horizontal = math.sqrt(x * x + y * y)
+        if (
+            z - constants[2] >= bin_lo[k] * horizontal
+            and z - constants[3] <= bin_hi[k] * horizontal
+        ):
             candidates[found] = i
             found += 1
     candidates = candidates[:found]
