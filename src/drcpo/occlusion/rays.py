@@ -207,7 +207,8 @@ def _inserted_radii(
         if radii.shape == (len(points),):
             radii = radii[inserted]
         return _check_radii(radii, len(inserted))
-    order = inserted[np.argsort(owner[inserted], kind="stable")]
+    by_object = np.argsort(owner[inserted], kind="stable")
+    order = inserted[by_object]
     xyz = np.ascontiguousarray(points[order, :3], dtype=np.float64)
     if not np.isfinite(xyz).all():
         row = int(order[np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0]])
@@ -217,7 +218,7 @@ def _inserted_radii(
     sorted_radii = np.empty(len(order))
     _voxel_radii(xyz, starts, VOXEL, RADIUS_FACTOR, *RADIUS_RANGE, sorted_radii)
     radii = np.empty(len(inserted))
-    radii[np.argsort(np.argsort(owner[inserted], kind="stable"))] = sorted_radii
+    radii[by_object] = sorted_radii
     return radii
 
 
