@@ -265,9 +265,12 @@ _RING_DROP = math.radians(10.0)  # a fall of the sweep's azimuth this large star
 _MIN_RING = 4  # a ring is at least this many sampled points (fewer: jitter at its start)
 _START_BINS = 360  # resolution of the sweep's start azimuth (1 degree)
 _ON_BEAM = math.radians(0.1)  # a return this near its ring's fitted line lies on the beam
-_GOOD_FIT = 0.95  # share of the returns on their beams that needs no other ring cut tried
+_PERFECT_FIT = 0.999  # share of the returns on their beams that needs no other ring cut tried
 _PRIOR = 1e-4  # 1/m^2 per point: pull of an ill-determined beam origin height to the others'
 _MAX_STEP = math.radians(2.0)  # azimuth steps beyond this are gaps, not firings
+_SAME_FIT = 0.002  # share of returns on their beams that origin heights must add to be kept
+_MAX_BEAMS = 128  # more beams than any spinning LiDAR has: not a sweep
+_MIN_GAP = math.radians(0.05)  # beams nearer than this: not a sweep
 _PEAK_BIN = math.radians(0.01)  # bin of the elevation histogram (points in no scan order)
 
 
@@ -324,6 +327,14 @@ def estimate_sensor(points: np.ndarray, base: Sensor | None = None) -> Sensor:
         offsets = np.zeros_like(elevations)
         step = _beam_step(_seen_from(points, base.mount), fullest)
     step = 2.0 * math.pi / round(2.0 * math.pi / step)  # a whole number of columns per turn
+    gaps = np.diff(np.sort(elevations))
+    if len(elevations) > _MAX_BEAMS or (len(gaps) and gaps.min() < _MIN_GAP):
+        raise DataError(
+            f"sensor auto: the points show no plausible beams ({len(elevations)} found, "
+            f"{math.degrees(gaps.min()) if len(gaps) else 0:.3f} degrees apart at the least); "
+            "they are not one sweep in scan order (merged or shuffled?): give the sensor "
+            "(drcpo.sensor.model) instead"
+        )
     order = np.argsort(-elevations, kind="stable")
     return Sensor(
         elevations=elevations[order],
@@ -392,9 +403,12 @@ def _ring_beams(
     if turns is None:
         return None
     cuts = [_cut_rings(azimuth, start - 1e-6) for start in _sweep_starts(azimuth, slope, turns)]
-    cuts = [starts for starts in cuts if starts is not None]
-    fit = _fit_rings(z, horizontal, cuts[0]) if cuts else None
-    if (fit is None or fit[2] < _GOOD_FIT) and len(cuts) > 1:
+    # The -180 degree cut itself too: where the rings start outside the returns (a frame cut
+    # to the camera's view), no bin shows the change, and a cut at an object's edge inside
+    # the view mixes the ends of two rings into each, which still fit well enough to pass.
+    cuts = [starts for starts in cuts if starts is not None] + [turns]
+    fit = _fit_rings(z, horizontal, cuts[0])
+    if fit is None or fit[2] < _PERFECT_FIT:
         # The others, judged on a quarter of the points; the best is fitted on all of them.
         quick = [_fit_rings(z, horizontal, starts, stride=4) for starts in cuts[1:]]
         share = [0.0 if q is None else q[2] for q in quick]
@@ -483,8 +497,35 @@ def _fit_rings(
     d = horizontal[use].astype(np.float64)
     y, x = z[use] / d, 1.0 / d
     first = np.searchsorted(ring, np.arange(len(present)))
-    tan_e = _ring_mode(y, ring, len(present), far=d >= _FAR)
-    height = np.zeros(len(present))
+    guess = _ring_mode(y, ring, len(present), far=d >= _FAR)
+    fits = [_robust_lines(x, y, ring, first, guess, heights) for heights in (True, False)]
+    # Origin heights only where the returns need them: fitted to a ring that sees the road at
+    # one distance, elevation and height trade off, and a wrong pair renders objects at other
+    # distances off their beam. A sensor whose beams share one origin (the synthetic world's)
+    # fits as well without them.
+    (tan_e, height, share), (flat_e, flat_h, flat_share) = fits
+    if flat_share >= share - _SAME_FIT:
+        tan_e, height, share = flat_e, flat_h, flat_share
+    if share < 0.5:
+        return None  # most returns fit no ring's line: these are not beams
+    elevations = np.arctan(tan_e)
+    if len(np.unique(np.round(np.degrees(elevations), 2))) < len(elevations):
+        return None  # two rings at one elevation: the order cut a beam in pieces
+    return elevations, height, share
+
+
+def _robust_lines(
+    x: np.ndarray,
+    y: np.ndarray,
+    ring: np.ndarray,
+    first: np.ndarray,
+    tan_e: np.ndarray,
+    heights: bool,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Per ring, ``tan(e)`` and ``h`` of ``y = tan(e) + h x`` by three passes of least squares
+    over the inliers of the last (``heights=False``: ``h = 0``), starting from the elevations
+    ``tan_e``; and the share of the returns within ``_ON_BEAM`` of their ring's line."""
+    height = np.zeros(len(first))
     inlier = np.ones(len(y), dtype=bool)
     prior = 0.0
     for threshold in (math.radians(1.0), math.radians(0.3), None):
@@ -494,19 +535,17 @@ def _fit_rings(
             scale = np.sqrt(np.add.reduceat(miss**2 * inlier, first) / np.maximum(kept, 1.0))
             threshold = np.maximum(3.0 * scale, math.radians(0.03))[ring]
         inlier = miss < threshold
-        tan_e, height, spread = _line_fit(x, y, first, inlier, prior)
-        determined = spread > 10.0 * _PRIOR
-        prior = float(np.median(height[determined])) if determined.any() else 0.0
+        if heights:
+            tan_e, height, spread = _line_fit(x, y, first, inlier, prior)
+            determined = spread > 10.0 * _PRIOR
+            prior = float(np.median(height[determined])) if determined.any() else 0.0
+        else:
+            w = inlier.astype(np.float64)
+            tan_e = np.add.reduceat(w * y, first) / np.maximum(np.add.reduceat(w, first), 1e-12)
     # Judged against a fixed tolerance: the last threshold grows with a ring's spread, so a
     # ring made of two beams would pass it.
     miss = np.abs(y - tan_e[ring] - height[ring] * x) / (1.0 + tan_e[ring] ** 2)
-    share = float((miss <= _ON_BEAM).mean())
-    if share < 0.5:
-        return None  # most returns fit no ring's line: these are not beams
-    elevations = np.arctan(tan_e)
-    if len(np.unique(np.round(np.degrees(elevations), 2))) < len(elevations):
-        return None  # two rings at one elevation: the order cut a beam in pieces
-    return elevations, height, share
+    return tan_e, height, float((miss <= _ON_BEAM).mean())
 
 
 def _ring_mode(y: np.ndarray, ring: np.ndarray, rings: int, far: np.ndarray) -> np.ndarray:

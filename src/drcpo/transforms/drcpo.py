@@ -655,9 +655,14 @@ class DRCPO(Transform):
         if self._occlusion_along_rays and len(points):
             first = int(np.count_nonzero(owner < 0))
             count = partial(self._dropped, points[first:], owner[first:], insertions)
-            added = seen.added_owner[cleared_by < 0] if cleared_by is not None else None
             return sensor_steps.sensor_occlusion(
-                points, owner, seen.added_owner if added is None else added, seen.sensor, count
+                points,
+                owner,
+                seen.added_owner,
+                seen.sensor,
+                count,
+                partial(seen.added_counts, points[:first]),
+                self.config.min_points_after,
             )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()

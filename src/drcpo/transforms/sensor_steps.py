@@ -74,6 +74,12 @@ class SensorFrame:
         # (grown: a sampled object brings points up to a few cm outside its box)
         return BoxQuery(self.frame.points).owners(boxes, margin=_ADDED_MARGIN)
 
+    def added_counts(self, points: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """``int64 (K,)``: of the frame's ``points`` (its points, maybe fewer of them), the
+        ``keep`` ones that lie in each added box."""
+        boxes = self.frame.boxes[self.added]
+        return BoxQuery(take_rows(points, keep)).counts(boxes)
+
     @cached_property
     def own_points(self) -> np.ndarray:
         """The frame's points without those of added objects."""
@@ -174,6 +180,8 @@ def sensor_occlusion(
     added_owner: np.ndarray,
     sensor: Sensor,
     count_kept: Callable[[np.ndarray], np.ndarray],
+    count_added: Callable[[np.ndarray], np.ndarray],
+    min_points: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -187,9 +195,13 @@ def sensor_occlusion(
         count_kept: given ``keep`` of the inserted points (``bool (N - F,)``), how many each
             DR.CPO object keeps that count for its label; objects below the minimum return
             ``True``.
+        count_added: given ``keep`` of the frame's points (``bool (F,)``), how many each
+            earlier-added object keeps in its box.
+        min_points: an earlier-added object left with fewer points there goes too, all of
+            its points (its label then goes with the frame's sparse boxes).
 
-    Two passes: the first decides which DR.CPO objects keep too few returns (dropped); the
-    second, without them, decides every point, so a dropped object hides nothing.
+    Two passes: the first decides which objects keep too few returns (dropped); the second,
+    without them, decides every point, so a dropped object hides nothing.
     """
     first = len(added_owner)
     num_drcpo = int(owner.max()) + 1 if len(owner) > first else 0
@@ -197,9 +209,14 @@ def sensor_occlusion(
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
     removed = ray_occlusion(points, combined, sensor)
     dropped = count_kept(~removed[first:])
-    if dropped.any():
-        live = ~((owner >= 0) & np.append(dropped, False)[owner])
+    gone = np.zeros(len(points), dtype=bool)
+    gone[first:] = (owner[first:] >= 0) & np.append(dropped, False)[owner[first:]]
+    if added_owner.max(initial=-1) >= 0:
+        sparse = count_added(~removed[:first]) < min_points
+        gone[:first] = (added_owner >= 0) & sparse[np.maximum(added_owner, 0)]
+    if gone.any():
         removed = np.ones(len(points), dtype=bool)
+        live = ~gone
         removed[live] = ray_occlusion(take_rows(points, live), _renumbered(combined[live]), sensor)
     return ~removed, dropped
 
