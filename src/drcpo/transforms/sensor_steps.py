@@ -129,16 +129,20 @@ class SensorFrame:
         boxes accepted before it, ``placed`` and this round's), or that would leave one of
         those with fewer (objects in a row along a street would hide each other)."""
         image = self.range_image
-        hidden = np.zeros(len(boxes), dtype=bool)
         accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
+        # Boxes hidden already by the frame and the earlier rounds' boxes, all in one call;
+        # the others one by one against the boxes of this round accepted before them.
+        hidden = image.visible_rays(boxes, occluders=accepted if len(accepted) else None) < min_rays
         spans = _azimuth_spans(accepted)
-        for i in range(len(boxes)):
+        first = len(accepted)
+        for i in np.flatnonzero(~hidden):
             box = boxes[i : i + 1]
-            if image.visible_rays(box, occluders=accepted if len(accepted) else None)[0] < min_rays:
-                hidden[i] = True
-                continue
             span = _azimuth_spans(box)
-            behind = np.flatnonzero(_overlapping(spans, span[0]))
+            behind = np.flatnonzero(_overlapping(spans, span[0]))  # or in front: either way
+            if (behind >= first).any():  # this round's boxes may hide it too
+                if image.visible_rays(box, occluders=accepted[behind])[0] < min_rays:
+                    hidden[i] = True
+                    continue
             if len(behind):
                 occluders = np.concatenate([accepted, box])
                 if (image.visible_rays(accepted[behind], occluders=occluders) < min_rays).any():
