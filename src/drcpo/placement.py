@@ -93,7 +93,8 @@ class PlacementConfig(Checked):
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
         height: ``"ground"`` (bottom on the estimated ground), ``"source"`` or ``"observed"``
-            (bottom on the ground the frame observed under the footprint, see the module).
+            (bottom on the ground the frame observed under the footprint, the centre drawn
+            where the frame observed ground; see the module).
         max_non_ground_points: most non-ground frame points a placed box may hold.
         ground_tolerance: points more than this (metres) above the ground are non-ground.
         attempts: poses tried per object.
