@@ -267,6 +267,34 @@ def test_objects_hide_each_other() -> None:
     assert surfel_radii(near).shape == (len(near),)
 
 
+def test_default_radii_are_each_objects_own() -> None:
+    """Without radii, each object's points get surfel_radii of that object alone, whatever
+    the order of the points."""
+    rng = np.random.default_rng(4)
+    frame = scene(rng, 2000, HDL64E)
+    objects = [
+        rng.uniform(-0.5, 0.5, (n, 3)) * size + centre
+        for n, size, centre in (
+            (800, 1.5, (8.0, 2.0, -1.0)),
+            (300, 0.6, (8.5, 2.5, -1.2)),
+            (1500, 2.0, (12.0, 2.5, -0.8)),
+        )
+    ]
+    points = np.concatenate([frame[:, :3], *objects]).astype(np.float32)
+    owner = np.concatenate(
+        [np.full(len(frame), -1), *(np.full(len(o), k) for k, o in enumerate(objects))]
+    )
+    shuffle = rng.permutation(len(points))
+    points, owner = points[shuffle], owner[shuffle]
+    radii = np.zeros(len(points))
+    for k in range(len(objects)):
+        radii[owner == k] = surfel_radii(points[owner == k])
+    np.testing.assert_array_equal(
+        ray_occlusion(points, owner, HDL64E), ray_occlusion(points, owner, HDL64E, radii=radii)
+    )
+    assert ray_occlusion(points, owner, HDL64E)[owner == 1].any()
+
+
 def test_no_inserted_points_removes_nothing() -> None:
     points = scene(np.random.default_rng(0), 500, HDL64E)
     assert not ray_occlusion(points, np.full(500, -1), HDL64E).any()

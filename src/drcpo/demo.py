@@ -1,21 +1,26 @@
 """``drcpo demo``: every stage that exists, end to end, on the built-in synthetic world.
 
-Stages: synthetic KITTI data (cached under ``OUT/kitti``, reused while its parameters match) ->
-ground-truth database -> candidate index -> augmentation with the conventional baseline
-(ground-truth sampling) and with DR.CPO -> figures and a summary. Every stage is mandatory: one
-that fails stops the demo with a :class:`DemoError` naming it (``drcpo demo``: one line, exit
-status 1), and the summary's ``stages`` lists the stages that ran, in order.
+Stages: the DR.CPO presets' configs -> synthetic KITTI data (cached under ``OUT/kitti``, reused
+while its parameters match) -> ground-truth database -> candidate index -> augmentation with the
+conventional baseline (ground-truth sampling) and with DR.CPO under each preset (``paper``: the
+paper's method; ``realistic``: rendered through the sensor model) -> figures and a summary.
+Every stage is mandatory: one that fails stops the demo with a :class:`DemoError` naming it
+(``drcpo demo``: one line, exit status 1), and the summary's ``stages`` lists the stages that
+ran, in order.
 
 Figures written under ``OUT``: ``bev.png`` (original / after ground-truth sampling / after
-DR.CPO), ``construction.png`` (one object's iterative construction), ``density.png`` (points
-per object against distance, real against inserted), plus ``summary.json``.
+DR.CPO with each preset), ``construction.png`` (one object's iterative construction),
+``density.png`` (points per object against distance, per class: the frames' own objects against
+those each preset inserted), ``side_view.png`` (a real object and one inserted by each preset at
+about the same distance, as the sensor saw them and from the side), plus ``summary.json``.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -25,6 +30,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from drcpo.config import DRCPOConfig, load_config
 from drcpo.construction import ConstructionConfig, construct_object
 from drcpo.database import GroundTruthDatabase, build_database
 from drcpo.datasets.kitti import KittiDataset, fov_mask
@@ -42,17 +48,33 @@ from drcpo.viz import (
     BevPanel,
     ConstructionStep,
     DistanceSeries,
+    ObjectView,
     bev_figure,
     construction_figure,
     density_figure,
+    side_view_figure,
 )
 
-__all__ = ["DEFAULT_AUGMENTED", "DEFAULT_FRAMES", "DemoError", "inserted_mask", "run_demo"]
+__all__ = [
+    "DEFAULT_AUGMENTED",
+    "DEFAULT_FRAMES",
+    "DEFAULT_PRESETS",
+    "DemoError",
+    "closest_match",
+    "inserted_mask",
+    "run_demo",
+]
 
 DEFAULT_FRAMES = 16
 DEFAULT_AUGMENTED = 4
+#: The DR.CPO presets the demo compares (names of packaged configs, or YAML paths).
+DEFAULT_PRESETS: tuple[str, ...] = ("paper", "realistic")
 MAX_CONSTRUCTION_PANELS = 8
 CLASSES = ("Car", "Pedestrian", "Cyclist")
+#: The real object of the side view has at least this many points when one has (scan lines show).
+SIDE_VIEW_POINTS = 40
+#: Colour and marker of each preset's series, in the order the presets are given.
+PRESET_STYLES = (("#ff7f0e", "D"), ("#2ca02c", "s"), ("#9467bd", "^"), ("#8c564b", "v"))
 
 
 class DemoError(DrcpoError):
@@ -100,18 +122,26 @@ def run_demo(
     seed: int = 0,
     augment_frames: int = DEFAULT_AUGMENTED,
     console: Console | None = None,
+    presets: Sequence[str | os.PathLike] = DEFAULT_PRESETS,
 ) -> dict[str, Any]:
-    """Run the demo into ``out``; returns (and writes to ``out/summary.json``) its summary."""
+    """Run the demo into ``out``; returns (and writes to ``out/summary.json``) its summary.
+
+    ``presets``: the DR.CPO configurations compared, each a packaged preset's name or a YAML
+    path (anything :func:`drcpo.config.load_config` reads; its ``drcpo`` section is used), named
+    in the figures and the summary by the name or the file's stem.
+    """
     out = Path(out)
     run = _Run(console or Console(stderr=True))
     start = time.perf_counter()
+    configs = _presets(run, presets)
     root = _synthetic_data(run, out / "kitti", frames, seed)
     database = _database(run, root, out / "gt_database")
     index = _index(run, database)
     dataset = KittiDataset(root, "train")
     originals = [_fov_frame(dataset, i) for i in range(min(augment_frames, len(dataset)))]
-    results = _augment(run, database, index, originals, seed)
-    figures = _figures(run, out, database, index, originals, results, seed)
+    results = _augment(run, database, index, originals, seed, configs)
+    figures = _figures(run, out, database, index, originals, results, list(configs), seed)
+    groups = {"original": originals, **results}
     summary = {
         "out": str(out),
         "frames": frames,
@@ -122,13 +152,26 @@ def run_demo(
         "figures": {k: str(v) for k, v in figures.items()},
         "database": database.summary(),
         "points_per_frame": {
-            label: float(np.mean([len(f) for f in group]))
-            for label, group in {"original": originals, **results}.items()
+            label: float(np.mean([len(f) for f in group])) for label, group in groups.items()
         },
         "objects_per_frame": {
             label: {c: float(np.mean([np.sum(f.names == c) for f in group])) for c in CLASSES}
-            for label, group in {"original": originals, **results}.items()
+            for label, group in groups.items()
         },
+        "inserted_per_frame": {
+            label: _inserted_per_frame(originals, group) for label, group in results.items()
+        },
+    }
+    summary["presets"] = {
+        label: {
+            "config": str(source),
+            "points_per_frame": summary["points_per_frame"][label],
+            "objects_per_frame": summary["objects_per_frame"][label],
+            "inserted_per_frame": summary["inserted_per_frame"][label],
+            "ms_per_frame": run.ms[f"DR.CPO {label} per frame"],
+            "first_call_ms": run.ms[f"DR.CPO {label} first call"],
+        }
+        for label, (source, _) in configs.items()
     }
     summary["total_s"] = time.perf_counter() - start
     atomic_write_bytes(out / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
@@ -137,6 +180,32 @@ def run_demo(
 
 
 # Stages ---------------------------------------------------------------------------------------
+def _presets(
+    run: _Run, presets: Sequence[str | os.PathLike]
+) -> dict[str, tuple[str | os.PathLike, DRCPOConfig]]:
+    """``{label: (source, its drcpo section)}``, read before any work so a bad one stops the
+    demo at once."""
+    configs: dict[str, tuple[str | os.PathLike, DRCPOConfig]] = {}
+    labels = [_preset_label(source) for source in presets]
+    with run.stage("presets", f"reading the DR.CPO presets {', '.join(labels)}"):
+        if not labels:
+            raise DemoError("no DR.CPO preset given")
+        for label, source in zip(labels, presets, strict=True):
+            if label in configs or label in ("original", "gt sampling"):
+                raise DemoError(
+                    f"preset {source!s}: its name {label!r} is already taken (by another "
+                    "preset or a column of the summary: original, gt sampling)"
+                )
+            configs[label] = (source, load_config(source).drcpo)
+    return configs
+
+
+def _preset_label(source: str | os.PathLike) -> str:
+    """A preset's name in figures and the summary: the name itself, or a YAML file's stem."""
+    text = os.fspath(source)
+    return Path(text).stem if text.endswith((".yaml", ".yml")) else text
+
+
 def _synthetic_data(run: _Run, root: Path, frames: int, seed: int) -> Path:
     parameters = synth_parameters(frames, seed, WorldConfig(), LidarConfig(), 0.0)
     if matches(root, parameters):
@@ -179,23 +248,40 @@ def _fov_frame(dataset: KittiDataset, i: int) -> Frame:
 
 
 def _augment(
-    run: _Run, database: GroundTruthDatabase, index: CandidateIndex, frames: list[Frame], seed: int
+    run: _Run,
+    database: GroundTruthDatabase,
+    index: CandidateIndex,
+    frames: list[Frame],
+    seed: int,
+    configs: dict[str, tuple[str | os.PathLike, DRCPOConfig]],
 ) -> dict[str, list[Frame]]:
-    return {
+    results = {
         "gt sampling": _apply(
-            run, "ground-truth sampling", GroundTruthSampling(database), frames, seed, 1
-        ),
-        "dr.cpo": _apply(run, "DR.CPO", DRCPO(database, index), frames, seed, 2),
+            run, "ground-truth sampling", lambda: GroundTruthSampling(database), frames, seed, 1
+        )
     }
+    for label, (_, config) in configs.items():
+        # One random stream for every preset: each frame's draws are the same, so the presets
+        # differ only by what they do with them (and the paper's matches earlier demos).
+        results[label] = _apply(
+            run, f"DR.CPO {label}", lambda c=config: DRCPO(database, index, c), frames, seed, 2
+        )
+    return results
 
 
 def _apply(
-    run: _Run, name: str, transform: Transform, frames: list[Frame], seed: int, stream: int
+    run: _Run,
+    name: str,
+    make: Callable[[], Transform],
+    frames: list[Frame],
+    seed: int,
+    stream: int,
 ) -> list[Frame]:
     augmented = []
     # Loads (or compiles) the kernels and touches the database: timed on its own. (The demo
     # always has a frame: KittiDataset refuses an empty split and --augment-frames is >= 1.)
     with run.stage(f"{name} first call", f"warming up {name} (its compiled kernels)"):
+        transform = make()
         transform(frames[0], np.random.default_rng(np.random.SeedSequence([seed, stream, 1, 0])))
     with run.stage(name, f"augmenting {len(frames)} frames with {name}"):
         with run.progress() as bar:
@@ -206,7 +292,7 @@ def _apply(
                 bar.update(task, completed=i + 1)
     run.ms[f"{name} per frame"] = run.ms[name] / max(len(frames), 1)
     for key, value in _stage_ms(augmented).items():
-        run.ms[f"  {key} per frame"] = value
+        run.ms[f"  {name}: {key} per frame"] = value
     return augmented
 
 
@@ -229,6 +315,16 @@ def inserted_mask(original: Frame, augmented: Frame) -> np.ndarray:
     return ~(delta < 1e-6).any(axis=1)
 
 
+def _inserted_per_frame(originals: list[Frame], group: list[Frame]) -> dict[str, float]:
+    """Mean objects per frame of each class that the transform added."""
+    counts = {c: 0 for c in CLASSES}
+    for original, frame in zip(originals, group, strict=True):
+        names = frame.names[inserted_mask(original, frame)]
+        for c in CLASSES:
+            counts[c] += int(np.sum(names == c))
+    return {c: counts[c] / max(len(group), 1) for c in CLASSES}
+
+
 def _figures(
     run: _Run,
     out: Path,
@@ -236,11 +332,12 @@ def _figures(
     index: CandidateIndex,
     originals: list[Frame],
     results: dict[str, list[Frame]],
+    presets: list[str],
     seed: int,
 ) -> dict[str, Path]:
     figures: dict[str, Path] = {}
     with run.stage("figures", f"drawing figures into {out}"):
-        titles = {"gt sampling": "after ground-truth sampling", "dr.cpo": "after DR.CPO"}
+        titles = {"gt sampling": "after ground-truth sampling"}
         shown = _most_inserted(originals, results)
         first = originals[shown]
         title = f"original (frame {first.frame_id})"
@@ -252,14 +349,16 @@ def _figures(
                     frame.points,
                     frame.boxes,
                     frame.names.tolist(),
-                    titles.get(label, label),
+                    titles.get(label, f"after DR.CPO, preset {label}"),
                     inserted_mask(first, frame),
                 )
             )
         figures["bev"] = bev_figure(panels, out / "bev.png")
+        preset_results = {label: results[label] for label in presets}
         figures["density"] = density_figure(
-            _density_series(database, originals, results), out / "density.png"
+            _density_series(originals, preset_results), out / "density.png", classes=CLASSES
         )
+        figures["side_view"] = _side_view(originals, preset_results, out / "side_view.png")
     with run.stage("construction figure", "drawing one object's iterative construction"):
         name, row, steps = _construction_steps(database, index, seed)
         title = (
@@ -274,7 +373,7 @@ def _figures(
 
 
 def _most_inserted(originals: list[Frame], results: dict[str, list[Frame]]) -> int:
-    """The augmented frame into which the last transform (DR.CPO when it ran) inserted most."""
+    """The augmented frame into which the last transform (the last preset) inserted most."""
     if not results:
         return 0
     group = list(results.values())[-1]
@@ -282,33 +381,129 @@ def _most_inserted(originals: list[Frame], results: dict[str, list[Frame]]) -> i
     return int(np.argmax(counts))
 
 
+def _objects(frames: list[Frame], originals: list[Frame] | None = None) -> dict[str, np.ndarray]:
+    """The labelled objects of ``frames`` (only those not in ``originals``, when given), as
+    ``frame`` (index into ``frames``), ``box`` (index into its boxes), ``names``, ``distance``
+    (metres, from the sensor) and ``points`` (points in the box)."""
+    columns: dict[str, list] = {"frame": [], "box": [], "names": [], "distance": [], "points": []}
+    for i, frame in enumerate(frames):
+        chosen = (
+            np.ones(len(frame.boxes), bool)
+            if originals is None
+            else inserted_mask(originals[i], frame)
+        )
+        rows = np.flatnonzero(chosen)
+        boxes = frame.boxes[rows]
+        columns["frame"] += [i] * len(rows)
+        columns["box"] += rows.tolist()
+        columns["names"] += frame.names[rows].tolist()
+        columns["distance"] += np.hypot(boxes[:, 0], boxes[:, 1]).tolist()
+        columns["points"] += points_in_boxes(frame.points, boxes).sum(axis=0).tolist()
+    return {
+        "frame": np.array(columns["frame"], dtype=np.int64),
+        "box": np.array(columns["box"], dtype=np.int64),
+        "names": np.array(columns["names"], dtype=str),
+        "distance": np.array(columns["distance"], dtype=np.float64),
+        "points": np.array(columns["points"], dtype=np.int64),
+    }
+
+
 def _density_series(
-    database: GroundTruthDatabase, originals: list[Frame], results: dict[str, list[Frame]]
+    originals: list[Frame], results: dict[str, list[Frame]]
 ) -> list[DistanceSeries]:
-    boxes = database.boxes
+    """The frames' own labelled objects, then those each preset inserted."""
+    real = _objects(originals)
     series = [
         DistanceSeries(
-            "real objects (database)",
-            np.hypot(boxes[:, 0], boxes[:, 1]),
-            database.num_points,
+            "real (the frames' labels)",
+            real["distance"],
+            real["points"],
             "#1f77b4",
             "o",
+            real["names"],
         )
     ]
-    styles = {
-        "gt sampling": ("inserted by GT sampling", "#9467bd", "s"),
-        "dr.cpo": ("inserted by DR.CPO", "#ff7f0e", "D"),
-    }
-    for label, group in results.items():
-        distance, points = [], []
-        for original, frame in zip(originals, group, strict=True):
-            new = inserted_mask(original, frame)
-            counts = points_in_boxes(frame.points, frame.boxes[new]).sum(axis=0)
-            distance += np.hypot(frame.boxes[new, 0], frame.boxes[new, 1]).tolist()
-            points += counts.tolist()
-        text, colour, marker = styles.get(label, (label, "#7f7f7f", "^"))
-        series.append(DistanceSeries(text, np.array(distance), np.array(points), colour, marker))
+    for k, (label, group) in enumerate(results.items()):
+        colour, marker = PRESET_STYLES[k % len(PRESET_STYLES)]
+        new = _objects(group, originals)
+        text = f"inserted, preset {label}"
+        series.append(
+            DistanceSeries(text, new["distance"], new["points"], colour, marker, new["names"])
+        )
     return series
+
+
+def closest_match(reference: np.ndarray, candidates: Sequence[np.ndarray]) -> tuple[int, list[int]]:
+    """The reference distance and, from each group of candidate distances, the one nearest it,
+    chosen so that the largest gap to the reference is smallest.
+
+    Args:
+        reference: ``(R,)`` distances, metres.
+        candidates: ``K`` arrays ``(C_k,)`` of distances, metres.
+
+    Returns ``(i, [j_0, ..., j_{K-1}])``; ties go to the lowest index. Raises ``ValueError``
+    when ``reference`` or any group is empty.
+    """
+    reference = np.asarray(reference, dtype=np.float64).reshape(-1)
+    groups = [np.asarray(c, dtype=np.float64).reshape(-1) for c in candidates]
+    if len(reference) == 0 or any(len(g) == 0 for g in groups):
+        raise ValueError("closest_match needs at least one distance in every group")
+    nearest, gaps = [], []
+    for group in groups:
+        gap = np.abs(group[None, :] - reference[:, None])  # (R, C_k)
+        nearest.append(np.argmin(gap, axis=1))  # argmin: the first of equal gaps
+        gaps.append(gap.min(axis=1))
+    worst = np.max(gaps, axis=0) if gaps else np.zeros(len(reference))
+    i = int(np.argmin(worst))
+    return i, [int(n[i]) for n in nearest]
+
+
+def _side_view_picks(pools: list[dict[str, np.ndarray]]) -> tuple[str, list[int]]:
+    """``(class, [row of each pool])``: one object per pool (of :func:`_objects`; the first is
+    the real ones), of one class, at about the same distance (:func:`closest_match`): Cars when
+    every pool has one, else the next class. The real object has at least
+    :data:`SIDE_VIEW_POINTS` points when one has; an inserted one has points, however few (a
+    sparse one shows what its preset does at that distance)."""
+    for least in (SIDE_VIEW_POINTS, 1):
+        for name in CLASSES:
+            fewest = [least] + [1] * (len(pools) - 1)
+            rows = [
+                np.flatnonzero((p["names"] == name) & (p["points"] >= n))
+                for p, n in zip(pools, fewest, strict=True)
+            ]
+            if all(len(r) for r in rows):
+                distances = [p["distance"][r] for p, r in zip(pools, rows, strict=True)]
+                i, js = closest_match(distances[0], distances[1:])
+                return name, [int(r[k]) for r, k in zip(rows, [i, *js], strict=True)]
+    raise DemoError(
+        "no class has both a real object and one inserted by every preset with points to draw "
+        "in the side view (more --augment-frames?)"
+    )
+
+
+def _side_view(originals: list[Frame], results: dict[str, list[Frame]], path: Path) -> Path:
+    """A real object next to one inserted by each preset (:func:`_side_view_picks`)."""
+    pools = [_objects(originals), *(_objects(group, originals) for group in results.values())]
+    name, picks = _side_view_picks(pools)
+    frames = [originals, *results.values()]
+    titles = [f"real {name}", *(f"inserted, preset {label}" for label in results)]
+    views = []
+    for pool, group, row, title in zip(pools, frames, picks, titles, strict=True):
+        frame = group[int(pool["frame"][row])]
+        box = frame.boxes[int(pool["box"][row])]
+        inside = points_in_boxes(frame.points, box[None])[:, 0]
+        views.append(ObjectView(frame.points[inside], box, f"{title} (frame {frame.frame_id})"))
+    sensor = LidarConfig().sensor()  # the synthetic world's, which recorded the frames
+    return side_view_figure(
+        views,
+        path,
+        elevations_deg=np.degrees(sensor.elevations),
+        mount=sensor.mount,
+        title=(
+            f"a {name} as the sensor saw it (top; grey lines: its beams' elevations) and from "
+            "the side (bottom): a real one and one each preset inserted at about the same distance"
+        ),
+    )
 
 
 def _construction_steps(
@@ -366,15 +561,26 @@ def _construction_steps(
 # Summary --------------------------------------------------------------------------------------
 def _print_summary(console: Console, summary: dict[str, Any], results: dict) -> None:
     groups = ["original", *results]
-    table = Table(title=f"drcpo demo: {summary['augmented_frames']} augmented frames (means)")
+    table = Table(
+        title=f"drcpo demo: {summary['augmented_frames']} augmented frames (means per frame)",
+        caption="objects per class; (+n): those the transform added",
+    )
     table.add_column("")
     for group in groups:
-        table.add_column(group, justify="right")
+        heading = group if group in ("original", "gt sampling") else f"dr.cpo {group}"
+        table.add_column(heading, justify="right")
     table.add_row("points per frame", *(f"{summary['points_per_frame'][g]:,.0f}" for g in groups))
     for name in CLASSES:
-        table.add_row(
-            f"{name} per frame", *(f"{summary['objects_per_frame'][g][name]:.1f}" for g in groups)
-        )
+        cells = []
+        for g in groups:
+            cell = f"{summary['objects_per_frame'][g][name]:.1f}"
+            if g in summary["inserted_per_frame"]:
+                cell += f" (+{summary['inserted_per_frame'][g][name]:.1f})"
+            cells.append(cell)
+        table.add_row(f"{name}s", *cells)
+    stages = {p: f"DR.CPO {p}" for p in results} | {"gt sampling": "ground-truth sampling"}
+    ms = ["", *(f"{summary['ms'][f'{stages[g]} per frame']:,.1f}" for g in groups[1:])]
+    table.add_row("ms per frame", *ms)
     out = Console()
     out.print(table)
     timing = Table(title="milliseconds per stage")

@@ -4,9 +4,13 @@
   objects highlighted, the sensor at the origin.
 * :func:`construction_figure`: one object's iterative construction, one panel per iteration,
   partitions shaded by how many of their cells are above the density threshold.
-* :func:`density_figure`: points per object versus distance, real objects against inserted ones.
+* :func:`density_figure`: points per object versus distance, real objects against inserted ones,
+  in one panel or one panel per class, with each group's median per distance bin.
+* :func:`side_view_figure`: objects' points as the sensor saw them (azimuth against elevation,
+  with the beams' elevations drawn, so scan lines show) and from the side (range against height).
 
-Every function writes its file atomically (temporary file, then rename) and returns the path.
+Every ``*_figure`` function writes its file atomically (temporary file, then rename) and returns
+the path; :func:`density_plot` and :func:`side_view_plot` return the figure they draw.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon, Rectangle
 
-from drcpo.geometry import bev_corners
+from drcpo.geometry import bev_corners, box_corners
 from drcpo.outputs import atomic_write_bytes
 
 __all__ = [
@@ -32,9 +36,13 @@ __all__ = [
     "BevPanel",
     "ConstructionStep",
     "DistanceSeries",
+    "ObjectView",
     "bev_figure",
     "construction_figure",
     "density_figure",
+    "density_plot",
+    "side_view_figure",
+    "side_view_plot",
 ]
 
 CLASS_COLOURS: dict[str, str] = {
@@ -83,13 +91,32 @@ class ConstructionStep:
 
 @dataclass(frozen=True, eq=False)
 class DistanceSeries:
-    """Points per object against distance for one group of objects (a scatter series)."""
+    """Points per object against distance for one group of objects (a scatter series).
+
+    Attributes:
+        label: the group's name in the legend.
+        distance: ``(n,)`` each object's distance from the sensor, metres.
+        points: ``(n,)`` each object's number of points.
+        colour, marker: matplotlib colour and marker of the series.
+        names: ``(n,)`` each object's class (needed when the figure has a panel per class).
+    """
 
     label: str
     distance: np.ndarray
     points: np.ndarray
     colour: str = OTHER_COLOUR
     marker: str = "o"
+    names: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class ObjectView:
+    """One object for :func:`side_view_figure`: its points ``(n, 3+)`` in the LiDAR frame
+    (column 3, when present, is the intensity, 0 to 1), its box ``(7,)`` and a title."""
+
+    points: np.ndarray
+    box: np.ndarray
+    title: str = ""
 
 
 def _save(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
@@ -216,27 +243,175 @@ def _draw_construction(ax, step: ConstructionStep) -> None:
     )
 
 
+def density_plot(
+    series: Sequence[DistanceSeries],
+    classes: Sequence[str] | None = None,
+    bin_width: float = 10.0,
+) -> Figure:
+    """Points per object (log scale) against distance from the sensor, one scatter series per
+    group and, as a line, each group's median per ``bin_width`` metre bin (bins holding at
+    least two of its objects). One panel of every object when ``classes`` is ``None``, else one
+    panel per class of ``classes`` (each series' objects of that class, by its ``names``)."""
+    if bin_width <= 0:
+        raise ValueError(f"density_plot: bin_width must be positive, got {bin_width}")
+    if classes is not None and any(s.names is None for s in series):
+        missing = [s.label for s in series if s.names is None]
+        raise ValueError(f"density_plot: per-class panels need names for series {missing}")
+    panels = [None] if classes is None else list(classes)
+    if not panels:
+        raise ValueError("density_plot needs at least one class")
+    fig = Figure(figsize=(1.0 + 4.6 * len(panels), 4.4), layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False, sharey=True)[0]
+    for ax, name in zip(axes, panels, strict=True):
+        for s in series:
+            distance = np.asarray(s.distance, dtype=np.float64).reshape(-1)
+            points = np.asarray(s.points, dtype=np.float64).reshape(-1)
+            if name is not None:
+                chosen = np.asarray(s.names).reshape(-1) == name
+                distance, points = distance[chosen], points[chosen]
+            _draw_density(ax, s, distance, points, bin_width)
+        ax.set_yscale("log")
+        ax.set_xlabel("distance from the sensor (m)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+        if name is not None:
+            ax.set_title(name, fontsize=10)
+    axes[0].set_ylabel("points in the box")
+    return fig
+
+
+def _draw_density(ax, s: DistanceSeries, distance, points, bin_width: float) -> None:
+    shown = np.maximum(points, 0.8)  # an empty box still shows, at the foot of the log axis
+    ax.scatter(
+        distance,
+        shown,
+        s=14,
+        c=s.colour,
+        marker=s.marker,
+        alpha=0.6,
+        linewidths=0,
+        label=f"{s.label} ({len(points)})",
+    )
+    bins = np.floor(distance / bin_width).astype(np.int64)
+    centres, medians = [], []
+    for b in np.unique(bins):
+        inside = bins == b
+        if inside.sum() >= 2:
+            centres.append((b + 0.5) * bin_width)
+            medians.append(np.median(shown[inside]))
+    if centres:
+        ax.plot(centres, medians, color=s.colour, linewidth=1.6, alpha=0.9)
+
+
 def density_figure(
-    series: Sequence[DistanceSeries], path: str | os.PathLike, dpi: int = 110
+    series: Sequence[DistanceSeries],
+    path: str | os.PathLike,
+    dpi: int = 110,
+    classes: Sequence[str] | None = None,
+    bin_width: float = 10.0,
 ) -> Path:
-    """Points per object (log scale) against distance from the sensor, one series per group."""
-    fig = Figure(figsize=(6.4, 4.2), layout="constrained")
-    ax = fig.subplots()
-    for s in series:
-        points = np.asarray(s.points, dtype=np.float64)
-        ax.scatter(
-            np.asarray(s.distance),
-            np.maximum(points, 0.8),
-            s=14,
-            c=s.colour,
-            marker=s.marker,
-            alpha=0.75,
-            linewidths=0,
-            label=f"{s.label} ({len(points)})",
+    """:func:`density_plot` written to ``path`` (PNG)."""
+    return _save(density_plot(series, classes, bin_width), path, dpi)
+
+
+def side_view_plot(
+    views: Sequence[ObjectView],
+    elevations_deg: np.ndarray | None = None,
+    mount: Sequence[float] = (0.0, 0.0, 0.0),
+    title: str = "",
+) -> Figure:
+    """Each object in a column, two views of its points, both seen across the line of sight
+    from ``mount`` (the sensor, metres in the LiDAR frame) to its box centre:
+
+    * top, as the sensor saw it: azimuth (degrees, from the box centre's; left is left as seen
+      from the sensor) against elevation (degrees above the horizontal at ``mount``); the beams'
+      ``elevations_deg`` are drawn as faint lines, so points on scan lines lie on them;
+    * bottom, from the side: range along the line of sight (metres) against height above the
+      box's bottom (metres).
+
+    Points are coloured by intensity (column 3) when they have one; the box outline is drawn.
+    """
+    if not views:
+        raise ValueError("side_view_plot needs at least one object")
+    mount = np.asarray(mount, dtype=np.float64).reshape(3)
+    fig = Figure(figsize=(3.8 * len(views), 6.4), layout="constrained")
+    axes = fig.subplots(2, len(views), squeeze=False)
+    shown = None
+    for column, view in enumerate(views):
+        top, side = axes[0, column], axes[1, column]
+        shown = _draw_side_view(top, side, view, mount, elevations_deg) or shown
+    if shown is not None:
+        fig.colorbar(shown, ax=axes[:, -1].tolist(), label="intensity", shrink=0.6)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def _draw_side_view(top, side, view: ObjectView, mount, elevations_deg):
+    """Draws one object's two views; returns the intensity-coloured scatter, if any."""
+    box = np.asarray(view.box, dtype=np.float64).reshape(7)
+    points = np.asarray(view.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] < 3:
+        raise ValueError(
+            f"side_view_plot: {view.title!r} points must be (n, 3+), got {points.shape}"
         )
-    ax.set_yscale("log")
-    ax.set_xlabel("distance from the sensor (m)")
-    ax.set_ylabel("points in the box")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    return _save(fig, path, dpi)
+    # Angles about the line of sight to the box centre, so every object is seen head-on.
+    centre = box[:2] - mount[:2]
+    heading = np.arctan2(centre[1], centre[0])
+    cos, sin = np.cos(heading), np.sin(heading)
+    bottom = box[2] - box[5] / 2
+
+    def project(xyz: np.ndarray) -> tuple[np.ndarray, ...]:
+        dx, dy, dz = (xyz[:, k] - mount[k] for k in range(3))
+        along, across = dx * cos + dy * sin, -dx * sin + dy * cos
+        azimuth = np.degrees(np.arctan2(across, along))
+        elevation = np.degrees(np.arctan2(dz, np.hypot(dx, dy)))
+        return azimuth, elevation, along, xyz[:, 2] - bottom
+
+    corners = box_corners(box[None])[0]
+    c_az, c_el, c_along, _ = project(corners)
+    p_az, p_el, p_along, p_up = project(points[:, :3])
+    colour: dict = {"c": "#303030"}
+    if points.shape[1] > 3:
+        colour = {"c": points[:, 3], "cmap": "viridis", "vmin": 0.0, "vmax": 1.0}
+    scatter = top.scatter(p_az, p_el, s=3, linewidths=0, **colour)
+    side.scatter(p_along, p_up, s=3, linewidths=0, **colour)
+    az_pad = 0.08 * max(np.ptp(c_az), 0.5)
+    el_pad = 0.08 * max(np.ptp(c_el), 0.5)
+    el_lo, el_hi = c_el.min() - el_pad, c_el.max() + el_pad
+    if elevations_deg is not None:
+        beams = np.asarray(elevations_deg, dtype=np.float64).reshape(-1)
+        for elevation in beams[(beams >= el_lo) & (beams <= el_hi)]:
+            top.axhline(elevation, color="#c8c8c8", linewidth=0.5, zorder=0)
+    top.add_patch(
+        Rectangle(
+            (c_az.min(), c_el.min()), np.ptp(c_az), np.ptp(c_el), fill=False, edgecolor="#d62728"
+        )
+    )
+    top.set_xlim(c_az.max() + az_pad, c_az.min() - az_pad)  # azimuth grows to the left
+    top.set_ylim(el_lo, el_hi)
+    top.set_xlabel("azimuth from the box centre (deg)")
+    top.set_ylabel("elevation (deg)")
+    side.add_patch(
+        Rectangle((c_along.min(), 0.0), np.ptp(c_along), box[5], fill=False, edgecolor="#d62728")
+    )
+    side.set_aspect("equal")
+    side.set_xlim(c_along.min() - 0.3, c_along.max() + 0.3)
+    side.set_ylim(-0.3, box[5] + 0.3)
+    side.set_xlabel("range along the line of sight (m)")
+    side.set_ylabel("height above the box bottom (m)")
+    distance = float(np.hypot(*centre))
+    top.set_title(f"{view.title}\n{len(points)} points at {distance:.1f} m", fontsize=9)
+    return scatter if points.shape[1] > 3 else None
+
+
+def side_view_figure(
+    views: Sequence[ObjectView],
+    path: str | os.PathLike,
+    elevations_deg: np.ndarray | None = None,
+    mount: Sequence[float] = (0.0, 0.0, 0.0),
+    title: str = "",
+    dpi: int = 110,
+) -> Path:
+    """:func:`side_view_plot` written to ``path`` (PNG)."""
+    return _save(side_view_plot(views, elevations_deg, mount, title), path, dpi)

@@ -207,7 +207,8 @@ def _inserted_radii(
         if radii.shape == (len(points),):
             radii = radii[inserted]
         return _check_radii(radii, len(inserted))
-    order = inserted[np.argsort(owner[inserted], kind="stable")]
+    by_object = np.argsort(owner[inserted], kind="stable")
+    order = inserted[by_object]
     xyz = np.ascontiguousarray(points[order, :3], dtype=np.float64)
     if not np.isfinite(xyz).all():
         row = int(order[np.flatnonzero(~np.isfinite(xyz).all(axis=1))[0]])
@@ -217,7 +218,7 @@ def _inserted_radii(
     sorted_radii = np.empty(len(order))
     _voxel_radii(xyz, starts, VOXEL, RADIUS_FACTOR, *RADIUS_RANGE, sorted_radii)
     radii = np.empty(len(inserted))
-    radii[np.argsort(np.argsort(owner[inserted], kind="stable"))] = sorted_radii
+    radii[by_object] = sorted_radii
     return radii
 
 
@@ -493,7 +494,7 @@ def _ray_occlusion(
     beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
     step, phase, per_radian = constants[0], constants[1], constants[4]
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
-    cells, m = beams * columns, inserted.shape[0]
+    m = inserted.shape[0]
     # 1. The inserted points: their cells, distances and offsets from the mount.
     own_beam, own_column, own_distance, rel, bad = _point_cells(
         points,
@@ -516,44 +517,39 @@ def _ray_occlusion(
     )
     if bad >= 0:
         return bad
-    element_owner = np.empty(m, np.int64)
-    # per cell: the nearest inserted return, its object, and the nearest of another object
-    nearest = np.full(cells, np.inf)
-    nearest_owner = np.full(cells, -1, np.int64)
-    other = np.full(cells, np.inf)
-    wanted = np.zeros(columns, np.bool_)  # columns holding inserted returns
-    for j in range(m):
-        k = element_owner[j] = owner[inserted[j]]
-        if own_beam[j] < 0:
-            continue
-        cell, distance = own_beam[j] * columns + own_column[j], own_distance[j]
-        wanted[own_column[j]] = True
-        if distance < nearest[cell]:
-            if nearest_owner[cell] != k:
-                other[cell] = nearest[cell]
-            nearest[cell], nearest_owner[cell] = distance, k
-        elif k != nearest_owner[cell] and distance < other[cell]:
-            other[cell] = distance
     # 2. Each element's window of cells: rows 0..B + 1 (above, in and below the beams) of the
-    #    edges' tangents its cone spans, columns from one end of its azimuths to the other;
-    #    the elements of each cell in one array, cell by cell.
+    #    edges' tangents its cone spans, columns from one end of its azimuths to the other.
+    #    Per column: the object whose windows reach it (-2: several, -1: none), whether it
+    #    holds inserted returns; the columns that do either get consecutive slots, so the
+    #    per-cell arrays below cover them only.
+    element_owner = np.empty(m, np.int64)
     window = np.empty((m, 4), np.int64)
-    start = np.zeros((beams + 2) * columns + 1, np.int64)
-    covered = np.zeros(columns, np.bool_)  # columns some window reaches
+    covered = np.full(columns, -1, np.int64)
+    wanted = np.zeros(columns, np.bool_)
+    # per column, the elevation tangents (from any beam origin) an original point needs to
+    # matter: within some element's cone, or in the beam of an inserted return
+    slope_lo = np.full(columns, np.inf)
+    slope_hi = np.full(columns, -np.inf)
     for j in range(m):
+        owner_j = element_owner[j] = owner[inserted[j]]
+        if own_beam[j] >= 0:
+            c = own_column[j]
+            wanted[c] = True
+            slope_lo[c] = min(slope_lo[c], edge_slopes[own_beam[j] + 1])
+            slope_hi[c] = max(slope_hi[c], edge_slopes[own_beam[j]])
         x, y, z = rel[j, 0], rel[j, 1], rel[j, 2]
         half, low, high = _cone(x, y, z, radii[j], per_radian, constants[2], constants[3])
-        rows = np.empty(2, np.int64)
-        for e in range(2):
-            slope = high if e == 0 else low
-            k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
-            if k < 0:
-                rows[e] = beams + 1
-            elif k >= lut_bins:
-                rows[e] = 0
-            else:
-                rows[e] = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope)
-                rows[e] += edge_lut[k, 2] > slope
+        row_lo, row_hi = 0, beams + 1
+        k = _lut_bin(high, lut_start, lut_scale, lut_bins)
+        if k < 0:
+            row_lo = beams + 1
+        elif k < lut_bins:
+            row_lo = int(edge_lut[k, 0]) + (edge_lut[k, 1] > high) + (edge_lut[k, 2] > high)
+        k = _lut_bin(low, lut_start, lut_scale, lut_bins)
+        if k >= lut_bins:
+            row_hi = 0
+        elif k >= 0:
+            row_hi = int(edge_lut[k, 0]) + (edge_lut[k, 1] > low) + (edge_lut[k, 2] > low)
         if half * 2.0 + 3.0 >= columns:
             c0, count = 0, columns
         else:
@@ -561,43 +557,88 @@ def _ray_occlusion(
             s = min((radii[j] * (1.0 + 1e-9) + 1e-12) / horizontal, 1.0)
             co = math.sqrt(1.0 - s * s)
             ux, uy = x / horizontal, y / horizontal
-            ends = np.empty(2, np.int64)
-            for e in range(2):
-                turn = -s if e == 0 else s
-                ex, ey = ux * co - uy * turn, uy * co + ux * turn
-                k = _pseudo_bin(ex, ey, bins)
-                ends[e] = _column_at(
-                    ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
-                )
-            c0, count = ends[0], ends[1] - ends[0] + 1
+            ex, ey = ux * co + uy * s, uy * co - ux * s  # turned clockwise by asin(s)
+            k = _pseudo_bin(ex, ey, bins)
+            c0 = _column_at(
+                ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
+            )
+            ex, ey = ux * co - uy * s, uy * co + ux * s  # counter-clockwise
+            k = _pseudo_bin(ex, ey, bins)
+            end = _column_at(
+                ex, ey, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
+            )
+            count = end - c0 + 1
             if count <= 0:
                 count += columns
-        window[j, 0], window[j, 1], window[j, 2], window[j, 3] = rows[0], rows[1], c0, count
-        for r in range(rows[0], rows[1] + 1):
-            c = c0
-            for _ in range(count):
-                start[r * columns + c + 1] += 1
-                covered[c] = True
+        window[j, 0], window[j, 1], window[j, 2], window[j, 3] = row_lo, row_hi, c0, count
+        c = c0
+        for _ in range(count):
+            covered[c] = owner_j if covered[c] == -1 or covered[c] == owner_j else -2
+            slope_lo[c], slope_hi[c] = min(slope_lo[c], low), max(slope_hi[c], high)
+            c = c + 1 if c + 1 < columns else 0
+    # the rows any window or own cell reaches: the per-cell arrays cover those only
+    top, bottom = beams + 1, 0
+    for j in range(m):
+        top, bottom = min(top, window[j, 0]), max(bottom, window[j, 1])
+        if own_beam[j] >= 0:
+            top, bottom = min(top, own_beam[j] + 1), max(bottom, own_beam[j] + 1)
+    rows = max(bottom - top + 1, 0)
+    slot = np.full(columns, -1, np.int64)
+    used = 0
+    for c in range(columns):
+        if covered[c] != -1 or wanted[c]:
+            slot[c] = used
+            used += 1
+    # 3. Per cell of the used columns: the nearest inserted return, its object, and the
+    #    nearest of another object; the elements of each cell in one array, cell by cell.
+    nearest = np.full(rows * used, np.inf)
+    nearest_owner = np.full(rows * used, -1, np.int64)
+    other = np.full(rows * used, np.inf)
+    for j in range(m):
+        if own_beam[j] < 0:
+            continue
+        cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
+        distance, k = own_distance[j], element_owner[j]
+        if distance < nearest[cell]:
+            if nearest_owner[cell] != k:
+                other[cell] = nearest[cell]
+            nearest[cell], nearest_owner[cell] = distance, k
+        elif k != nearest_owner[cell] and distance < other[cell]:
+            other[cell] = distance
+    start = np.zeros(rows * used + 1, np.int64)
+    for j in range(m):
+        for r in range(window[j, 0] - top, window[j, 1] + 1 - top):
+            c = window[j, 2]
+            for _ in range(window[j, 3]):
+                start[r * used + slot[c] + 1] += 1
                 c = c + 1 if c + 1 < columns else 0
     for b in range(1, start.shape[0]):
         start[b] += start[b - 1]
-    entries = np.empty(start[-1], np.int64)
+    entries = np.empty(start[-1], np.int32)
     fill = start[:-1].copy()
     for j in range(m):
-        for r in range(window[j, 0], window[j, 1] + 1):
+        for r in range(window[j, 0] - top, window[j, 1] + 1 - top):
             c = window[j, 2]
             for _ in range(window[j, 3]):
-                entries[fill[r * columns + c]] = j
-                fill[r * columns + c] += 1
+                cell = r * used + slot[c]
+                entries[fill[cell]] = j
+                fill[cell] += 1
                 c = c + 1 if c + 1 < columns else 0
-    # 3. The original points: most set aside by their azimuth's pseudo-angle bin alone; the
-    #    others give their cell's frame distance and are tested against the elements.
-    relevant = np.empty(bins, np.bool_)
+    # 4. The original points: most set aside by their azimuth's pseudo-angle bin and their
+    #    elevation's tangent alone; the others give their cell's frame distance and are
+    #    tested against the elements.
+    bin_lo = np.full(bins, np.inf)  # the tangents that matter per pseudo-angle bin
+    bin_hi = np.full(bins, -np.inf)
     for k in range(bins):
         c = first[k]
         after = c + 1 if c + 1 < columns else 0
-        relevant[k] = crosses[k] < 0 or wanted[c] or covered[c]
-        relevant[k] |= crosses[k] > 0 and (wanted[after] or covered[after])
+        if crosses[k] < 0:
+            bin_lo[k], bin_hi[k] = -np.inf, np.inf
+        elif slot[c] >= 0 or (crosses[k] > 0 and slot[after] >= 0):
+            bin_lo[k], bin_hi[k] = slope_lo[c], slope_hi[c]
+            if crosses[k] > 0:
+                bin_lo[k] = min(bin_lo[k], slope_lo[after])
+                bin_hi[k] = max(bin_hi[k], slope_hi[after])
     candidates = np.empty(points.shape[0], np.int64)
     found = 0
     for i in range(points.shape[0]):
@@ -605,9 +646,20 @@ def _ray_occlusion(
             continue
         x = np.float64(points[i, 0]) - mount[0]
         y = np.float64(points[i, 1]) - mount[1]
-        if not (np.isfinite(x + y) and np.isfinite(points[i, 2])):
+        z = np.float64(points[i, 2]) - mount[2]
+        if not np.isfinite(x + y + z):
             return i
-        if (x != 0.0 or y != 0.0) and relevant[_pseudo_bin(x, y, bins)]:
+        if x == 0.0 and y == 0.0:
+            continue
+        k = _pseudo_bin(x, y, bins)
+        if not bin_lo[k] <= bin_hi[k]:
+            continue
+        # its tangent from some beam origin, (z - offset) / horizontal, within the bin's
+        horizontal = math.sqrt(x * x + y * y)
+        if (
+            z - constants[2] >= bin_lo[k] * horizontal
+            and z - constants[3] <= bin_hi[k] * horizontal
+        ):
             candidates[found] = i
             found += 1
     candidates = candidates[:found]
@@ -630,56 +682,31 @@ def _ray_occlusion(
         bound_sin,
         constants,
     )
-    frame = np.full(cells, np.inf)
+    frame = np.full(rows * used, np.inf)
     for q in range(found):
-        if beam[q] >= 0 and wanted[column[q]]:
-            cell = beam[q] * columns + column[q]
+        if beam[q] >= 0 and wanted[column[q]] and top <= beam[q] + 1 <= bottom:
+            cell = (beam[q] + 1 - top) * used + slot[column[q]]
             frame[cell] = min(frame[cell], distance[q])
     hidden = _behind_elements(
-        near,
-        beam,
-        column,
-        distance,
-        np.full(found, -1, np.int64),
-        covered,
-        offsets,
-        rel,
-        radii,
-        element_owner,
-        entries,
-        start,
-        tolerance,
-        edge_lut,
-        constants,
-    )
+        near, beam, column, distance, np.full(found, -1, np.int64), covered, slot, used, top,
+        bottom, offsets, rel, radii, element_owner, entries, start, tolerance, edge_lut, constants,
+    )  # fmt: skip
     for q in range(found):
         removed[candidates[q]] = hidden[q]
-    # 4. The inserted returns: behind the frame or another object in their cell, or behind
+    # 5. The inserted returns: behind the frame or another object in their cell, or behind
     #    another object's elements along their ray.
     for j in range(m):
         if own_beam[j] < 0:
             continue
-        cell, distance_j = own_beam[j] * columns + own_column[j], own_distance[j]
+        cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
+        distance_j = own_distance[j]
         rival = other[cell] if nearest_owner[cell] == element_owner[j] else nearest[cell]
         if frame[cell] < distance_j - tolerance or rival < distance_j - tolerance:
             removed[inserted[j]] = True
     hidden = _behind_elements(
-        rel,
-        own_beam,
-        own_column,
-        own_distance,
-        element_owner,
-        covered,
-        offsets,
-        rel,
-        radii,
-        element_owner,
-        entries,
-        start,
-        tolerance,
-        edge_lut,
-        constants,
-    )
+        rel, own_beam, own_column, own_distance, element_owner, covered, slot, used, top,
+        bottom, offsets, rel, radii, element_owner, entries, start, tolerance, edge_lut, constants,
+    )  # fmt: skip
     for j in range(m):
         removed[inserted[j]] |= hidden[j]
     return -1
@@ -693,6 +720,10 @@ def _behind_elements(
     distance,
     skip,
     covered,
+    slot,
+    used,
+    top,
+    bottom,
     offsets,
     rel,
     radii,
@@ -704,18 +735,19 @@ def _behind_elements(
     constants,
 ):  # pragma: no cover - numba
     # Per query point q (offset from the mount, beam, column, distance from its beam's
-    # origin): whether an element not of object skip[q] lies within its radius of the ray
-    # from that origin (the mount outside every beam) through the point, more than
-    # `tolerance` nearer along it. The elements looked at are those of the cell of the ray's
-    # direction (its row among the beam edges, seen from that origin).
-    columns = covered.shape[0]
+    # origin; covered: the object whose elements reach each column, -2 several, -1 none;
+    # slot: each column's place among the `used` ones; elements in rows top..bottom only):
+    # whether an element not of object skip[q] lies within its radius of the ray from that
+    # origin (the mount outside every beam) through the point, more than `tolerance` nearer
+    # along it. The elements looked at are those of the cell of the ray's direction (its row
+    # among the beam edges, seen from that origin).
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
     beams = offsets.shape[0]
     hidden = np.zeros(queries.shape[0], np.bool_)
     for q in range(queries.shape[0]):
         c = column[q]
-        if c < 0 or not covered[c]:
-            continue
+        if c < 0 or covered[c] == -1 or covered[c] == skip[q]:
+            continue  # no element, or only the query's own object's
         lift = offsets[beam[q]] if beam[q] >= 0 else 0.0
         x, y, dz = queries[q, 0], queries[q, 1], queries[q, 2] - lift
         slope = dz / math.sqrt(x * x + y * y)
@@ -726,7 +758,9 @@ def _behind_elements(
             row = 0
         else:
             row = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
-        cell = row * columns + c
+        if row < top or row > bottom:
+            continue  # no element reaches this row
+        cell = (row - top) * used + slot[c]
         limit = distance[q] - tolerance
         inverse = 1.0 / distance[q]
         ux, uy, uz = x * inverse, y * inverse, dz * inverse

@@ -35,6 +35,8 @@ from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows
 
 __all__ = ["SensorFrame", "added_boxes", "render", "sensor_occlusion"]
 
+_ADDED_MARGIN = 0.2  # metres around an added box whose points count as the added object's
+
 
 def added_boxes(frame: Frame) -> np.ndarray:
     """``bool (M,)``: the frame's boxes that an earlier stage added (``box_source`` not ``""``)."""
@@ -69,7 +71,8 @@ class SensorFrame:
         boxes = self.frame.boxes[self.added]
         if len(boxes) == 0:
             return np.full(len(self.frame), -1, dtype=np.int64)
-        return BoxQuery(self.frame.points).owners(boxes)
+        # (grown: a sampled object brings points up to a few cm outside its box)
+        return BoxQuery(self.frame.points).owners(boxes, margin=_ADDED_MARGIN)
 
     @cached_property
     def own_points(self) -> np.ndarray:
@@ -115,10 +118,47 @@ class SensorFrame:
         return RangeImage.build(self.frame.points, self.sensor)
 
     def hidden(self, boxes: np.ndarray, placed: np.ndarray, min_rays: int) -> np.ndarray:
-        """``bool (B,)``: placed ``boxes`` that fewer than ``min_rays`` rays would reach in
-        front of the frame's returns and of the boxes ``placed`` before."""
-        rays = self.range_image.visible_rays(boxes, occluders=placed if len(placed) else None)
-        return rays < min_rays
+        """``bool (B,)``: the round's ``boxes`` to reject, first come first served: a box that
+        fewer than ``min_rays`` rays would reach (in front of the frame's returns and of the
+        boxes accepted before it, ``placed`` and this round's), or that would leave one of
+        those with fewer (objects in a row along a street would hide each other)."""
+        image = self.range_image
+        hidden = np.zeros(len(boxes), dtype=bool)
+        accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
+        spans = _azimuth_spans(accepted)
+        for i in range(len(boxes)):
+            box = boxes[i : i + 1]
+            if image.visible_rays(box, occluders=accepted if len(accepted) else None)[0] < min_rays:
+                hidden[i] = True
+                continue
+            span = _azimuth_spans(box)
+            behind = np.flatnonzero(_overlapping(spans, span[0]))
+            if len(behind):
+                occluders = np.concatenate([accepted, box])
+                if (image.visible_rays(accepted[behind], occluders=occluders) < min_rays).any():
+                    hidden[i] = True
+                    continue
+            accepted = np.concatenate([accepted, box])
+            spans = np.concatenate([spans, span])
+        return hidden
+
+
+def _azimuth_spans(boxes: np.ndarray) -> np.ndarray:
+    """``float64 (B, 2)``: each box's azimuth interval seen from the origin (centre azimuth
+    +- the half angle its bounding circle covers; the whole circle when it holds the origin)."""
+    centre = np.arctan2(boxes[:, 1], boxes[:, 0])
+    reach = np.hypot(boxes[:, 3], boxes[:, 4]) / 2.0
+    distance = np.hypot(boxes[:, 0], boxes[:, 1])
+    half = np.where(
+        distance > reach, np.arcsin(np.minimum(reach / np.maximum(distance, 1e-9), 1.0)), np.pi
+    )
+    return np.column_stack([centre, half])
+
+
+def _overlapping(spans: np.ndarray, span: np.ndarray) -> np.ndarray:
+    """``bool (B,)``: ``spans`` (centre, half angle) that overlap ``span``."""
+    gap = np.abs((spans[:, 0] - span[0] + np.pi) % (2.0 * np.pi) - np.pi)
+    return gap <= spans[:, 1] + span[1]
 
 
 def render(points: np.ndarray, sensor: Sensor, seed: int) -> np.ndarray:

@@ -1,0 +1,155 @@
+"""The ``realistic`` preset end to end (DR.CPO's sensor-true steps, issue 14) and the ``paper``
+preset's promise: today's behaviour, bit for bit.
+
+Figures against the synthetic world's ray-cast truth are the business of
+``benchmarks/bench_realism.py``; these tests check the invariants each step must keep on every
+frame, each of which fails without the step.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_pipeline import synthetic_world  # noqa: F401  (a fixture)
+
+from drcpo.config import load_config, to_dict
+from drcpo.frame import Frame
+from drcpo.geometry import points_in_boxes
+from drcpo.pipeline import build_pipeline
+from drcpo.sensor import estimate_sensor
+from drcpo.transforms import DRCPO
+from drcpo.transforms.insertion import BOX_SOURCE
+
+SEEDS = (0, 1)
+
+
+def _realistic(db, index, **changes):
+    config = to_dict(load_config("realistic").drcpo)
+    for key, value in changes.items():
+        section, name = key.split(".")
+        config[section][name] = value
+    return DRCPO(db, index, config, workers=1)
+
+
+@pytest.fixture(scope="module")
+def realistic_runs(synthetic_world):  # noqa: F811
+    db, index, frames = synthetic_world
+    pipeline = build_pipeline("realistic", db, index=index, kind="drcpo")
+    stages = pipeline.transforms
+    runs = []
+    for i, frame in enumerate(frames):
+        for seed in SEEDS:
+            rng = np.random.default_rng([seed, i])
+            sampled = stages[0](frame, rng)  # ground-truth sampling
+            out = stages[1](sampled, rng)  # DR.CPO
+            runs.append((frame, sampled, out))
+    return runs
+
+
+def test_paper_preset_is_todays_default(synthetic_world):  # noqa: F811
+    db, index, frames = synthetic_world
+    assert to_dict(load_config("paper")) == to_dict(load_config(None))
+    paper = build_pipeline("paper", db, index=index)
+    default = build_pipeline("default", db, index=index)
+    for seed in SEEDS:
+        a = paper(frames[0], np.random.default_rng(seed))
+        b = default(frames[0], np.random.default_rng(seed))
+        assert np.array_equal(a.points, b.points) and np.array_equal(a.boxes, b.boxes)
+
+
+def _drcpo_boxes(out: Frame) -> np.ndarray:
+    return np.asarray(out.metadata[BOX_SOURCE]) == "drcpo"
+
+
+def test_inserted_points_lie_on_the_frames_scan_lines(realistic_runs):
+    on_beam, total = 0, 0
+    for frame, _, out in realistic_runs:
+        sensor = estimate_sensor(frame.points)
+        inside = points_in_boxes(out.points, out.boxes[_drcpo_boxes(out)]).any(axis=1)
+        beam, _, _ = sensor.cells(out.points[inside])
+        xyz = out.points[inside, :3].astype(np.float64)
+        valid = beam >= 0
+        elevation = np.arctan2(
+            xyz[valid, 2] - sensor.offsets[beam[valid]], np.hypot(xyz[valid, 0], xyz[valid, 1])
+        )
+        miss = np.abs(elevation - sensor.elevations[beam[valid]])
+        on_beam += int((miss < math.radians(0.1)).sum())
+        total += int(inside.sum())
+    assert total > 500
+    assert on_beam / total >= 0.98
+
+
+def _crosses(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """``bool (N,)``: the segment from the origin to each point passes through one of
+    ``boxes`` before reaching it (sampled every 5 cm: a naive reference)."""
+    out = np.zeros(len(points), dtype=bool)
+    if len(boxes) == 0:
+        return out
+    for k, p in enumerate(points[:, :3].astype(np.float64)):
+        length = float(np.linalg.norm(p))
+        t = np.arange(0.5, max(length - 0.15, 0.5), 0.05) / length
+        out[k] = points_in_boxes(t[:, None] * p[None, :], boxes, margin=0.1).any()
+    return out
+
+
+def test_original_points_go_only_behind_inserted_objects(realistic_runs):
+    """Every original point removed has an inserted box (DR.CPO's or ground-truth
+    sampling's) on its ray in front of it: nothing visible is deleted."""
+    removed_total = 0
+    for _, sampled, out in realistic_runs:
+        added = np.asarray(sampled.metadata[BOX_SOURCE]) != ""
+        own = ~points_in_boxes(sampled.points, sampled.boxes[added], margin=0.2).any(axis=1)
+        kept = {row.tobytes() for row in np.ascontiguousarray(out.points)}
+        originals = sampled.points[own]
+        removed = np.array([row.tobytes() not in kept for row in originals])
+        removed_total += int(removed.sum())
+        inserted = out.boxes[np.asarray(out.metadata[BOX_SOURCE]) != ""]
+        assert _crosses(originals[removed], inserted).all()
+    assert removed_total > 0
+
+
+def test_each_added_object_is_seen_and_stands_on_observed_ground(realistic_runs):
+    for _, _, out in realistic_runs:
+        stats = out.metadata["augment_stats"]
+        added = sum(c["added"] for c in stats["objects"]["drcpo"].values())
+        boxes = out.boxes[_drcpo_boxes(out)]
+        assert len(boxes) == added > 0
+        counts = points_in_boxes(out.points, boxes).sum(axis=0)
+        assert (counts >= load_config("realistic").drcpo.min_points_after).all()
+        assert stats["sensor"]["model"] == "auto" and stats["sensor"]["fallback"] == ""
+
+
+def test_hidden_ground_truth_sampled_objects_are_dropped(synthetic_world):  # noqa: F811
+    """An object that ground-truth sampling put behind a wall the sensor saw is occluded
+    like DR.CPO's: it loses its points and its label (the paper's e-HPR would keep it)."""
+    db, index, frames = synthetic_world
+    frame = frames[0]
+    # a wall of returns 10 m ahead, and an "added" car 20 m ahead right behind it
+    ys, zs = np.meshgrid(np.linspace(-3, 3, 60), np.linspace(-1.5, 1.0, 25))
+    wall = np.column_stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel(), np.zeros(ys.size)])
+    car_box = np.array([20.0, 0.0, -0.95, 4.0, 1.8, 1.5, 0.0])
+    xs, ys2 = np.meshgrid(np.linspace(18.0, 22.0, 30), np.linspace(-0.9, 0.9, 12))
+    car = np.column_stack([xs.ravel(), ys2.ravel(), np.full(xs.size, -0.3), np.zeros(xs.size)])
+    points = np.concatenate([frame.points, wall, car]).astype(np.float32)
+    sources = np.concatenate([np.full(len(frame.boxes), ""), ["gt_sampling"]]).astype("<U11")
+    made = Frame(
+        points,
+        np.concatenate([frame.boxes, car_box[None]]),
+        np.concatenate([frame.names, ["Car"]]),
+        {**frame.metadata, BOX_SOURCE: sources},
+    )
+    out = _realistic(db, index)(made, np.random.default_rng(0))
+    assert not np.any(np.all(np.isclose(out.boxes, car_box), axis=1))
+    assert points_in_boxes(out.points, car_box[None]).sum() == 0
+
+
+def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811
+    db, index, frames = synthetic_world
+    one = _realistic(db, index)
+    two = DRCPO(db, index, one.config, workers=2)
+    for seed in SEEDS:
+        a = one(frames[1], np.random.default_rng(seed))
+        b = two(frames[1], np.random.default_rng(seed))
+        assert np.array_equal(a.points, b.points) and np.array_equal(a.boxes, b.boxes)
