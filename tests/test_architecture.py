@@ -38,6 +38,7 @@ LAYERS: dict[str, int] = {
     "drcpo.index": 4,
     "drcpo.similarity": 4,
     "drcpo.placement": 4,
+    "drcpo.poses": 4,
     "drcpo.config": 5,
     "drcpo.transforms": 6,
     "drcpo.pipeline": 7,

@@ -22,13 +22,13 @@ from drcpo.placement import (
     REASONS,
     PlacementConfig,
     PlacementRounds,
-    _in_fov,
     _Obstacles,
     bev_collisions,
     frame_ground,
     place_objects,
     sample_poses,
 )
+from drcpo.poses import draw_poses, in_fov, observed_cells
 
 AREA = PlacementConfig()
 SIZES = np.array([[3.9, 1.6, 1.5], [0.8, 0.6, 1.7], [1.8, 0.6, 1.7]])
@@ -456,7 +456,7 @@ def test_field_of_view_test_matches_the_corner_azimuths(rng):
     corners = bev_corners(np.nan_to_num(boxes))
     expected = (np.abs(np.arctan2(corners[..., 1], corners[..., 0])) <= half).all(axis=1)
     expected &= np.isfinite(boxes[:, 0])
-    np.testing.assert_array_equal(_in_fov(boxes, half), expected)
+    np.testing.assert_array_equal(in_fov(boxes, half), expected)
 
 
 def numpy_cells(offsets):
@@ -821,3 +821,204 @@ def test_observed_placement_on_real_kitti_frames(kitti_sample):
             assert abs(gap) < 0.15, (frame.frame_id, j, gap)
     # Ground returns under a box are no obstacle: boxes holding some are placed.
     assert touching >= 30 and placed >= 80
+
+
+# --------------------------------------------------------------------------------------------
+# height "observed": centres drawn where the frame observed ground (drcpo.poses)
+# --------------------------------------------------------------------------------------------
+def toy_ground(rng, shape=(30, 20), share=0.3, origin=(0.0, -10.0), size=1.0):
+    """A grid ground whose ground cells are a random ``share`` of its cells."""
+    cells = rng.uniform(0, 1, shape) < share
+    heights = np.full(shape, -1.7)
+    return GroundModel(
+        np.array([0.0, 0.0, -1.7]), np.asarray(origin), size, heights, cells, "points"
+    )
+
+
+def reference_cells(ground, x_range, y_range, half_angle=None):
+    """Lower corners of the ground cells whose centre lies in the area (and view), by loops."""
+    found = []
+    nx, ny = ground.ground_cells.shape
+    for i in range(nx):
+        for j in range(ny):
+            cx = ground.origin[0] + (i + 0.5) * ground.cell_size
+            cy = ground.origin[1] + (j + 0.5) * ground.cell_size
+            inside = x_range[0] <= cx <= x_range[1] and y_range[0] <= cy <= y_range[1]
+            if half_angle is not None:
+                inside = inside and abs(math.atan2(cy, cx)) <= half_angle
+            if inside and ground.ground_cells[i, j]:
+                found.append((cx - ground.cell_size / 2, cy - ground.cell_size / 2))
+    return np.array(found).reshape(-1, 2)
+
+
+def cell_of(ground, xy):
+    """``(i, j)`` of the grid cell holding each position (naive floor)."""
+    return [
+        (math.floor((x - ground.origin[0]) / ground.cell_size),
+         math.floor((y - ground.origin[1]) / ground.cell_size))
+        for x, y in xy
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize("half_angle", [None, 0.5])
+def test_observed_cells_are_the_ground_cells_in_the_area(rng, half_angle):
+    ground = toy_ground(rng, origin=(2.0, -10.0))
+    x_range, y_range = (5.0, 25.0), (-6.5, 8.0)
+    cells = observed_cells(ground, x_range, y_range, half_angle)
+    expected = reference_cells(ground, x_range, y_range, half_angle)
+    assert 10 < len(expected) < ground.ground_cells.sum()
+    np.testing.assert_array_equal(cells.corners, expected)
+    assert cells.size == ground.cell_size
+    # No grid (a plane or the flat fallback): nowhere observed.
+    assert len(observed_cells(GroundModel.flat(), x_range, y_range).corners) == 0
+
+
+def test_observed_cells_bridge_scan_rings_as_observed_height_at_does():
+    # Two rings on the ground, 4 m apart at 14 m: the cells between them are observed with a
+    # gap of 0.3 of the range, not with 0.
+    shape = (30, 20)
+    ground_cells = np.zeros(shape, dtype=bool)
+    ground_cells[[12, 16], :] = True
+    ground = GroundModel(
+        np.array([0.0, 0.0, -1.7]), np.array([0.0, -10.0]), 1.0, np.full(shape, -1.7),
+        ground_cells, "points",
+    )  # fmt: skip
+    area = ((0.0, 30.0), (-10.0, 10.0))
+    strict = observed_cells(ground, *area)
+    np.testing.assert_array_equal(strict.corners, reference_cells(ground, *area))
+    bridged = observed_cells(ground, *area, max_gap=0.3)
+    centres = np.array([[x + 0.5, y + 0.5] for x in range(30) for y in range(-10, 10)])
+    expected = centres[[ground.observed_height_at(c[None], 0.3)[1][0] for c in centres]] - 0.5
+    np.testing.assert_array_equal(bridged.corners, expected)
+    between = (bridged.corners[:, 0] > 12) & (bridged.corners[:, 0] < 16)
+    assert between.sum() >= 20 and len(bridged.corners) > len(strict.corners)
+
+
+def test_centres_lie_on_observed_ground_cells_inside_the_area_and_view(rng):
+    ground = toy_ground(rng, shape=(60, 60), origin=(0.0, -30.0))
+    x_range, y_range, half = (0.0, 60.0), (-30.0, 30.0), 0.6
+    cells = observed_cells(ground, x_range, y_range, half)
+    boxes = draw_poses(sizes(3000), rng, x_range, y_range, half, cells)
+    drawn = np.isfinite(boxes[:, 0])
+    assert drawn.mean() > 0.95
+    for i, j in cell_of(ground, boxes[drawn, :2]):
+        assert ground.ground_cells[i, j]
+    corners = bev_corners(boxes[drawn])
+    assert (corners[..., 0] >= x_range[0]).all() and (corners[..., 0] <= x_range[1]).all()
+    assert (corners[..., 1] >= y_range[0]).all() and (corners[..., 1] <= y_range[1]).all()
+    assert in_fov(boxes[drawn], half).all()
+    # A footprint too large for the area cannot fit anywhere.
+    huge = draw_poses(np.array([[100.0, 100.0, 1.0]]), rng, x_range, y_range, None, cells)
+    assert np.isnan(huge[0, :2]).all()
+
+
+def test_centres_are_uniform_over_the_observed_cells(rng):
+    from scipy import stats
+
+    ground = toy_ground(rng, shape=(12, 10), share=0.35, origin=(0.0, -5.0))
+    cells = observed_cells(ground, (0.0, 12.0), (-5.0, 5.0))
+    count = 40000
+    tiny = np.full((count, 3), 0.01)
+    boxes = draw_poses(tiny, np.random.default_rng(7), (0.0, 12.0), (-5.0, 5.0), None, cells)
+    index = {tuple(c): k for k, c in enumerate(cell_of(ground, cells.corners + 0.5))}
+    per_cell = np.zeros(len(cells.corners))
+    inside_x, inside_y = [], []
+    for (x, y), key in zip(boxes[:, :2], cell_of(ground, boxes[:, :2]), strict=True):
+        per_cell[index[key]] += 1  # a KeyError: a centre off the observed cells
+        inside_x.append(x - math.floor(x))
+        inside_y.append(y - math.floor(y))
+    assert stats.chisquare(per_cell).pvalue > 1e-3
+    # Inside a cell, uniform too (the edge cells lose only the 0.005 m the box's half needs).
+    for share in (inside_x, inside_y):
+        assert stats.chisquare(np.histogram(share, bins=10, range=(0, 1))[0]).pvalue > 1e-3
+    # The whole-area draw (the other modes') lands on ground cells by their share only.
+    whole = draw_poses(tiny[:2000], np.random.default_rng(7), (0.0, 12.0), (-5.0, 5.0))
+    hits = [ground.ground_cells[i, j] for i, j in cell_of(ground, whole[:, :2])]
+    share = ground.ground_cells.mean()
+    assert abs(np.mean(hits) - share) < 4 * math.sqrt(share * (1 - share) / 2000) < 0.05
+
+
+def test_observed_placement_draws_on_observed_ground_only(rng, monkeypatch):
+    # A street: ground only on a 12 m wide strip, buildings on either side.
+    ground_xyz = ground_cloud(rng, n=60000)
+    street = np.abs(ground_xyz[:, 1]) < 6
+    houses = [wall(rng, 0, 70, 8, 40), wall(rng, 0, 70, -40, -8)]
+    frame = Frame(np.concatenate([ground_xyz[street], *houses]).astype(np.float32))
+    ground = GroundModel.from_points(frame.points)
+    config = PlacementConfig(attempts=20, ground_gap=0.0, **OBSERVED)
+    drawn = []
+    draw = placement.draw_poses
+
+    def spy(*args):
+        drawn.append(draw(*args))
+        return drawn[-1]
+
+    monkeypatch.setattr(placement, "draw_poses", spy)
+    result = place_objects(frame, sizes(30), None, np.random.default_rng(3), config, ground)
+    centres = np.concatenate(drawn)[:, :2]
+    centres = centres[np.isfinite(centres[:, 0])]
+    assert len(centres) == result.attempts - result.rejected["out_of_range"]
+    assert ground.observed_height_at(centres)[1].all()
+    # Drawn over the whole area instead (no cells), most poses miss the street.
+    monkeypatch.setattr(placement, "observed_cells", lambda *args: None)
+    whole = place_objects(frame, sizes(30), None, np.random.default_rng(3), config, ground)
+    assert whole.rejected["no_ground"] > 2 * result.rejected["no_ground"]
+    assert whole.attempts / max(len(whole.accepted), 1) > 2 * result.attempts / len(result.accepted)
+    assert len(result.accepted) >= len(whole.accepted)
+
+
+def test_observed_placement_without_observed_ground_rejects_no_ground(rng):
+    frame = scene(rng)
+    config = PlacementConfig(attempts=3, **OBSERVED)
+    result = place_objects(frame, sizes(6), None, rng, config, GroundModel.flat())
+    assert result.rejected["no_ground"] == 18 and set(result.reasons) == {"no_ground"}
+
+
+def test_observed_placement_is_deterministic_and_seeded(rng):
+    frame = scene(rng, existing_boxes(), [wall(rng, 20, 40, 5, 30)])
+    ground = GroundModel.from_points(frame.points)
+    config = PlacementConfig(attempts=5, fov_only=True, clearance=0.3, **OBSERVED)
+    runs = [
+        place_objects(frame, sizes(24), None, np.random.default_rng(s), config, ground)
+        for s in (5, 5, 6)
+    ]
+    np.testing.assert_array_equal(runs[0].boxes, runs[1].boxes)
+    assert runs[0].rejected == runs[1].rejected
+    assert not np.array_equal(runs[0].boxes, runs[2].boxes)
+    assert in_fov(runs[0].boxes, config.fov_half_angle).all()
+
+
+def reference_area_draw(dims, seed, x_range, y_range):
+    """Today's whole-area draw, step by step: headings, then (u, v) per box (no view)."""
+    rng = np.random.default_rng(seed)
+    heading = rng.uniform(-np.pi, np.pi, len(dims))
+    u = rng.uniform(0.0, 1.0, (len(dims), 2))
+    out = np.empty((len(dims), 7))
+    for k, (dx, dy, dz) in enumerate(dims):
+        c, s = abs(np.cos(heading[k])), abs(np.sin(heading[k]))
+        reach_x, reach_y = (c * dx + s * dy) / 2.0, (s * dx + c * dy) / 2.0
+        low_x, high_x = x_range[0] + reach_x, x_range[1] - reach_x
+        low_y, high_y = y_range[0] + reach_y, y_range[1] - reach_y
+        x = low_x + u[k, 0] * (high_x - low_x)
+        y = low_y + u[k, 1] * (high_y - low_y)
+        out[k] = [x, y, dz / 2.0, dx, dy, dz, heading[k]]
+    return out
+
+
+@pytest.mark.parametrize("height", ["ground", "source"])
+def test_other_height_modes_keep_the_whole_area_draw(rng, height):
+    dims = sizes(50)
+    expected = reference_area_draw(dims, 9, AREA.x_range, AREA.y_range)
+    np.testing.assert_array_equal(sample_poses(dims, np.random.default_rng(9)), expected)
+    # PlacementRounds draws its first round so in these modes (the frame has room for all).
+    config = PlacementConfig(height=height)
+    frame = Frame(ground_cloud(rng, n=2000).astype(np.float32))
+    source = np.column_stack([np.zeros((len(dims), 2)), np.full(len(dims), -0.9), dims])
+    source = np.column_stack([source, np.zeros(len(dims))])
+    rounds = PlacementRounds(frame, dims, source, np.random.default_rng(9), config)
+    assert rounds._cells is None
+    drawn = rounds.next_round()
+    tried = rounds._open[1]
+    np.testing.assert_array_equal(tried[:, :2], expected[:, :2])
+    assert len(drawn.boxes) > 0
+    assert PlacementConfig().height == "ground"

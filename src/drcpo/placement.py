@@ -3,25 +3,30 @@
 A pose is a heading uniform in ``[-pi, pi)`` and a position uniform over the placement area such
 that the whole BEV footprint lies inside it (with ``fov_only``, also inside the camera's field of
 view: every footprint corner at an azimuth ``|atan2(y, x)| <= fov_half_angle``; KITTI's camera 2
-sees about 41 degrees to each side). The box bottom is put on the ground estimated from the
-frame's own points (``height="ground"``), or the box keeps its source height (``"source"``, the
-reference implementation), or it stands on the ground the frame observed under its footprint
-(``"observed"``): the footprint's four corners and centre (with the clearance) must lie on
-ground cells or between two scan rings on their sensor ray (``ground_gap``; see
-:meth:`drcpo.ground.GroundModel.observed_height_at`: no height borrowed from cells metres away,
-no plane); the bottom goes to the median of the five heights: on a plane it is the centre's
-height (the corners pair around it), and unlike the mean it ignores one corner on a kerb.
+sees about 41 degrees to each side); with ``height="observed"``, uniform over the area where the
+frame observed ground (the ground cells, and those bridged between scan rings, whose centre lies
+in the area and field of view; :mod:`drcpo.poses` draws the poses). The box bottom is put on
+the ground estimated from the frame's own points (``height="ground"``), or the box keeps its
+source height (``"source"``, the reference implementation), or it stands on the ground the
+frame observed under its footprint (``"observed"``): the footprint's four corners and centre
+(with the clearance) must lie on ground cells or between two scan rings on their sensor ray
+(``ground_gap``; see :meth:`drcpo.ground.GroundModel.observed_height_at`: no height borrowed
+from cells metres away, no plane); the bottom goes to the median of the five heights: on a
+plane it is the centre's height (the corners pair around it), and unlike the mean it ignores
+one corner on a kerb.
 
 A placement is rejected, for one reason counted per attempt, when
 
-* ``"out_of_range"``: the footprint cannot fit in the area (or field of view);
+* ``"out_of_range"``: the footprint cannot fit in the area (or field of view; with
+  ``"observed"``, none of the positions drawn on observed ground fits);
 * ``"collision"``: its BEV box overlaps (area > 0) an existing box of the frame, a box placed
   earlier in this call, or an earlier box of the same batch (first come, first placed);
 * ``"obstacle"``: its box holds more than ``max_non_ground_points`` frame points that are more
   than ``ground_tolerance`` above the ground (walls, trees, unlabelled objects); with
   ``"observed"``, above the observed ground at the point (above the box bottom where the point's
   cell saw no ground), so that ground returns under the box are never obstacles;
-* ``"no_ground"`` (``"observed"`` only): a sampled footprint point has no observed ground;
+* ``"no_ground"`` (``"observed"`` only): a sampled footprint point has no observed ground (or
+  the frame observed none in the area and field of view);
 * ``"slope"`` (``"observed"`` only): the five heights spread (max - min) by more than
   ``max_slope`` times the footprint's diagonal;
 * ``"occluded"``: the caller rejects it after the checks above (:class:`PlacementRounds` hands
@@ -55,6 +60,7 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members, heading_terms, in_box
 from drcpo.ground import GroundModel
+from drcpo.poses import CentreCells, check_dims, draw_poses, observed_cells
 
 __all__ = [
     "CAMERA_FOV_MODES",
@@ -77,7 +83,6 @@ HEIGHT_MODES = ("ground", "source", "observed")
 CAMERA_FOV_MODES = ("auto", "always", "never")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
-_FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,7 +93,8 @@ class PlacementConfig(Checked):
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
         height: ``"ground"`` (bottom on the estimated ground), ``"source"`` or ``"observed"``
-            (bottom on the ground the frame observed under the footprint, see the module).
+            (bottom on the ground the frame observed under the footprint, the centre drawn
+            where the frame observed ground; see the module).
         max_non_ground_points: most non-ground frame points a placed box may hold.
         ground_tolerance: points more than this (metres) above the ground are non-ground.
         attempts: poses tried per object.
@@ -239,31 +245,22 @@ class PlacementResult:
 
 
 def sample_poses(
-    dims: np.ndarray, rng: np.random.Generator, config: PlacementConfig | None = None
+    dims: np.ndarray,
+    rng: np.random.Generator,
+    config: PlacementConfig | None = None,
+    cells: CentreCells | None = None,
 ) -> np.ndarray:
     """Random boxes ``float64 (K, 7)`` of sizes ``dims`` ``(K, 3)`` (metres).
 
     Heading uniform in ``[-pi, pi)``; centre uniform over the positions whose whole footprint
-    lies in the area (and field of view when ``fov_only``); ``z = dz / 2`` (bottom at 0).
-    Rows that cannot fit have NaN x and y.
+    lies in the area (and field of view when ``fov_only``), with ``cells`` only over those in
+    the cells (:class:`PlacementRounds` gives the observed ground's,
+    :func:`drcpo.poses.observed_cells`, with ``height="observed"``); ``z = dz / 2`` (bottom at
+    0). Rows that cannot fit have NaN x and y. See :func:`drcpo.poses.draw_poses`.
     """
     config = config or PlacementConfig()
-    dims = _check_dims(dims)
-    heading = rng.uniform(-np.pi, np.pi, len(dims))
-    boxes = np.column_stack([np.zeros((len(dims), 3)), dims, heading])
-    boxes[:, 2] = dims[:, 2] / 2.0
-    # numpy's cos and sin, as geometry.bev_corners uses them
-    cos, sin = np.cos(heading), np.sin(heading)
-    half_angle = float(config.fov_half_angle) if config.fov_only else -1.0
-    # Each round draws the rows given and returns those whose footprint fits the area but
-    # leaves the field of view (none without fov_only); they are drawn again.
-    todo = _draw_round(boxes, np.arange(len(dims)), cos, sin, rng, config, half_angle)
-    for _ in range(_FOV_ROUNDS):
-        if len(todo) == 0:
-            break
-        todo = _draw_round(boxes, todo, cos, sin, rng, config, half_angle)
-    boxes[todo, :2] = np.nan
-    return boxes
+    half_angle = float(config.fov_half_angle) if config.fov_only else None
+    return draw_poses(dims, rng, config.x_range, config.y_range, half_angle, cells)
 
 
 def place_objects(
@@ -335,13 +332,21 @@ class PlacementRounds:
     ) -> None:
         self._config = config = config or PlacementConfig()
         frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
-        self._dims = dims = _check_dims(dims)
+        self._dims = dims = check_dims(dims)
         self._source_z = _source_heights(source_boxes, len(dims), config)
         self._rng = rng
         if ground is None:
             ground = frame_ground(frame)
         observed = config.height == "observed"
         self._obstacles = _Obstacles(frame.points, ground, config.ground_tolerance, observed)
+        # With "observed", centres come from where the frame saw ground (once per call): drawn
+        # over the whole area, most poses of a street scene land behind buildings.
+        self._cells = None
+        if observed:
+            half_angle = float(config.fov_half_angle) if config.fov_only else None
+            self._cells = observed_cells(
+                ground, config.x_range, config.y_range, half_angle, config.ground_gap
+            )
         self._placed = np.full((len(dims), 7), np.nan)
         # 0: placed, else 1 + REASONS index; "budget" until an object gets its first pose
         self._verdicts = np.full(len(dims), _BUDGET, dtype=np.int64)
@@ -369,7 +374,7 @@ class PlacementRounds:
         self._rounds += 1
         pending = self._pending if cap is None else self._pending[: cap - self._attempts]
         self._attempts += len(pending)
-        boxes = sample_poses(self._room[pending], self._rng, self._config)
+        boxes = sample_poses(self._room[pending], self._rng, self._config, self._cells)
         verdict = _judge(
             boxes,
             pending,
@@ -379,6 +384,8 @@ class PlacementRounds:
             self._obstacles,
             self._config,
         )
+        if self._cells is not None and len(self._cells.corners) == 0:
+            verdict[verdict == _OUT_OF_RANGE] = _NO_GROUND  # no observed ground to stand on
         own = boxes.copy()  # the objects' own footprints, without the clearance
         own[:, 3:5] = self._dims[pending, :2]
         passed = np.flatnonzero(verdict == 0)
@@ -674,85 +681,6 @@ def _first_come(boxes, cos, sin, kept):  # pragma: no cover - numba
             ):  # fmt: skip
                 kept[i] = False
                 break
-
-
-def _draw_round(
-    boxes: np.ndarray,
-    rows: np.ndarray,
-    cos: np.ndarray,
-    sin: np.ndarray,
-    rng: np.random.Generator,
-    config: PlacementConfig,
-    half_angle: float,
-) -> np.ndarray:
-    """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit);
-    the rows drawn that fit but leave the field of view (``half_angle`` < 0: none)."""
-    u = rng.uniform(0.0, 1.0, (len(rows), 2))
-    (x0, x1), (y0, y1) = config.x_range, config.y_range
-    return _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle)
-
-
-@numba.njit(cache=True, nogil=True)
-def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle):  # pragma: no cover - numba
-    # Uniform over the centres whose footprint's bounds (half extents) stay in the area.
-    outside = np.empty(rows.shape[0], np.int64)
-    count = 0
-    for k in range(rows.shape[0]):
-        r = rows[k]
-        c, s = abs(cos[r]), abs(sin[r])
-        reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
-        reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
-        low_x, low_y = x0 + reach_x, y0 + reach_y
-        high_x, high_y = x1 - reach_x, y1 - reach_y
-        if low_x > high_x or low_y > high_y:
-            boxes[r, 0] = boxes[r, 1] = np.nan
-            continue
-        boxes[r, 0] = low_x + u[k, 0] * (high_x - low_x)
-        boxes[r, 1] = low_y + u[k, 1] * (high_y - low_y)
-        if half_angle >= 0 and not _corners_in_fov(boxes[r], cos[r], sin[r], half_angle):
-            outside[count] = r
-            count += 1
-    return outside[:count].copy()
-
-
-def _in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:
-    """``bool (K,)``: every BEV corner at an azimuth within ``half_angle`` (NaN rows: False)."""
-    inside = np.zeros(len(boxes), dtype=bool)
-    if len(boxes):
-        _fov_test(boxes, *heading_terms(boxes), float(half_angle), inside)
-    return inside
-
-
-@numba.njit(cache=True, nogil=True)
-def _fov_test(boxes, cos, sin, half_angle, inside):  # pragma: no cover - numba
-    for m in range(boxes.shape[0]):
-        inside[m] = np.isfinite(boxes[m, 0]) and _corners_in_fov(
-            boxes[m], cos[m], sin[m], half_angle
-        )
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _corners_in_fov(box, cos, sin, half_angle):  # pragma: no cover - numba
-    # The corners as geometry.bev_corners computes them (counter-clockwise from front-left).
-    for corner_x, corner_y in ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5)):
-        local_x, local_y = corner_x * box[3], corner_y * box[4]
-        x = (cos * local_x - sin * local_y) + box[0]
-        y = (sin * local_x + cos * local_y) + box[1]
-        if not abs(math.atan2(y, x)) <= half_angle:
-            return False
-    return True
-
-
-def _check_dims(dims: np.ndarray) -> np.ndarray:
-    dims = np.asarray(dims, dtype=np.float64)
-    if dims.size == 0:
-        return dims.reshape(0, 3)
-    if dims.ndim != 2 or dims.shape[1] != 3:
-        raise DataError(f"dims must have shape (K, 3), got {dims.shape}")
-    if not (np.isfinite(dims).all() and (dims > 0).all()):
-        bad = int(np.flatnonzero(~(np.isfinite(dims) & (dims > 0)).all(axis=1))[0])
-        raise DataError(f"dims[{bad}] = {dims[bad].tolist()} is not a positive finite size")
-    return dims
 
 
 def _source_heights(

@@ -1,0 +1,240 @@
+"""Random poses of boxes for placement (DR.CPO, step 4): the draws, before any check.
+
+A pose is a heading uniform in ``[-pi, pi)`` and a centre uniform over the positions whose whole
+BEV footprint lies inside the placement area (with a field of view, also every footprint corner
+at an azimuth ``|atan2(y, x)| <= half_angle``), drawn by :func:`draw_poses`. Positions that fit
+the area but leave the field of view are drawn again (up to :data:`FOV_ROUNDS` times), which
+keeps the draw uniform over the positions that fit.
+
+Where the draw comes from:
+
+* the whole area (the default, the paper's draw): ``x`` and ``y`` uniform between the bounds
+  that keep the footprint's half extents inside;
+* :class:`CentreCells` (placement's ``height="observed"``): the ground cells where the frame
+  observed the ground (:func:`observed_cells`): a cell chosen uniformly, then a position uniform
+  inside it, so the centre is uniform over the observed ground area (every cell has the same
+  area). Positions whose footprint leaves the area or the field of view are drawn again, like
+  those leaving the field of view above. On a street scene most of the area lies behind
+  buildings, where the frame saw no ground and a box could never stand on observed ground.
+
+The placement checks (:mod:`drcpo.placement`) decide afterwards whether a pose is kept.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from drcpo.errors import DataError
+from drcpo.geometry import heading_terms
+from drcpo.ground import GroundModel
+
+__all__ = ["FOV_ROUNDS", "CentreCells", "check_dims", "draw_poses", "in_fov", "observed_cells"]
+
+FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view (or the area)
+
+
+@dataclass(frozen=True, eq=False)
+class CentreCells:
+    """Squares that box centres are drawn from, uniformly over their union (they do not overlap).
+
+    Attributes:
+        corners: ``float64 (C, 2)`` x, y of each square's lower corner (metres).
+        size: the squares' side (metres).
+    """
+
+    corners: np.ndarray
+    size: float
+
+
+def observed_cells(
+    ground: GroundModel,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    half_angle: float | None = None,
+    max_gap: float = 0.0,
+) -> CentreCells:
+    """The cells of ``ground``'s grid where the frame observed the ground, as centre cells.
+
+    A cell counts when its centre lies in the area (``x_range`` x ``y_range``, metres; with
+    ``half_angle``, radians, also at an azimuth ``|atan2(y, x)| <= half_angle``) and is observed
+    ground by :meth:`GroundModel.observed_height_at` with ``max_gap`` (0: the ground cells
+    themselves; > 0 also the cells bridged between scan rings). A model without a grid (plane,
+    road plane or flat fallback) has none. Cells in grid order (x-major).
+    """
+    size = float(ground.cell_size)
+    if ground.heights is None:
+        return CentreCells(np.zeros((0, 2)), size)
+    nx, ny = ground.heights.shape
+    centres = np.empty((nx, ny, 2))
+    centres[..., 0] = (float(ground.origin[0]) + (np.arange(nx) + 0.5) * size)[:, None]
+    centres[..., 1] = float(ground.origin[1]) + (np.arange(ny) + 0.5) * size
+    centres = centres.reshape(-1, 2)
+    (x0, x1), (y0, y1) = x_range, y_range
+    inside = (centres[:, 0] >= x0) & (centres[:, 0] <= x1)
+    inside &= (centres[:, 1] >= y0) & (centres[:, 1] <= y1)
+    if half_angle is not None:
+        inside &= np.abs(np.arctan2(centres[:, 1], centres[:, 0])) <= half_angle
+    centres = centres[inside]
+    seen = ground.observed_height_at(centres, max_gap)[1]
+    return CentreCells(centres[seen] - size / 2.0, size)
+
+
+def draw_poses(
+    dims: np.ndarray,
+    rng: np.random.Generator,
+    x_range: tuple[float, float],
+    y_range: tuple[float, float],
+    half_angle: float | None = None,
+    cells: CentreCells | None = None,
+) -> np.ndarray:
+    """Random boxes ``float64 (K, 7)`` of sizes ``dims`` ``(K, 3)`` (metres).
+
+    Heading uniform in ``[-pi, pi)``; centre uniform over the positions whose whole footprint
+    lies in the area (``x_range`` x ``y_range``, metres) and, with ``half_angle`` (radians),
+    the field of view; with ``cells``, only positions inside them (see the module);
+    ``z = dz / 2`` (bottom at 0). Rows that cannot fit (or found no fitting position in
+    :data:`FOV_ROUNDS` + 1 draws) have NaN x and y.
+    """
+    dims = check_dims(dims)
+    heading = rng.uniform(-np.pi, np.pi, len(dims))
+    boxes = np.column_stack([np.zeros((len(dims), 3)), dims, heading])
+    boxes[:, 2] = dims[:, 2] / 2.0
+    # numpy's cos and sin, as geometry.bev_corners uses them
+    cos, sin = np.cos(heading), np.sin(heading)
+    area = (*map(float, x_range), *map(float, y_range))
+    half = -1.0 if half_angle is None else float(half_angle)
+    # Each round draws the rows given and returns those to draw again (with the whole area:
+    # those that fit but leave the field of view; none without one).
+    todo = _draw_round(boxes, np.arange(len(dims)), cos, sin, rng, area, half, cells)
+    for _ in range(FOV_ROUNDS):
+        if len(todo) == 0:
+            break
+        todo = _draw_round(boxes, todo, cos, sin, rng, area, half, cells)
+    boxes[todo, :2] = np.nan
+    return boxes
+
+
+def in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:
+    """``bool (K,)``: every BEV corner of ``(K, 7)`` boxes at an azimuth within ``half_angle``
+    (radians; NaN rows: False)."""
+    inside = np.zeros(len(boxes), dtype=bool)
+    if len(boxes):
+        _fov_test(boxes, *heading_terms(boxes), float(half_angle), inside)
+    return inside
+
+
+def check_dims(dims: np.ndarray) -> np.ndarray:
+    """``dims`` as ``float64 (K, 3)`` positive finite box sizes; DataError naming the bad row."""
+    dims = np.asarray(dims, dtype=np.float64)
+    if dims.size == 0:
+        return dims.reshape(0, 3)
+    if dims.ndim != 2 or dims.shape[1] != 3:
+        raise DataError(f"dims must have shape (K, 3), got {dims.shape}")
+    if not (np.isfinite(dims).all() and (dims > 0).all()):
+        bad = int(np.flatnonzero(~(np.isfinite(dims) & (dims > 0)).all(axis=1))[0])
+        raise DataError(f"dims[{bad}] = {dims[bad].tolist()} is not a positive finite size")
+    return dims
+
+
+def _draw_round(
+    boxes: np.ndarray,
+    rows: np.ndarray,
+    cos: np.ndarray,
+    sin: np.ndarray,
+    rng: np.random.Generator,
+    area: tuple[float, float, float, float],
+    half_angle: float,
+    cells: CentreCells | None,
+) -> np.ndarray:
+    """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit);
+    the rows to draw again (``half_angle`` < 0: no field of view)."""
+    if cells is None:
+        u = rng.uniform(0.0, 1.0, (len(rows), 2))
+        return _centres(boxes, rows, cos, sin, u, *area, half_angle)
+    if len(cells.corners) == 0:
+        boxes[rows, :2] = np.nan
+        return rows[:0]
+    pick = rng.integers(0, len(cells.corners), len(rows))
+    u = rng.uniform(0.0, 1.0, (len(rows), 2))
+    corners = np.ascontiguousarray(cells.corners, dtype=np.float64)
+    return _cell_centres(
+        boxes, rows, cos, sin, corners, float(cells.size), pick, u, *area, half_angle
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle):  # pragma: no cover - numba
+    # Uniform over the centres whose footprint's bounds (half extents) stay in the area.
+    outside = np.empty(rows.shape[0], np.int64)
+    count = 0
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        c, s = abs(cos[r]), abs(sin[r])
+        reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
+        reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
+        low_x, low_y = x0 + reach_x, y0 + reach_y
+        high_x, high_y = x1 - reach_x, y1 - reach_y
+        if low_x > high_x or low_y > high_y:
+            boxes[r, 0] = boxes[r, 1] = np.nan
+            continue
+        boxes[r, 0] = low_x + u[k, 0] * (high_x - low_x)
+        boxes[r, 1] = low_y + u[k, 1] * (high_y - low_y)
+        if half_angle >= 0 and not _corners_in_fov(boxes[r], cos[r], sin[r], half_angle):
+            outside[count] = r
+            count += 1
+    return outside[:count].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_centres(
+    boxes, rows, cos, sin, corners, size, pick, u, x0, x1, y0, y1, half_angle
+):  # pragma: no cover - numba
+    # A position uniform in the picked cell; drawn again when the footprint's bounds leave the
+    # area or a corner leaves the field of view (rejection keeps the draw uniform over the
+    # cells' positions that fit).
+    again = np.empty(rows.shape[0], np.int64)
+    count = 0
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        c, s = abs(cos[r]), abs(sin[r])
+        reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
+        reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
+        low_x, low_y = x0 + reach_x, y0 + reach_y
+        high_x, high_y = x1 - reach_x, y1 - reach_y
+        if low_x > high_x or low_y > high_y:
+            boxes[r, 0] = boxes[r, 1] = np.nan
+            continue
+        x = corners[pick[k], 0] + u[k, 0] * size
+        y = corners[pick[k], 1] + u[k, 1] * size
+        boxes[r, 0], boxes[r, 1] = x, y
+        fits = low_x <= x <= high_x and low_y <= y <= high_y
+        if not fits or (
+            half_angle >= 0 and not _corners_in_fov(boxes[r], cos[r], sin[r], half_angle)
+        ):
+            again[count] = r
+            count += 1
+    return again[:count].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _fov_test(boxes, cos, sin, half_angle, inside):  # pragma: no cover - numba
+    for m in range(boxes.shape[0]):
+        inside[m] = np.isfinite(boxes[m, 0]) and _corners_in_fov(
+            boxes[m], cos[m], sin[m], half_angle
+        )
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _corners_in_fov(box, cos, sin, half_angle):  # pragma: no cover - numba
+    # The corners as geometry.bev_corners computes them (counter-clockwise from front-left).
+    for corner_x, corner_y in ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5)):
+        local_x, local_y = corner_x * box[3], corner_y * box[4]
+        x = (cos * local_x - sin * local_y) + box[0]
+        y = (sin * local_x + cos * local_y) + box[1]
+        if not abs(math.atan2(y, x)) <= half_angle:
+            return False
+    return True
