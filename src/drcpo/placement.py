@@ -185,7 +185,9 @@ class PlacementConfig(Checked):
             "float",
             "reject a placed box before construction once this share of its sensor-facing "
             "surface e-HPR hides behind the frame's points (it would almost always drop the "
-            "object; 1.0: only fully hidden boxes; null: never)",
+            "object; 1.0: only fully hidden boxes; null: never); with e-HPR mode sensor, "
+            "the share of the sensor's rays crossing the box that the frame and the boxes "
+            "placed before hide",
             low=0.0,
             high=1.0,
             low_open=True,

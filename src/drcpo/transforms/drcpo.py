@@ -434,10 +434,11 @@ class DRCPO(Transform):
         rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
         if self._occlusion_along_rays:
             minimum = self.config.external_occlusion.min_visible_rays
+            share = 1.0 if limit is None else limit
             while (drawn := rounds.next_round()) is not None:
-                hidden = (
-                    seen.hidden(drawn.boxes, drawn.placed, minimum) if len(drawn.boxes) else None
-                )
+                hidden = None
+                if len(drawn.boxes):
+                    hidden = seen.hidden(drawn.boxes, drawn.placed, minimum, share)
                 rounds.settle(hidden)
             return (*self._placement_result(rounds, rows, stats), None)
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts

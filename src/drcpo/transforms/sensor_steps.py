@@ -123,32 +123,50 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
 
-    def hidden(self, boxes: np.ndarray, placed: np.ndarray, min_rays: int) -> np.ndarray:
+    @cached_property
+    def empty_image(self) -> RangeImage:
+        """A range image without returns: what the sensor's rays would cross alone."""
+        sensor = self.sensor
+        return RangeImage(sensor, np.full((sensor.num_beams, sensor.num_columns), np.inf))
+
+    def hidden(
+        self, boxes: np.ndarray, placed: np.ndarray, min_rays: int, max_hidden: float = 1.0
+    ) -> np.ndarray:
         """``bool (B,)``: the round's ``boxes`` to reject, first come first served: a box that
-        fewer than ``min_rays`` rays would reach (in front of the frame's returns and of the
-        boxes accepted before it, ``placed`` and this round's), or that would leave one of
-        those with fewer (objects in a row along a street would hide each other)."""
+        fewer than ``min_rays`` rays would reach, or only ``1 - max_hidden`` of the rays that
+        cross it (in front of the frame's returns and of the boxes accepted before it,
+        ``placed`` and this round's), or that would leave one of those so (objects in a row
+        along a street would hide each other). A box's share counts: the rays left reaching a
+        mostly hidden box pass its corners, where the object leaves the box empty."""
         image = self.range_image
         accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
+
+        def needed(some: np.ndarray) -> np.ndarray:
+            crossing = self.empty_image.visible_rays(some)
+            return np.maximum(min_rays, np.ceil((1.0 - max_hidden) * crossing)).astype(np.int64)
+
+        need, accepted_need = needed(boxes), needed(accepted)
         # Boxes hidden already by the frame and the earlier rounds' boxes, all in one call;
         # the others one by one against the boxes of this round accepted before them.
-        hidden = image.visible_rays(boxes, occluders=accepted if len(accepted) else None) < min_rays
+        hidden = image.visible_rays(boxes, occluders=accepted if len(accepted) else None) < need
         spans = _azimuth_spans(accepted)
         first = len(accepted)
         for i in np.flatnonzero(~hidden):
             box = boxes[i : i + 1]
             span = _azimuth_spans(box)
-            behind = np.flatnonzero(_overlapping(spans, span[0]))  # or in front: either way
-            if (behind >= first).any():  # this round's boxes may hide it too
-                if image.visible_rays(box, occluders=accepted[behind])[0] < min_rays:
+            near = np.flatnonzero(_overlapping(spans, span[0]))  # in front or behind
+            if (near >= first).any():  # this round's boxes may hide it too
+                if image.visible_rays(box, occluders=accepted[near])[0] < need[i]:
                     hidden[i] = True
                     continue
-            if len(behind):
+            if len(near):
                 occluders = np.concatenate([accepted, box])
-                if (image.visible_rays(accepted[behind], occluders=occluders) < min_rays).any():
+                left = image.visible_rays(accepted[near], occluders=occluders)
+                if (left < accepted_need[near]).any():
                     hidden[i] = True
                     continue
             accepted = np.concatenate([accepted, box])
+            accepted_need = np.append(accepted_need, need[i])
             spans = np.concatenate([spans, span])
         return hidden
 
