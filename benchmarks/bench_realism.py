@@ -36,7 +36,7 @@ output rows are matched to input rows exactly.
 
 ``--kitti PATH`` scores the figures that need no truth on a KITTI root (the repository's sample
 by default: its database imported from OpenPCDet's dbinfos): ground contact against the frame's
-own ground returns, points on beam elevations (``drcpo.sensor.estimate_sensor`` when it exists)
+own ground returns, points on beam elevations (``drcpo.sensor_config.estimate_sensor``)
 and counts.
 
 Usage::
@@ -774,7 +774,7 @@ def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         build_index(database, IndexConfig(k=20, workers=1)).save(database.path, overwrite=True)
     index = load_index(database)
     try:
-        from drcpo.sensor import estimate_sensor
+        from drcpo.sensor_config import estimate_sensor
     except ImportError:  # the sensor estimate lands with issue 14's sensor part
         estimate_sensor = None
     dataset = KittiDataset(root, "train")
@@ -811,7 +811,7 @@ def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             },
             "on_beam": beam
             if estimate_sensor is not None
-            else "drcpo.sensor.estimate_sensor missing",
+            else "drcpo.sensor_config.estimate_sensor missing",
             "counts": count_figures(per_frame, "drcpo"),
         }
     return {"mode": "kitti", "root": str(root), "presets": results}

@@ -1,4 +1,4 @@
-"""How well and how fast ``sensor: auto`` (:func:`drcpo.sensor.estimate_sensor`) estimates a
+"""How well and how fast ``sensor: auto`` (:func:`drcpo.sensor_config.estimate_sensor`) estimates a
 frame's sensor.
 
 KITTI sample (when ``../shared`` is present): per frame, the beams found, the azimuth step, the
@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drcpo.sensor import Sensor, estimate_sensor
+from drcpo.sensor import Sensor
+from drcpo.sensor_config import estimate_sensor
 from drcpo.synth import LidarConfig, generate_world, scan
 from drcpo.synth.dataset import frame_rng
 

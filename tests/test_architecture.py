@@ -28,6 +28,7 @@ LAYERS: dict[str, int] = {
     "drcpo.partitions": 2,
     "drcpo.ground": 2,
     "drcpo.sensor": 2,
+    "drcpo.sensor_config": 2,
     "drcpo.datasets": 2,
     "drcpo.viz": 2,
     "drcpo.occlusion": 3,

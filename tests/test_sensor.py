@@ -10,13 +10,8 @@ import pytest
 
 from drcpo.config_fields import from_dict, to_dict
 from drcpo.errors import ConfigError, DataError
-from drcpo.sensor import (
-    Sensor,
-    SensorConfig,
-    estimate_sensor,
-    hdl64e_elevations_deg,
-    sensor_preset,
-)
+from drcpo.sensor import Sensor, hdl64e_elevations_deg, sensor_preset
+from drcpo.sensor_config import SensorConfig, estimate_sensor
 from drcpo.synth import LidarConfig, generate_world, hdl64e_elevations, ray_grid, scan
 from drcpo.synth.dataset import frame_rng
 
@@ -279,7 +274,7 @@ def test_auto_finds_where_the_rings_start(synthetic_frames, start_deg):
 def test_auto_tries_the_other_ring_starts_when_the_best_fits_badly(synthetic_frames, monkeypatch):
     """An object spanning every ring can look like the rings' start; the cut whose rings fit
     their lines wins then."""
-    import drcpo.sensor as sensor_module
+    import drcpo.sensor_config as sensor_module
 
     config, sweep = synthetic_frames[0]
     found = sensor_module._sweep_starts

@@ -65,7 +65,7 @@ from drcpo.index import IndexConfig
 from drcpo.occlusion.presets import HPR_PRESETS
 from drcpo.occlusion.presets import HPRPreset as EHPRSetting
 from drcpo.placement import PlacementConfig
-from drcpo.sensor import SensorConfig
+from drcpo.sensor_config import SensorConfig
 
 __all__ = [
     "DETECTOR_PRESETS",

@@ -24,6 +24,7 @@ from drcpo.occlusion.render import (
     RADIUS_FACTOR,
     RADIUS_RANGE,
     VOXEL,
+    _beam_at,
     _check_radii,
     _column_at,
     _cone,
@@ -244,9 +245,8 @@ def _fill_range_image(
 ):  # pragma: no cover - numba
     # The nearest distance per cell, cells as render._point_cells finds them (the same code:
     # a call per point would reference-count the tables); the first non-finite row, or -1.
-    beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
-    step, phase, shifted = constants[0], constants[1], constants[2] != 0 or constants[3] != 0
-    lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
+    columns, bins = column_cos.shape[0], first.shape[0]
+    step, phase, low, high = constants[0], constants[1], constants[2], constants[3]
     for i in range(points.shape[0]):
         x = np.float64(points[i, 0]) - mount[0]
         y = np.float64(points[i, 1]) - mount[1]
@@ -257,21 +257,7 @@ def _fill_range_image(
         if h2 <= 0.0:
             continue
         inverse = 1.0 / math.sqrt(h2)
-        b, lift = -1, 0.0
-        for _attempt in range(2 if shifted else 1):
-            slope = (z - lift) * inverse
-            k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
-            if k < 0:
-                row = beams + 1
-            elif k >= lut_bins:
-                row = 0
-            else:
-                row = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
-            if row == 0 or row > beams:
-                b = -1
-                break
-            b = row - 1
-            lift = offsets[b]
+        b = _beam_at(z, inverse, edge_slopes, edge_lut, beam_slopes, offsets, low, high, constants)
         if b < 0:
             continue
         k = _pseudo_bin(x, y, bins)

@@ -443,13 +443,12 @@ def _point_cells(
     bound_sin,
     constants,
 ):  # pragma: no cover - numba
-    # Sensor.cells of points[index] without trigonometry: beam (-1 outside every beam, seen
-    # from the mount and then from that beam's origin), column (-1 straight above or below
-    # the mount), distance from the beam's origin (the mount's outside every beam), offset
-    # from the mount (n, 3); and the first row with a non-finite coordinate, or -1.
-    n, beams, columns, bins = index.shape[0], offsets.shape[0], column_cos.shape[0], first.shape[0]
-    step, phase, shifted = constants[0], constants[1], constants[2] != 0 or constants[3] != 0
-    lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
+    # Sensor.cells of points[index] (see _beam_at; columns without trigonometry): beam (-1
+    # outside every beam), column (-1 straight above or below the mount), distance from the
+    # beam's origin (the mount's outside every beam), offset from the mount (n, 3); and the
+    # first row with a non-finite coordinate, or -1.
+    n, columns, bins = index.shape[0], column_cos.shape[0], first.shape[0]
+    step, phase, low, high = constants[0], constants[1], constants[2], constants[3]
     beam = np.empty(n, np.int64)
     column = np.empty(n, np.int64)
     distance = np.empty(n)
@@ -470,28 +469,50 @@ def _point_cells(
                 x, y, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
             )
             inverse = 1.0 / math.sqrt(h2)
-            for _attempt in range(2 if shifted else 1):
-                slope = (z - lift) * inverse
-                k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
-                if k < 0:
-                    row = beams + 1
-                elif k >= lut_bins:
-                    row = 0
-                else:
-                    row = int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
-                if row == 0 or row > beams:
-                    b = -1
-                    break
-                b = row - 1
-                lift = offsets[b]
-            if b >= 0:
-                lift = offsets[b]
-            else:
-                lift = 0.0
+            b = _beam_at(
+                z, inverse, edge_slopes, edge_lut, beam_slopes, offsets, low, high, constants
+            )
+            lift = offsets[b] if b >= 0 else 0.0
         beam[q], column[q] = b, c
         dz = z - lift
         distance[q] = math.sqrt(h2 + dz * dz)
     return beam, column, distance, rel, -1
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _beam_at(
+    z, inverse, edge_slopes, edge_lut, beam_slopes, offsets, low, high, constants
+):  # pragma: no cover - numba
+    # Sensor.cells' beam of a point at height z over the mount, 1 / its horizontal distance:
+    # -1 outside every beam. With beam origins apart: of the beams between those its
+    # elevation seen from the lowest and the highest origin falls in, the band holding its
+    # elevation seen from the beam's own origin, nearest the beam's elevation.
+    beams, lut_bins = offsets.shape[0], edge_lut.shape[0]
+    lut_start, lut_scale = constants[5], constants[6]
+    if low == 0.0 and high == 0.0:
+        row = _edge_row(z * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
+        return row - 1 if 0 < row <= beams else -1
+    top = _edge_row((z - low) * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
+    bottom = _edge_row((z - high) * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
+    best, best_miss = -1, math.inf
+    for candidate in range(max(top - 1, 0), min(bottom - 1, beams - 1) + 1):
+        own = (z - offsets[candidate]) * inverse
+        if edge_slopes[candidate + 1] < own <= edge_slopes[candidate]:
+            miss = abs(math.atan(own) - math.atan(beam_slopes[candidate]))
+            if miss < best_miss:
+                best, best_miss = candidate, miss
+    return best
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _edge_row(slope, edge_lut, lut_start, lut_scale, lut_bins, beams):  # pragma: no cover
+    # 1 + the band holding a slope (z / d): 0 above the top edge, beams + 1 below the bottom
+    k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
+    if k < 0:
+        return beams + 1
+    if k >= lut_bins:
+        return 0
+    return int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
 
 
 @numba.njit(cache=True, nogil=True)

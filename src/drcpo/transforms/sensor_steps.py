@@ -30,7 +30,8 @@ from drcpo.ground import GroundModel
 from drcpo.occlusion.rays import RangeImage, ray_occlusion
 from drcpo.occlusion.render import render_object
 from drcpo.placement import frame_ground
-from drcpo.sensor import Sensor, SensorConfig
+from drcpo.sensor import Sensor
+from drcpo.sensor_config import SensorConfig
 from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows
 
 __all__ = ["SensorFrame", "added_boxes", "render", "sensor_occlusion"]
