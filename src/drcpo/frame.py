@@ -32,6 +32,10 @@ class Frame:
         boxes: ``float64 (M, 7)`` x, y, z (centre), dx, dy, dz (metres), heading (radians).
         names: ``(M,)`` class names (numpy unicode array).
         metadata: free-form extras, e.g. ``frame_id``, ``calib`` (a KITTI calibration), ``plane``.
+
+    Points and boxes are held C-contiguous and writeable (copied when given otherwise, e.g.
+    Fortran-ordered, sliced or read-only; never when already so), the one layout the compiled
+    kernels see, so that :func:`drcpo.warmup` loads every kernel a later call needs.
     """
 
     points: np.ndarray
