@@ -10,14 +10,20 @@ and the KITTI sample in ``../shared``; mmdet3d_support.py stands in for ``mmcv._
 from __future__ import annotations
 
 import importlib.util
+import json
+import multiprocessing
 import os
 import pickle
+import subprocess
+import sys
 import types
+from pathlib import Path
 
 import mmdet3d_support as support
 import numpy as np
 import openpcdet_support as pcdet_support
 import pytest
+from kernel_support import loaded_kernels
 
 # CI's MMDetection3D step sets DRCPO_REQUIRE_MMDET3D=1: there a missing piece fails instead.
 _REQUIRED = os.environ.get("DRCPO_REQUIRE_MMDET3D") == "1"
@@ -176,6 +182,60 @@ def test_building_the_transform_warms_its_kernels_up(drcpo_db, monkeypatch):
     assert warmed == [transform.augmentor.pipeline]
     DRCPOAugment(str(drcpo_db), support.CLASS_NAMES, warmup=False)
     assert len(warmed) == 1
+
+
+def _kernels_loaded_by_first_call(dataset, queue):
+    torch.set_num_threads(1)  # as in a DataLoader worker
+    (augment,) = [t for t in dataset.pipeline.transforms if isinstance(t, DRCPOAugment)]
+    layouts = []
+
+    def recording(results, transform=augment.transform):
+        layouts.append(results["points"].tensor.numpy().flags.f_contiguous)
+        return transform(results)
+
+    augment.transform = recording
+    before = loaded_kernels()
+    np.random.seed(0)
+    dataset[0]
+    queue.put((loaded_kernels() - before, layouts[0]))
+
+
+def kernels_loaded_in_worker(db: str, infos: str, warmup: bool) -> tuple[int, bool]:
+    """In a fresh process: the kernels a worker forked once the dataset is built loads in its
+    first sample, and whether the points DRCPOAugment got from LoadPointsFromFile were
+    Fortran-ordered."""
+    dataset = support.dataset(Path(infos), support.pipeline(_drcpo(db, warmup=warmup)))
+    context = multiprocessing.get_context("fork")
+    queue = context.Queue()
+    worker = context.Process(target=_kernels_loaded_by_first_call, args=(dataset, queue))
+    worker.start()
+    loaded = queue.get(timeout=300)
+    worker.join(timeout=60)
+    return loaded
+
+
+def _in_fresh_process(db, infos, warmup: bool) -> tuple[int, bool]:
+    code = (
+        "import json, sys; sys.path.insert(0, sys.argv[1]);"
+        "import test_integrations_mmdet3d as t;"
+        "print(json.dumps(t.kernels_loaded_in_worker(*sys.argv[2:4], sys.argv[4] == '1')))"
+    )
+    here = str(Path(__file__).parent)
+    args = [sys.executable, "-c", code, here, str(db), str(infos), str(int(warmup))]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=600, check=True)
+    return tuple(json.loads(done.stdout.strip().splitlines()[-1]))
+
+
+def test_forked_worker_after_warmup_loads_no_kernels(drcpo_db, infos):
+    """A freshly forked worker's first sample through mmdet3d's real pipeline loads no kernel
+    after the warm-up done when the transform is built, although LoadPointsFromFile hands over
+    Fortran-ordered points (the warm-up's are C-ordered: drcpo's frames make them C-contiguous,
+    else each worker loaded another specialisation of a kernel). Without the warm-up the same
+    sample loads several, so the count is live. (In a fresh process each, so that no earlier
+    test has loaded the kernels.)"""
+    assert _in_fresh_process(drcpo_db, infos, warmup=True) == (0, True)
+    loaded, _ = _in_fresh_process(drcpo_db, infos, warmup=False)
+    assert loaded > 0
 
 
 def test_transform_pickles_for_spawned_workers(drcpo_db, infos):

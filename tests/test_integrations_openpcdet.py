@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import openpcdet_support as support
 import pytest
+from kernel_support import loaded_kernels
 
 # CI's framework step sets DRCPO_REQUIRE_OPENPCDET=1: there a missing piece fails instead.
 _REQUIRED = os.environ.get("DRCPO_REQUIRE_OPENPCDET") == "1"
@@ -263,27 +264,12 @@ def test_runner_registers_then_runs_the_script(tmp_path):
 
 
 # Workers -------------------------------------------------------------------------------------
-def _loaded_kernels() -> int:
-    """Compiled numba kernels (one per type signature) loaded so far in this process by drcpo's
-    modules; each costs a compilation or a load from the disk cache when first called."""
-    from numba.core.dispatcher import Dispatcher
-
-    dispatchers = {
-        id(value): value
-        for name, module in list(sys.modules.items())
-        if name.split(".")[0] == "drcpo" and module is not None
-        for value in vars(module).values()
-        if isinstance(value, Dispatcher)
-    }
-    return sum(len(d.overloads) for d in dispatchers.values())
-
-
 def _kernels_loaded_by_first_call(dataset, index, queue):
     torch.set_num_threads(1)  # as in a DataLoader worker (torch's pool does not survive a fork)
-    before = _loaded_kernels()
+    before = loaded_kernels()
     np.random.seed(index)
     dataset[index]
-    queue.put(_loaded_kernels() - before)
+    queue.put(loaded_kernels() - before)
 
 
 def _forked_first_call(dataset) -> int:

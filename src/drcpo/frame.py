@@ -32,6 +32,10 @@ class Frame:
         boxes: ``float64 (M, 7)`` x, y, z (centre), dx, dy, dz (metres), heading (radians).
         names: ``(M,)`` class names (numpy unicode array).
         metadata: free-form extras, e.g. ``frame_id``, ``calib`` (a KITTI calibration), ``plane``.
+
+    Points and boxes are held C-contiguous and writeable (copied when given otherwise, e.g.
+    Fortran-ordered, sliced or read-only; never when already so), the one layout the compiled
+    kernels see, so that :func:`drcpo.warmup` loads every kernel a later call needs.
     """
 
     points: np.ndarray
@@ -43,7 +47,7 @@ class Frame:
         points = _real_array(self.points, "points")
         if points.ndim != 2 or points.shape[1] < 3:
             raise DataError(f"Frame.points must have shape (N, 3 + C), got {points.shape}")
-        boxes = _real_array(self.boxes, "boxes").astype(np.float64, copy=False)
+        boxes = _kernel_array(_real_array(self.boxes, "boxes"), np.float64)
         if boxes.size == 0:
             boxes = boxes.reshape(0, 7)
         if boxes.ndim != 2 or boxes.shape[1] != 7:
@@ -56,7 +60,7 @@ class Frame:
                 f"Frame.names must have shape ({boxes.shape[0]},) to match boxes, got {names.shape}"
             )
         with np.errstate(over="ignore"):  # values beyond float32 become inf: validate_frame
-            object.__setattr__(self, "points", points.astype(np.float32, copy=False))
+            object.__setattr__(self, "points", _kernel_array(points, np.float32))
         object.__setattr__(self, "boxes", boxes)
         object.__setattr__(self, "names", names.astype(str, copy=False))
 
@@ -170,6 +174,20 @@ def _real_array(values: Any, field: str) -> np.ndarray:
     if array.dtype.kind not in "fiu":
         raise DataError(f"{field}: must hold real numbers, got dtype {array.dtype}")
     return array
+
+
+def _kernel_array(values: np.ndarray, dtype: type) -> np.ndarray:
+    """``values`` as a C-contiguous, writeable ``dtype`` array, copied only when it is not one.
+
+    numba compiles (or loads from its cache) one kernel per argument type, and an array's type
+    includes its layout (C, F or strided) and whether it is read-only: a Fortran-ordered,
+    sliced or read-only input would make each process load another specialisation of every
+    kernel it reaches (mmdet3d's ``LoadPointsFromFile`` gives Fortran-ordered points), which
+    :func:`drcpo.warmup` could not have loaded for it. The values are unchanged.
+    """
+    if values.dtype == dtype and values.flags.c_contiguous and values.flags.writeable:
+        return values
+    return np.array(values, dtype=dtype, order="C")
 
 
 def _name_array(values: Any) -> np.ndarray:

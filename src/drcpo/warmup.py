@@ -3,7 +3,10 @@
 drcpo's kernels are compiled with numba and cached on disk; a process still pays for loading
 them on its first call (more on a cold cache). Data loaders fork their workers from the
 main process, often anew every epoch: calling :func:`warmup` once in the main process, before the
-loader starts, makes every worker's first call as fast as its later ones.
+loader starts, makes every worker's first call as fast as its later ones. The warm-up frame's
+C-ordered arrays stand for any input: a :class:`~drcpo.frame.Frame` makes its points and boxes
+C-contiguous and writeable, so a worker given, say, Fortran-ordered points (mmdet3d's) calls the
+same kernel specialisations.
 """
 
 from __future__ import annotations
