@@ -150,6 +150,24 @@ def test_render_matches_the_reference(seed: int) -> None:
     np.testing.assert_array_equal(returns[:, 3], points[source, 3])  # features of the hit
 
 
+def test_render_across_column_zero() -> None:
+    """Points straight ahead of the sensor whose ray windows start before column 0, at
+    different negative columns: every window still lands in one frame of columns (the first
+    negative start once counted as unset, and a later point moved the frame from under the
+    earlier points' windows: their hits went to other columns, or past the rays' end)."""
+    sensor = small_sensor(phase=0.0)
+    points = np.array(
+        [[8.0, 0.0, 0.2, 1.0], [8.0, 0.05, -0.2, 2.0], [8.0, 0.9, 0.0, 3.0]],
+        dtype=np.float32,
+    )
+    radii = np.array([0.3, 0.1, 0.2])  # windows starting at columns -2, -1 and 4
+    returns, source = render_object(points, sensor, np.random.default_rng(0), radii)
+    expected = reference_render(points, radii, sensor)
+    assert len(expected) >= 3
+    got = dict(zip(cells_of(sensor, returns), source.tolist(), strict=True))
+    assert got == {cell: i for cell, (_, i) in expected.items()}
+
+
 def test_render_around_the_sensor_and_wide_elements() -> None:
     """Points all around the sensor (the window spans every column) and elements larger than
     a column's width."""

@@ -332,7 +332,7 @@ def _render(
     # 1. Each point's window of rays (the beams with elevations in its cone, the columns
     #    within its half-width plus half a column of its direction's column), and the beams
     #    and (unwrapped) columns of all of them.
-    beam_lo, beam_hi, lo, hi, reference = beams, -1, 0, -1, -1
+    beam_lo, beam_hi, lo, hi, reference, referenced = beams, -1, 0, -1, 0, False
     for i in range(n):
         x, y, z = xyz[i, 0] - mount[0], xyz[i, 1] - mount[1], xyz[i, 2] - mount[2]
         half, low, high = _cone(x, y, z, radii[i], per_radian, constants[2], constants[3])
@@ -358,8 +358,8 @@ def _render(
                 x, y, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
             )
             c0, count[i] = centre - reach, 2 * reach + 1
-        if reference < 0:
-            reference = c0
+        if not referenced:  # (c0 may be negative: a window across column 0)
+            reference, referenced = c0, True
             lo, hi = c0, c0
         # unwrapped next to the first point's window
         shift = c0 - reference
