@@ -351,7 +351,7 @@ def augment(
     split: Annotated[str, typer.Option(help="Split: frames of ImageSets/<split>.txt.")] = "train",
     config: Annotated[
         str,
-        typer.Option(help="YAML config file, or a preset: default, second, pointrcnn, ..."),
+        typer.Option(help="YAML config file, or a preset: default, paper, realistic, second, ..."),
     ] = "default",
     pipeline: Annotated[
         str | None, typer.Option(help="Override the config's pipeline: drcpo or cda.")
