@@ -166,6 +166,16 @@ def _draw_round(
     )
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _centre_bounds(box, cos, sin, x0, x1, y0, y1):  # pragma: no cover - numba
+    # The centres whose footprint's bounds (half extents) stay in the area [x0, x1] x [y0, y1]:
+    # low_x, high_x, low_y, high_y (empty when a low exceeds its high).
+    c, s = abs(cos), abs(sin)
+    reach_x = (c * box[3] + s * box[4]) / 2.0
+    reach_y = (s * box[3] + c * box[4]) / 2.0
+    return x0 + reach_x, x1 - reach_x, y0 + reach_y, y1 - reach_y
+
+
 @numba.njit(cache=True, nogil=True)
 def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle):  # pragma: no cover - numba
     # Uniform over the centres whose footprint's bounds (half extents) stay in the area.
@@ -173,11 +183,7 @@ def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle):  # pragma: n
     count = 0
     for k in range(rows.shape[0]):
         r = rows[k]
-        c, s = abs(cos[r]), abs(sin[r])
-        reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
-        reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
-        low_x, low_y = x0 + reach_x, y0 + reach_y
-        high_x, high_y = x1 - reach_x, y1 - reach_y
+        low_x, high_x, low_y, high_y = _centre_bounds(boxes[r], cos[r], sin[r], x0, x1, y0, y1)
         if low_x > high_x or low_y > high_y:
             boxes[r, 0] = boxes[r, 1] = np.nan
             continue
@@ -200,11 +206,7 @@ def _cell_centres(
     count = 0
     for k in range(rows.shape[0]):
         r = rows[k]
-        c, s = abs(cos[r]), abs(sin[r])
-        reach_x = (c * boxes[r, 3] + s * boxes[r, 4]) / 2.0
-        reach_y = (s * boxes[r, 3] + c * boxes[r, 4]) / 2.0
-        low_x, low_y = x0 + reach_x, y0 + reach_y
-        high_x, high_y = x1 - reach_x, y1 - reach_y
+        low_x, high_x, low_y, high_y = _centre_bounds(boxes[r], cos[r], sin[r], x0, x1, y0, y1)
         if low_x > high_x or low_y > high_y:
             boxes[r, 0] = boxes[r, 1] = np.nan
             continue

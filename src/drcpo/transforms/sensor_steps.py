@@ -59,6 +59,7 @@ class SensorFrame:
     frame: Frame
     config: SensorConfig
     fallback: str = field(default="", init=False)
+    _crossing: dict[bytes, int] = field(default_factory=dict, init=False, repr=False)
 
     @cached_property
     def added(self) -> np.ndarray:
@@ -124,6 +125,14 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
 
+    def _crossing_of(self, boxes: np.ndarray) -> np.ndarray:
+        """``int64 (B,)``: the rays crossing each of ``boxes`` (counted in an earlier round when
+        it was drawn, else now)."""
+        known = [self._crossing.get(bytes(box)) for box in boxes]
+        if all(k is not None for k in known):
+            return np.array(known, dtype=np.int64)
+        return self.empty_image.visible_rays(boxes)
+
     @cached_property
     def empty_image(self) -> RangeImage:
         """A range image without returns: what the sensor's rays would cross alone."""
@@ -142,11 +151,13 @@ class SensorFrame:
         image = self.range_image
         accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
 
-        def needed(some: np.ndarray) -> np.ndarray:
-            crossing = self.empty_image.visible_rays(some)
+        def needed(crossing: np.ndarray) -> np.ndarray:
             return np.maximum(min_rays, np.ceil((1.0 - max_hidden) * crossing)).astype(np.int64)
 
-        need, accepted_need = needed(boxes), needed(accepted)
+        crossing = self.empty_image.visible_rays(boxes)
+        # the boxes placed before were this call's boxes of an earlier round: counted then
+        need, accepted_need = needed(crossing), needed(self._crossing_of(accepted))
+        self._crossing.update(zip(map(bytes, boxes), crossing.tolist(), strict=True))
         # Boxes hidden already by the frame and the earlier rounds' boxes, all in one call;
         # the others one by one against the boxes of this round accepted before them.
         hidden = image.visible_rays(boxes, occluders=accepted if len(accepted) else None) < need
