@@ -10,9 +10,22 @@ import pytest
 
 from drcpo.config_fields import from_dict, to_dict
 from drcpo.errors import ConfigError, DataError
-from drcpo.sensor import Sensor, hdl64e_elevations_deg, sensor_preset
+from drcpo.sensor import (
+    HDL32E_MOUNT_HEIGHT,
+    Sensor,
+    hdl32e_elevations_deg,
+    hdl64e_elevations_deg,
+    sensor_preset,
+)
 from drcpo.sensor_config import SensorConfig, estimate_sensor
-from drcpo.synth import LidarConfig, generate_world, hdl64e_elevations, ray_grid, scan
+from drcpo.synth import (
+    LidarConfig,
+    generate_world,
+    hdl64e_elevations,
+    lidar_preset,
+    ray_grid,
+    scan,
+)
 from drcpo.synth.dataset import frame_rng
 
 DEG = math.pi / 180.0
@@ -65,8 +78,52 @@ def test_sensor_arrays_are_read_only_copies():
 
 
 def test_unknown_preset_names_the_presets():
-    with pytest.raises(ConfigError, match="unknown sensor 'vlp16'; presets: hdl64e"):
+    with pytest.raises(ConfigError, match="unknown sensor 'vlp16'; presets: hdl32e, hdl64e"):
         sensor_preset("vlp16")
+    with pytest.raises(ConfigError, match="unknown sensor 'vlp16'; presets: hdl32e, hdl64e"):
+        lidar_preset("vlp16")
+
+
+def test_hdl32e_preset_matches_the_published_specification():
+    """The HDL-32E user manual: 32 lasers from +10.67 to -30.67 degrees (41.3 degrees of
+    vertical field), 4/3 degree apart; nuScenes' sweeps at 20 Hz: about 1080 points per ring."""
+    sensor = sensor_preset("hdl32e")
+    degrees = np.degrees(sensor.elevations)
+    assert sensor.num_beams == 32 and sensor.name == "hdl32e"
+    assert degrees[0] == pytest.approx(10.67) and degrees[-1] == pytest.approx(-30.67)
+    assert degrees[0] - degrees[-1] == pytest.approx(41.34)
+    np.testing.assert_allclose(np.diff(degrees), -4.0 / 3.0, atol=0.01)
+    assert 0.0 in hdl32e_elevations_deg()  # the manual's reference laser, level
+    assert sensor.num_columns == 1080
+    assert math.degrees(sensor.azimuth_step) == pytest.approx(1.0 / 3.0)
+    assert sensor.range_noise == 0.02 and not sensor.mount.any() and not sensor.offsets.any()
+    assert HDL32E_MOUNT_HEIGHT == pytest.approx(1.84)
+
+
+def test_synthetic_hdl32e_fires_the_presets_beams_and_columns():
+    config, preset = lidar_preset("hdl32e"), sensor_preset("hdl32e")
+    assert lidar_preset("hdl64e") == LidarConfig()
+    assert config.elevations_deg == hdl32e_elevations_deg()
+    assert config.mount_height == HDL32E_MOUNT_HEIGHT
+    assert config.num_beams == 32 and config.num_columns == preset.num_columns == 1080
+    sensor = config.sensor(0.0)
+    np.testing.assert_allclose(sensor.elevations, preset.elevations, atol=1e-15)
+    assert sensor.azimuth_step == pytest.approx(preset.azimuth_step, abs=1e-15)
+    assert (sensor.max_range, sensor.range_noise) == (preset.max_range, preset.range_noise)
+
+
+def test_a_synthetic_hdl32e_sweep_falls_on_the_presets_rings(rng):
+    """Every return of a 32-beam sweep lies on one of the preset's beams (its elevation seen
+    from the origin, noise aside) and the sweep has one return per ray at most."""
+    config = lidar_preset("hdl32e")
+    world = generate_world(rng, mount_height=config.mount_height)
+    sweep = scan(world, rng, config)
+    beam, _, distance = sensor_preset("hdl32e").cells(sweep.points)
+    assert (beam >= 0).all()
+    rank = np.argsort(np.argsort(-np.asarray(config.elevations_deg)))
+    np.testing.assert_array_equal(beam, rank[sweep.ray // config.num_columns])
+    assert len(np.unique(sweep.ray)) == len(sweep.ray) <= config.num_rays
+    assert distance.min() >= config.min_range - 0.2
 
 
 def test_beam_edges_and_width():
@@ -175,6 +232,8 @@ def test_synthetic_world_uses_the_preset_elevations():
         (LidarConfig(azimuth_step_deg=0.1), -3.0),
         (LidarConfig(azimuth_step_deg=0.35, range_noise=0.05, dropout=0.2), 7.5),
         (LidarConfig(elevations_deg=(-5.0, 3.0, 0.5), min_range=2.0, max_range=80.0), 0.001),
+        (lidar_preset("hdl32e"), 0.0),
+        (lidar_preset("hdl32e"), 0.004),
     ],
 )
 def test_lidar_config_sensor_rays_map_one_to_one_onto_cells(config, offset):
@@ -359,6 +418,16 @@ def test_sensor_config_defaults_to_the_preset():
         "range_noise": None,
         "dropout": None,
     }
+
+
+def test_sensor_config_takes_the_hdl32e_preset():
+    config = from_dict(SensorConfig, {"model": "hdl32e", "mount": [0.0, 0.0, 0.1]})
+    sensor, preset = config.sensor_for(None), sensor_preset("hdl32e")
+    np.testing.assert_array_equal(sensor.elevations, preset.elevations)
+    assert sensor.azimuth_step == preset.azimuth_step and sensor.num_beams == 32
+    assert sensor.max_range == preset.max_range and sensor.name == "hdl32e"
+    np.testing.assert_array_equal(sensor.mount, [0.0, 0.0, 0.1])
+    assert to_dict(config)["model"] == "hdl32e"
 
 
 @pytest.mark.parametrize(

@@ -4,8 +4,9 @@ Sensor-true augmentation (``self_occlusion.mode: sensor``, ``external_occlusion.
 renders inserted objects through this model, so that they carry the frame's scan lines and the
 density its sensor gives at their distance. A beam ``b`` is a cone of rays leaving the point
 ``mount + (0, 0, offsets[b])`` at elevation ``elevations[b]`` above the horizontal, one ray per
-azimuth column ``c`` at ``azimuth = phase + c * azimuth_step``. Presets name real sensors; the
-synthetic world's sensor is the ``hdl64e`` preset. :mod:`drcpo.sensor_config` holds the config
+azimuth column ``c`` at ``azimuth = phase + c * azimuth_step``. Presets name real sensors
+(``hdl64e``: KITTI's; ``hdl32e``: nuScenes' LIDAR_TOP); the synthetic world's sensor is one of
+them. :mod:`drcpo.sensor_config` holds the config
 section ``drcpo.sensor`` and ``auto``, the sensor estimated from a frame's own points.
 
 Units: radians and metres throughout (the YAML keys say ``_deg`` where they take degrees).
@@ -22,7 +23,18 @@ import numpy as np
 
 from drcpo.errors import ConfigError
 
-__all__ = ["SENSOR_PRESETS", "Sensor", "hdl64e_elevations_deg", "sensor_preset"]
+__all__ = [
+    "HDL32E_MOUNT_HEIGHT",
+    "SENSOR_PRESETS",
+    "Sensor",
+    "hdl32e_elevations_deg",
+    "hdl64e_elevations_deg",
+    "sensor_preset",
+]
+
+#: Height of nuScenes' LIDAR_TOP above the ground, metres: its calibrated_sensor translation
+#: in the ego frame (origin on the ground under the rear axle) has z of about 1.84.
+HDL32E_MOUNT_HEIGHT = 1.84
 
 
 @functools.cache
@@ -35,6 +47,22 @@ def hdl64e_elevations_deg() -> tuple[float, ...]:
     upper = np.linspace(2.0, -8.33, 32)
     lower = np.linspace(-8.87, -24.9, 32)
     return tuple(float(round(v, 4)) for v in np.concatenate([upper, lower]))
+
+
+def hdl32e_elevations_deg() -> tuple[float, ...]:
+    """The 32 beam elevations (degrees) of a Velodyne HDL-32E, +10.67 down to -30.67.
+
+    The user manual's table of vertical angles (sorted, firing order aside): 4/3 degree apart,
+    laser 9 from the top level; the values as the manual rounds them.
+    """
+    return _HDL32E_ELEVATIONS_DEG
+
+
+_HDL32E_ELEVATIONS_DEG = (
+    *(10.67, 9.33, 8.0, 6.67, 5.33, 4.0, 2.67, 1.33, 0.0, -1.33, -2.67, -4.0, -5.33, -6.66),
+    *(-8.0, -9.33, -10.67, -12.0, -13.33, -14.67, -16.0, -17.33, -18.67, -20.0, -21.33),
+    *(-22.67, -24.0, -25.33, -26.66, -28.0, -29.33, -30.67),
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,8 +260,24 @@ def _hdl64e() -> Sensor:
     )
 
 
-#: Named sensors. ``hdl64e``: KITTI's Velodyne HDL-64E as the synthetic world models it.
-SENSOR_PRESETS = {"hdl64e": _hdl64e}
+def _hdl32e() -> Sensor:
+    return Sensor(
+        elevations=np.radians(hdl32e_elevations_deg()),
+        offsets=None,
+        # 20 Hz: one firing of the 32 lasers every 46.08 us, about 1085 per turn; nuScenes'
+        # sweeps hold about 1080 points per ring, so 1080 columns (1/3 degree)
+        azimuth_step=2.0 * math.pi / 1080,
+        range_noise=0.02,  # the spec's +-2 cm
+        max_range=100.0,  # the spec's usable returns
+        name="hdl32e",
+    )
+
+
+#: Named sensors. ``hdl64e``: KITTI's Velodyne HDL-64E as the synthetic world models it;
+#: ``hdl32e``: nuScenes' LIDAR_TOP, a Velodyne HDL-32E at 20 Hz (mounted about
+#: :data:`HDL32E_MOUNT_HEIGHT` metres above the ground; its points are in its own frame, so the
+#: mount is the origin).
+SENSOR_PRESETS = {"hdl32e": _hdl32e, "hdl64e": _hdl64e}
 
 
 def sensor_preset(name: str) -> Sensor:

@@ -425,8 +425,8 @@ class SensorConfig(Checked):
     """The config section ``drcpo.sensor``: which sensor recorded the frames.
 
     Attributes:
-        model: a preset (``hdl64e``), ``auto`` (estimated from each frame,
-            :func:`estimate_sensor`) or ``custom`` (``elevations_deg`` and
+        model: a preset (``hdl64e``: KITTI's; ``hdl32e``: nuScenes'), ``auto`` (estimated
+            from each frame, :func:`estimate_sensor`) or ``custom`` (``elevations_deg`` and
             ``azimuth_step_deg``).
         elevations_deg: ``custom`` only: the beam elevations, degrees, in any order.
         azimuth_step_deg: degrees between two firings of a beam (a preset's own when null;

@@ -19,7 +19,7 @@ from drcpo.synth.dataset import (
 )
 from drcpo.synth.raycast import Ground, RayHits, Scene
 from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
-from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, ray_grid
+from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, lidar_preset, ray_grid
 from drcpo.synth.solids import Solids
 from drcpo.synth.truth import (
     InsertedTruth,
@@ -55,6 +55,7 @@ __all__ = [
     "free_pose",
     "generate_world",
     "hdl64e_elevations",
+    "lidar_preset",
     "make_actor",
     "occlusion_level",
     "place_object",

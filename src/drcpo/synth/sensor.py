@@ -1,4 +1,5 @@
-"""A rotating multi-beam LiDAR, by default KITTI's Velodyne HDL-64E.
+"""A rotating multi-beam LiDAR, by default KITTI's Velodyne HDL-64E; :func:`lidar_preset`
+also gives nuScenes' 32-beam HDL-32E (``"hdl32e"``).
 
 The sensor sits at the origin of the LiDAR frame (x forward, y left, z up) and is mounted
 ``mount_height`` metres above the ground. One sweep fires every beam at every azimuth column.
@@ -12,9 +13,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drcpo.errors import ConfigError
-from drcpo.sensor import Sensor, hdl64e_elevations_deg
+from drcpo.sensor import (
+    HDL32E_MOUNT_HEIGHT,
+    Sensor,
+    hdl32e_elevations_deg,
+    hdl64e_elevations_deg,
+    sensor_preset,
+)
 
-__all__ = ["LidarConfig", "RayGrid", "hdl64e_elevations", "ray_grid"]
+__all__ = [
+    "LIDAR_PRESETS",
+    "LidarConfig",
+    "RayGrid",
+    "hdl64e_elevations",
+    "lidar_preset",
+    "ray_grid",
+]
 
 
 def hdl64e_elevations() -> tuple[float, ...]:
@@ -100,6 +114,36 @@ class LidarConfig:
             max_range=self.max_range,
             name="synthetic",
         )
+
+
+def _hdl32e() -> LidarConfig:
+    preset = sensor_preset("hdl32e")
+    return LidarConfig(
+        elevations_deg=hdl32e_elevations_deg(),
+        # the preset's whole number of columns (1080) per turn
+        azimuth_step_deg=360.0 / preset.num_columns,
+        mount_height=HDL32E_MOUNT_HEIGHT,
+        max_range=preset.max_range,
+        min_range=preset.min_range,
+        range_noise=preset.range_noise,
+        dropout=preset.dropout,
+    )
+
+
+#: The synthetic world's sensors by the name of the :mod:`drcpo.sensor` preset they emulate.
+LIDAR_PRESETS = {"hdl32e": _hdl32e, "hdl64e": LidarConfig}
+
+
+def lidar_preset(name: str) -> LidarConfig:
+    """The :class:`LidarConfig` emulating sensor preset ``name`` (``"hdl64e"``: KITTI's, the
+    default; ``"hdl32e"``: nuScenes' LIDAR_TOP, 32 beams, 1080 columns, 1.84 m above the
+    ground). Its :meth:`LidarConfig.sensor` fires the preset's beams and columns."""
+    try:
+        return LIDAR_PRESETS[name]()
+    except KeyError:
+        raise ConfigError(
+            f"unknown sensor {name!r}; presets: {', '.join(sorted(LIDAR_PRESETS))}"
+        ) from None
 
 
 @dataclass(frozen=True, eq=False)
