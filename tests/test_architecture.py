@@ -30,6 +30,8 @@ LAYERS: dict[str, int] = {
     "drcpo.sensor": 2,
     "drcpo.sensor_config": 2,
     "drcpo.datasets": 2,
+    "drcpo.datasets.nuscenes": 2,
+    "drcpo.datasets.nuscenes_writer": 2,
     "drcpo.viz": 2,
     "drcpo.occlusion": 3,
     "drcpo.database": 3,
