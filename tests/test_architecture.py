@@ -36,6 +36,7 @@ LAYERS: dict[str, int] = {
     "drcpo.occlusion": 3,
     "drcpo.database": 3,
     "drcpo.synth": 3,
+    "drcpo.synth.nuscenes": 3,
     "drcpo.evaluation": 3,
     "drcpo.construction": 4,
     "drcpo.index": 4,

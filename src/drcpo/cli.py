@@ -388,19 +388,28 @@ def augment(
     Console().print(table)
 
 
+SYNTH_LAYOUTS = ("kitti", "nuscenes")
+
+
 @app.command()
 def synth(
-    out: Annotated[Path, typer.Option("--out", help="KITTI root to create.")],
-    frames: Annotated[int, typer.Option(min=1, help="Frames to generate.")] = 10,
+    out: Annotated[Path, typer.Option("--out", help="Data root to create.")],
+    frames: Annotated[
+        int,
+        typer.Option(min=1, help="Frames to generate (nuscenes: key samples, in whole scenes)."),
+    ] = 10,
     seed: Annotated[
-        int, typer.Option(min=0, help="Random seed, >= 0 (frame i uses (seed, i)).")
+        int, typer.Option(min=0, help="Random seed, >= 0 (frame or scene i uses (seed, i)).")
     ] = 0,
     val_fraction: Annotated[
-        float, typer.Option(min=0.0, max=0.99, help="Share of frames listed in val.txt.")
+        float, typer.Option(min=0.0, max=0.99, help="kitti: share of frames listed in val.txt.")
     ] = 0.5,
     azimuth_step: Annotated[
-        float, typer.Option(min=0.01, max=10.0, help="LiDAR azimuth step, degrees.")
-    ] = 0.17,
+        float | None,
+        typer.Option(
+            min=0.01, max=10.0, help="kitti: LiDAR azimuth step, degrees (default: the sensor's)."
+        ),
+    ] = None,
     street_angle: Annotated[
         float | None,
         typer.Option(
@@ -410,13 +419,41 @@ def synth(
             "(default: 0.1 rad, about 5.7).",
         ),
     ] = None,
+    layout: Annotated[
+        str, typer.Option(help="kitti (KITTI object layout) or nuscenes (tables and sweeps).")
+    ] = "kitti",
+    sensor: Annotated[
+        str | None,
+        typer.Option(help="hdl64e or hdl32e (default: hdl64e for kitti, hdl32e for nuscenes)."),
+    ] = None,
+    scene_samples: Annotated[
+        int, typer.Option(min=1, max=100, help="nuscenes: key samples (2 Hz) per scene.")
+    ] = 5,
+    version: Annotated[
+        str, typer.Option(help="nuscenes: the table directory's name.")
+    ] = "v1.0-trainval",
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
 ) -> None:
-    """Generate a synthetic KITTI data set: a ray-cast HDL-64E in procedural streets."""
-    from drcpo.synth import LidarConfig, WorldConfig, write_synthetic_kitti
+    """Generate a synthetic data set: a ray-cast LiDAR (HDL-64E or 32-beam HDL-32E) in
+    procedural streets, in KITTI or nuScenes layout."""
+    from drcpo.synth import WorldConfig, lidar_preset
 
-    lidar = LidarConfig(azimuth_step_deg=azimuth_step)
-    world = None if street_angle is None else WorldConfig().with_street_angle(street_angle)
+    if layout not in SYNTH_LAYOUTS:
+        fail(f"--layout {layout!r} is not one of {', '.join(SYNTH_LAYOUTS)}")
+    sensor = sensor or ("hdl64e" if layout == "kitti" else "hdl32e")
+    lidar = lidar_preset(sensor)
+    world = WorldConfig() if street_angle is None else WorldConfig().with_street_angle(street_angle)
+    if layout == "nuscenes":
+        if azimuth_step is not None:
+            fail("--azimuth-step is for --layout kitti; nuscenes uses the sensor's own")
+        _synth_nuscenes(out, frames, seed, sensor, world, scene_samples, version, overwrite)
+        return
+    from dataclasses import replace
+
+    from drcpo.synth import write_synthetic_kitti
+
+    if azimuth_step is not None:
+        lidar = replace(lidar, azimuth_step_deg=azimuth_step)
     with progress_bar("synthetic frames") as progress:
         summary = write_synthetic_kitti(
             out, frames, seed, world, lidar, val_fraction, overwrite, progress
@@ -432,6 +469,38 @@ def synth(
     for level, count in sorted(summary["occlusion"].items()):
         table.add_row(f"occlusion level {level}", str(count))
     table.add_row("ms per frame", f"{summary['ms_per_frame']:.0f}")
+    Console().print(table)
+
+
+def _synth_nuscenes(
+    out: Path,
+    samples: int,
+    seed: int,
+    sensor: str,
+    world: Any,
+    scene_samples: int,
+    version: str,
+    overwrite: bool,
+) -> None:
+    """``drcpo synth --layout nuscenes``: ``samples`` key samples in scenes of
+    ``scene_samples`` each (rounded up to whole scenes)."""
+    from drcpo.synth.nuscenes import NuScenesSynthConfig, write_synthetic_nuscenes
+
+    scenes = -(-samples // scene_samples)
+    config = NuScenesSynthConfig(samples=min(samples, scene_samples), sensor=sensor, world=world)
+    with progress_bar("synthetic scenes") as progress:
+        summary = write_synthetic_nuscenes(out, scenes, seed, config, version, overwrite, progress)
+    points = summary["points"]
+    table = Table(title=f"{out}: {scenes} scenes, {summary['samples']} samples")
+    table.add_column("")
+    table.add_column("value", justify="right")
+    table.add_row("sweeps (20 Hz)", str(summary["sweeps"]))
+    spread = f"{min(points):,} / {sum(points) / len(points):,.0f} / {max(points):,}"
+    table.add_row("points per key sweep (min / mean / max)", spread)
+    for name, count in sorted(summary["objects"].items()):
+        table.add_row(f"boxes {name} (with points)", str(count))
+    table.add_row("moving objects", str(summary["moving"]))
+    table.add_row("ms per sweep", f"{summary['ms_per_sweep']:.0f}")
     Console().print(table)
 
 

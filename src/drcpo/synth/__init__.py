@@ -7,7 +7,8 @@ Modules: :mod:`.sensor` (sensor model), :mod:`.solids` (primitives), :mod:`.rayc
 :mod:`.actors` (Car, Pedestrian, Cyclist), :mod:`.world` (procedural street), :mod:`.scan`
 (sweeps and per-object visibility), :mod:`.truth` (visibility of arbitrary points; the truth
 of an inserted object: its returns, what it hides, the ground under it, solids it cuts into),
-:mod:`.dataset` (KITTI data sets).
+:mod:`.dataset` (KITTI data sets), :mod:`.nuscenes` (nuScenes-style data sets: scenes of key
+samples and 20 Hz sweeps from a 32-beam sensor on a moving car, moving actors).
 """
 
 from drcpo.synth.actors import CLASSES, Actor, make_actor
@@ -17,6 +18,7 @@ from drcpo.synth.dataset import (
     synthesize_frame,
     write_synthetic_kitti,
 )
+from drcpo.synth.nuscenes import NuScenesSynthConfig, synthesize_scene, write_synthetic_nuscenes
 from drcpo.synth.raycast import Ground, RayHits, Scene
 from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
 from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, lidar_preset, ray_grid
@@ -40,6 +42,7 @@ __all__ = [
     "Ground",
     "InsertedTruth",
     "LidarConfig",
+    "NuScenesSynthConfig",
     "PlacedObjectTruth",
     "RayGrid",
     "RayHits",
@@ -63,9 +66,11 @@ __all__ = [
     "scan",
     "solids_in_box",
     "synthesize_frame",
+    "synthesize_scene",
     "true_ground_height",
     "true_inserted_returns",
     "true_object_returns",
     "visible_points",
     "write_synthetic_kitti",
+    "write_synthetic_nuscenes",
 ]
