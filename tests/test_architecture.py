@@ -32,6 +32,7 @@ LAYERS: dict[str, int] = {
     "drcpo.datasets": 2,
     "drcpo.datasets.nuscenes": 2,
     "drcpo.datasets.nuscenes_writer": 2,
+    "drcpo.datasets.nuscenes_infos": 4,
     "drcpo.viz": 2,
     "drcpo.occlusion": 3,
     "drcpo.database": 3,
