@@ -209,11 +209,11 @@ def _readers(root):
 
 
 @pytest.mark.parametrize("kind", ["openpcdet", "mmdet3d"])
-@pytest.mark.parametrize("sweeps", [0, 4, 9])
-def test_infos_give_the_frames_the_tables_give(data, kind, sweeps):
+@pytest.mark.parametrize(("sweeps", "close"), [(0, 0.0), (4, 0.0), (9, 0.0), (9, 1.0)])
+def test_infos_give_the_frames_the_tables_give(data, kind, sweeps, close):
     root, _, _, _ = data
-    tables = NuScenesDataset(root, VERSION, sweeps=sweeps)
-    infos = _readers(root)[kind](sweeps=sweeps)
+    tables = NuScenesDataset(root, VERSION, sweeps=sweeps, remove_close=close)
+    infos = _readers(root)[kind](sweeps=sweeps, remove_close=close)
     assert infos.frame_ids == tables.frame_ids
     for token in tables.frame_ids:
         ours, theirs = tables.frame(token), infos.frame(token)

@@ -259,3 +259,20 @@ def test_drcpo_synth_kitti_with_the_32_beam_sensor(tmp_path):
     points = KittiDataset(out, "trainval").frame("000000").points
     beam, _, _ = sensor_preset("hdl32e").cells(points)
     assert (beam >= 0).all() and len(np.unique(beam)) == 32
+
+
+def test_frames_pass_validation_and_cut_into_database_records(synthetic):
+    """What the database builder takes: valid frames whose objects' points (5 columns) are
+    cut out per box: at least the frame's num_points_in_gt of them (the builder's rule,
+    OpenPCDet's, adds 1 cm around the tight box, where the synthetic objects' sides are)."""
+    from drcpo.database.build import frame_records
+
+    root, _, _ = synthetic
+    dataset = NuScenesDataset(root, VERSION)
+    frame = dataset.frame(dataset.frame_ids[2]).validate()
+    records = frame_records(frame)
+    assert len(records) == len(frame.boxes)
+    assert all(r.points.shape[1] == 5 for r in records)
+    counts = np.array([len(r.points) for r in records])
+    assert (counts >= frame.metadata["num_points_in_gt"]).all() and counts.min() > 0
+    assert [r.name for r in records] == frame.names.tolist()

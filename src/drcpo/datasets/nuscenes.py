@@ -51,6 +51,8 @@ __all__ = [
     "NuScenesDataset",
     "NuScenesTables",
     "boxes_to_sensor",
+    "check_sweep_arguments",
+    "drop_close",
     "pose_matrix",
     "read_pcd_bin",
     "rotation_matrix",
@@ -169,6 +171,32 @@ def _finite(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
     if array is None or array.shape != shape or not np.isfinite(array).all():
         raise DataError(f"{where}: expected {math.prod(shape)} finite numbers, got {value!r}")
     return array
+
+
+def drop_close(points: np.ndarray, radius: float) -> np.ndarray:
+    """``points`` less those within ``radius`` metres of their sensor in x and in y (a square,
+    as OpenPCDet's ``remove_ego_points`` and MMDetection3D's ``remove_close`` cut the car's
+    own returns out of earlier sweeps); all of them for ``radius`` 0."""
+    if radius <= 0.0:
+        return points
+    close = (np.abs(points[:, 0]) < radius) & (np.abs(points[:, 1]) < radius)
+    return points[~close]
+
+
+def check_sweep_arguments(sweeps: Any, remove_close: Any, classes: Sequence[str]) -> None:
+    """:class:`DataError` unless ``sweeps`` is an integer from 0 to 30, ``remove_close`` a
+    finite number >= 0 and ``classes`` a non-empty subset of :data:`NUSCENES_CLASSES`."""
+    if isinstance(sweeps, bool) or not isinstance(sweeps, int) or not 0 <= sweeps <= 30:
+        raise DataError(f"sweeps must be an integer from 0 to 30, got {sweeps!r}")
+    number = isinstance(remove_close, (int, float)) and not isinstance(remove_close, bool)
+    if not number or not (math.isfinite(remove_close) and remove_close >= 0):
+        raise DataError(f"remove_close must be a finite number >= 0 (metres), got {remove_close!r}")
+    unknown = sorted(set(classes) - set(NUSCENES_CLASSES))
+    if unknown or not classes:
+        raise DataError(
+            f"classes {unknown or list(classes)} not among the nuScenes detection classes "
+            f"({', '.join(NUSCENES_CLASSES)})"
+        )
 
 
 # Files ---------------------------------------------------------------------------------------
@@ -331,6 +359,8 @@ class NuScenesDataset:
             each key sweep, 0 to 30; fewer at a scene's start.
         classes: detection classes to keep (of :data:`NUSCENES_CLASSES`).
         keep_empty: keep boxes with no LiDAR and no radar point (the frameworks drop them).
+        remove_close: drop the points of earlier sweeps within this many metres of their sensor
+            in x and y (:func:`drop_close`; the frameworks' pipelines use 1.0), 0: keep all.
 
     ``frame_ids`` are sample tokens, scene by scene, in time order. ``frame(token)``: points
     ``float32 (N, 5)``: x, y, z, intensity (0-255), then the ring index (``sweeps=0``) or the
@@ -342,8 +372,6 @@ class NuScenesDataset:
     ``lidar_path``.
     """
 
-    MAX_SWEEPS = 30
-
     def __init__(
         self,
         root: str | os.PathLike,
@@ -352,17 +380,9 @@ class NuScenesDataset:
         sweeps: int = 0,
         classes: Sequence[str] = NUSCENES_CLASSES,
         keep_empty: bool = False,
+        remove_close: float = 0.0,
     ) -> None:
-        if isinstance(sweeps, bool) or not isinstance(sweeps, int) or not 0 <= sweeps <= 30:
-            raise DataError(
-                f"sweeps must be an integer from 0 to {self.MAX_SWEEPS}, got {sweeps!r}"
-            )
-        unknown = sorted(set(classes) - set(NUSCENES_CLASSES))
-        if unknown or not classes:
-            raise DataError(
-                f"classes {unknown or list(classes)} not among the nuScenes detection classes "
-                f"({', '.join(NUSCENES_CLASSES)})"
-            )
+        check_sweep_arguments(sweeps, remove_close, classes)
         if isinstance(scenes, str):
             raise DataError(f"scenes must be a list of scene names, got the string {scenes!r}")
         self.root = Path(root)
@@ -370,6 +390,7 @@ class NuScenesDataset:
         self.sweeps = sweeps
         self.classes = tuple(classes)
         self.keep_empty = keep_empty
+        self.remove_close = float(remove_close)
         self.scene_tokens = self._select_scenes(scenes)
         self.frame_ids: list[str] = []
         self.scene_of: dict[str, str] = {}
@@ -450,7 +471,7 @@ class NuScenesDataset:
             parts = [points.copy()]
             parts[0][:, 4] = 0.0
             for token, lag in self._earlier_sweeps(key):
-                sweep = read_pcd_bin(self.points_path(token))
+                sweep = drop_close(read_pcd_bin(self.points_path(token)), self.remove_close)
                 to_key = global_to_key @ t.sensor_to_global(token)
                 xyz = sweep[:, :3].astype(np.float64) @ to_key[:3, :3].T + to_key[:3, 3]
                 sweep[:, :3] = xyz.astype(np.float32)

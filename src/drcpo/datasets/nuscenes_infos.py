@@ -39,7 +39,12 @@ from typing import Any
 import numpy as np
 
 from drcpo.database import safe_pickle
-from drcpo.datasets.nuscenes import NUSCENES_CLASSES, read_pcd_bin
+from drcpo.datasets.nuscenes import (
+    NUSCENES_CLASSES,
+    check_sweep_arguments,
+    drop_close,
+    read_pcd_bin,
+)
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 
@@ -56,9 +61,9 @@ class NuScenesInfos:
             fewer).
         classes: detection classes to keep.
         keep_empty: keep boxes with no LiDAR and no radar point.
+        remove_close: drop the points of earlier sweeps within this many metres of their sensor
+            in x and y (:func:`~drcpo.datasets.nuscenes.drop_close`), 0: keep all.
     """
-
-    MAX_SWEEPS = 30
 
     def __init__(
         self,
@@ -67,22 +72,15 @@ class NuScenesInfos:
         sweeps: int = 0,
         classes: Sequence[str] = NUSCENES_CLASSES,
         keep_empty: bool = False,
+        remove_close: float = 0.0,
     ) -> None:
-        if isinstance(sweeps, bool) or not isinstance(sweeps, int) or not 0 <= sweeps <= 30:
-            raise DataError(
-                f"sweeps must be an integer from 0 to {self.MAX_SWEEPS}, got {sweeps!r}"
-            )
-        unknown = sorted(set(classes) - set(NUSCENES_CLASSES))
-        if unknown or not classes:
-            raise DataError(
-                f"classes {unknown or list(classes)} not among the nuScenes detection classes "
-                f"({', '.join(NUSCENES_CLASSES)})"
-            )
+        check_sweep_arguments(sweeps, remove_close, classes)
         self.path = Path(infos_pkl)
         self.root = Path(root) if root is not None else self.path.parent
         self.sweeps = sweeps
         self.classes = tuple(classes)
         self.keep_empty = keep_empty
+        self.remove_close = float(remove_close)
         self.infos = self._samples(safe_pickle.load(self.path))
         self.frame_ids: list[str] = []
         self._index: dict[str, int] = {}
@@ -125,7 +123,7 @@ class NuScenesInfos:
             parts = [points.copy()]
             parts[0][:, 4] = 0.0
             for path, to_key, lag in self._sweep_list(info, where):
-                sweep = read_pcd_bin(path)
+                sweep = drop_close(read_pcd_bin(path), self.remove_close)
                 xyz = sweep[:, :3].astype(np.float64) @ to_key[:3, :3].T + to_key[:3, 3]
                 sweep[:, :3] = xyz.astype(np.float32)
                 sweep[:, 4] = lag
@@ -242,11 +240,12 @@ class MMDet3DNuScenesInfos(NuScenesInfos):
         sweeps: int = 0,
         classes: Sequence[str] = NUSCENES_CLASSES,
         keep_empty: bool = False,
+        remove_close: float = 0.0,
         points_prefix: str = "samples/LIDAR_TOP",
         sweeps_prefix: str = "sweeps/LIDAR_TOP",
     ) -> None:
         self.points_prefix, self.sweeps_prefix = points_prefix, sweeps_prefix
-        super().__init__(infos_pkl, root, sweeps, classes, keep_empty)
+        super().__init__(infos_pkl, root, sweeps, classes, keep_empty, remove_close)
 
     def _samples(self, data: Any) -> list[dict[str, Any]]:
         where = str(self.path)
