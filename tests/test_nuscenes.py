@@ -161,6 +161,18 @@ def test_frame_ids_are_the_samples_scene_by_scene(written):
     assert second.frame_ids == dataset.frame_ids[4:]
 
 
+def test_a_split_file_names_the_scenes(written, tmp_path):
+    root, _ = written
+    split = tmp_path / "val.txt"
+    split.write_text("# the val split\nscene-0001\n\nscene-0000\n")
+    dataset = NuScenesDataset(root, VERSION, scenes=split)
+    everything = NuScenesDataset(root, VERSION).frame_ids
+    assert dataset.frame_ids == everything[4:] + everything[:4]
+    split.write_text("# nothing\n")
+    with pytest.raises(DataError, match="val.txt: the scene list names no scene"):
+        NuScenesDataset(root, VERSION, scenes=str(split))
+
+
 def test_boxes_come_back_in_the_lidar_frame(written):
     """Each box against a naive per-box reference: centre moved by the 4x4 inverse pose,
     heading from the rotated box x axis, size w, l, h -> l, w, h."""
@@ -564,7 +576,7 @@ def test_sweeps_out_of_time_order_are_named(copy):
         ({"remove_close": float("nan")}, "remove_close must be a finite number >= 0"),
         ({"classes": ["Car"]}, r"classes \['Car'\] not among the nuScenes detection classes"),
         ({"classes": []}, "not among"),
-        ({"scenes": "scene-0000"}, "must be a list of scene names"),
+        ({"scenes": "no_such_split.txt"}, "no_such_split.txt: cannot read the scene list"),
         ({"scenes": ["scene-9"]}, r"scene.json: no scene named 'scene-9' \(have: scene-0000"),
     ],
 )

@@ -55,6 +55,7 @@ __all__ = [
     "drop_close",
     "pose_matrix",
     "read_pcd_bin",
+    "read_scene_list",
     "rotation_matrix",
     "yaw_quaternion",
 ]
@@ -224,6 +225,18 @@ def read_pcd_bin(path: str | os.PathLike) -> np.ndarray:
     return points
 
 
+def read_scene_list(path: str | os.PathLike) -> list[str]:
+    """Scene names, one a line (blank lines and ``#`` comments skipped), from a split file."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataError(f"{path}: cannot read the scene list ({exc})") from exc
+    names = [line.strip() for line in lines if line.strip() and not line.startswith("#")]
+    if not names:
+        raise DataError(f"{path}: the scene list names no scene")
+    return names
+
+
 class NuScenesTables:
     """The JSON tables of one version, indexed by token (only the :data:`REQUIRED_TABLES`).
 
@@ -353,7 +366,9 @@ class NuScenesDataset:
     Args:
         root: the data root (holding ``samples/``, ``sweeps/`` and ``<version>/``).
         version: the table directory, e.g. ``v1.0-trainval`` or ``v1.0-mini``.
-        scenes: names (or tokens) of the scenes to read, in the order given; ``None``: every
+        scenes: names (or tokens) of the scenes to read, in the order given, or a split: a text
+            file of scene names, one a line (e.g. the devkit's ``splits.val`` written out);
+            ``None``: every
             scene in ``scene.json`` order.
         sweeps: how many earlier sweeps (following the sample_data ``prev`` chain) to join to
             each key sweep, 0 to 30; fewer at a scene's start.
@@ -376,15 +391,15 @@ class NuScenesDataset:
         self,
         root: str | os.PathLike,
         version: str = "v1.0-trainval",
-        scenes: Sequence[str] | None = None,
+        scenes: Sequence[str] | str | os.PathLike | None = None,
         sweeps: int = 0,
         classes: Sequence[str] = NUSCENES_CLASSES,
         keep_empty: bool = False,
         remove_close: float = 0.0,
     ) -> None:
         check_sweep_arguments(sweeps, remove_close, classes)
-        if isinstance(scenes, str):
-            raise DataError(f"scenes must be a list of scene names, got the string {scenes!r}")
+        if isinstance(scenes, (str, os.PathLike)):
+            scenes = read_scene_list(scenes)
         self.root = Path(root)
         self.tables = NuScenesTables(root, version)
         self.sweeps = sweeps
@@ -571,12 +586,13 @@ class NuScenesDataset:
         if ends[0] is None and ends[1] is None:
             return np.full(3, np.nan)
         first, last = (end if end is not None else here for end in ends)
-        times = [
-            t.timestamp(
-                "sample", t.link("sample_annotation", r["token"], "sample_token", "sample")["token"]
-            )
-            for r in (first, last)
-        ]
+
+        def sample_time(record: dict[str, Any]) -> int:
+            sample = t.link("sample_annotation", record["token"], "sample_token", "sample")
+            return t.timestamp("sample", sample["token"])
+
+        times = [sample_time(first), sample_time(last)]
+        # microseconds subtracted before scaling: the devkit scales first, about 1e-7 s worse
         gap = (times[1] - times[0]) * _MICROSECONDS
         limit = MAX_VELOCITY_GAP * (2 if ends[0] is not None and ends[1] is not None else 1)
         if gap > limit:
