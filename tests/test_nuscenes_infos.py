@@ -390,3 +390,11 @@ def test_sweeps_found_by_name_as_mmdet3d_finds_them(data):
     frame = reader.frame(dataset.frame_ids[2])
     assert len(frame.metadata["sweep_time_lags"]) == 11
     assert math.isclose(frame.metadata["sweep_time_lags"][10], 0.5, abs_tol=1e-6)
+
+
+def test_the_key_sweeps_path_is_relative_to_the_root(data):
+    root, dataset, _, _ = data
+    token = dataset.frame_ids[0]
+    expected = dataset.frame(token).metadata["lidar_path"]
+    for make in _readers(root).values():
+        assert make().frame(token).metadata["lidar_path"] == expected

@@ -142,7 +142,7 @@ class NuScenesInfos:
             "point_features": ("intensity", "time_lag" if self.sweeps else "ring"),
             "sweep_origins": np.array(origins, dtype=np.float64),
             "sweep_time_lags": np.array(lags, dtype=np.float64),
-            "lidar_path": str(key_path),
+            "lidar_path": str(key_path.relative_to(self.root)),
         }
         return Frame(points=points, boxes=boxes[keep], names=names[keep], metadata=metadata)
 
