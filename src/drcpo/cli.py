@@ -241,6 +241,11 @@ def info(
     Console().print(class_table(summary, f"{db} ({len(database)} objects)"))
 
 
+CLUSTER_HELP = (
+    "Spread the work over a Ray cluster (pip install drcpo[ray]): 'local' starts one on this "
+    "machine, else a running cluster's address (every node sees the same paths). The output is "
+    "the same as without it."
+)
 INDEX_CONFIG_HELP = (
     "YAML config file, or a preset: the index is built with its `index` section and the "
     "partition grids and mirrored classes of its drcpo.construction, so that DR.CPO with this "
@@ -365,8 +370,16 @@ def augment(
     fov: Annotated[bool, typer.Option(help="Cut frames to the camera field of view first.")] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
     verify: Annotated[bool, typer.Option(help=VERIFY_HELP)] = True,
+    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
+    workers: Annotated[
+        int, typer.Option(min=1, help="With --cluster: the workers (actors) augmenting frames.")
+    ] = 2,
 ) -> None:
-    """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame."""
+    """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame.
+
+    Resumable: each frame is written atomically into a staging directory beside OUT, so the
+    same command run again after an interruption augments only the frames still missing.
+    """
     from drcpo.config import load_config
     from drcpo.database import GroundTruthDatabase
     from drcpo.datasets.export import augment_kitti
@@ -375,8 +388,16 @@ def augment(
     settings = load_config(config)
     database = GroundTruthDatabase.open(db, verify=verify)
     transform = build_pipeline(settings, database, kind=pipeline)
+    run: Callable[..., dict[str, Any]] = augment_kitti
+    if cluster is not None:
+        from functools import partial
+
+        from drcpo.distributed import augment_kitti_cluster, require_ray
+
+        require_ray()
+        run = partial(augment_kitti_cluster, cluster=cluster, workers=workers)
     with progress_bar(f"frames of {split}") as progress:
-        summary = augment_kitti(
+        summary = run(
             kitti, split, transform, out, frames, seed, fov, overwrite, progress, inputs=[db]
         )
     table = Table(title=f"{out}: {summary['frames']} frames, {summary['points']} points")
@@ -385,6 +406,10 @@ def augment(
     for name, count in sorted(summary["boxes"].items()):
         table.add_row(name, str(count))
     table.add_row("[bold]ms per frame (median)", f"{summary['median_ms']:.1f}")
+    if summary.get("resumed"):
+        table.add_row("frames resumed from an earlier run", str(summary["resumed"]))
+    if "cluster" in summary:
+        table.add_row("cluster", f"{summary['cluster']['address']}, {workers} workers")
     Console().print(table)
 
 

@@ -1,0 +1,11 @@
+"""Data-set-wide work spread over a Ray cluster (the optional extra ``drcpo[ray]``): offline
+generation (:func:`augment_kitti_cluster`), the database (:func:`build_database_cluster`) and the
+index (:func:`build_index_cluster`), each giving the same bytes as one process. A local cluster by
+default, a cluster's address when given (:func:`connect`)."""
+
+from __future__ import annotations
+
+from drcpo.distributed.augment import augment_kitti_cluster
+from drcpo.distributed.cluster import Cluster, connect, require_ray
+
+__all__ = ["Cluster", "augment_kitti_cluster", "connect", "require_ray"]
