@@ -180,3 +180,89 @@ def test_a_killed_cluster_run_resumes(kitti, database, reference, tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     assert tree_bytes(out) == tree_bytes(reference / "drcpo")
     assert done >= 2
+
+
+# build-db and index ---------------------------------------------------------------------------
+def test_cluster_build_db_equals_one_process(cluster, kitti, database, tmp_path):
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+    from drcpo.database import GroundTruthDatabase
+    from drcpo.distributed import build_database_cluster
+
+    seen = []
+    db = build_database_cluster(
+        kitti,
+        "train",
+        tmp_path / "db",
+        ["Car"],
+        progress=lambda d, t: seen.append(d),
+        cluster=cluster,
+    )
+    assert seen == list(range(1, 9))
+    assert db.checksum == GroundTruthDatabase.open(database).checksum
+    one = {k: v for k, v in tree_bytes(database).items() if not k.startswith("index/")}
+    assert tree_bytes(tmp_path / "db") == one
+    args = ["build-db", "--kitti", str(kitti), "--out", str(tmp_path / "cli"), "--classes", "Car"]
+    result = CliRunner().invoke(app, [*args, "--cluster", "local", "--workers", "2"])
+    assert result.exit_code == 0, result.output
+    assert tree_bytes(tmp_path / "cli") == one
+
+
+def many_objects(seed: int = 3):
+    """A database of 300 cars and 120 pedestrians of random sizes and points (many blocks)."""
+    import numpy as np
+
+    from drcpo.database import GroundTruthDatabase, ObjectRecord
+
+    rng = np.random.default_rng(seed)
+    records = []
+    for name, count, size in (("Car", 300, (4.0, 1.7, 1.5)), ("Pedestrian", 120, (0.8, 0.6, 1.7))):
+        for _ in range(count):
+            dims = np.asarray(size) * rng.uniform(0.8, 1.2, 3)
+            points = (rng.uniform(-0.5, 0.5, (int(rng.integers(6, 80)), 3)) * dims).astype(
+                np.float32
+            )
+            points = np.column_stack([points, rng.uniform(0, 1, len(points))]).astype(np.float32)
+            records.append(ObjectRecord(points, name, np.r_[0.0, 0.0, 0.0, dims, 0.0]))
+    return GroundTruthDatabase.from_records(records)
+
+
+@pytest.mark.parametrize("approximate_above", [None, 100])
+def test_cluster_index_equals_one_process(cluster, tmp_path, approximate_above):
+    import numpy as np
+
+    from drcpo.database import GroundTruthDatabase
+    from drcpo.distributed import build_index_cluster
+    from drcpo.index import IndexConfig, build_index
+
+    many_objects().save(tmp_path / "db")
+    database = GroundTruthDatabase.open(tmp_path / "db")
+    config = IndexConfig(k=20, block_size=16, approximate_above=approximate_above, workers=1)
+    one = build_index(database, config)
+    seen: dict[str, list[int]] = {}
+    spread = build_index_cluster(
+        database, config, lambda name, d, t: seen.setdefault(name, []).append(d), cluster=cluster
+    )
+    assert seen["Car"][-1] == 300 and len(seen["Car"]) == 300 // 16 + 1
+    assert np.array_equal(one.candidates, spread.candidates)
+    assert np.array_equal(one.densities, spread.densities)
+    assert (one.candidates[:, 0] >= 0).all()  # every object got candidates
+    assert one.classes == spread.classes
+    one.save(tmp_path / "one")
+    spread.save(tmp_path / "spread")
+    assert tree_bytes(tmp_path / "one") == tree_bytes(tmp_path / "spread")
+
+
+def test_cli_index_on_the_cluster(cluster, database, tmp_path):
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+
+    db = tmp_path / "db"
+    shutil.copytree(database, db)
+    result = CliRunner().invoke(
+        app, ["index", str(db), "--overwrite", "--cluster", "local", "--workers", "2"]
+    )
+    assert result.exit_code == 0, result.output
+    assert tree_bytes(db / "index") == tree_bytes(database / "index")

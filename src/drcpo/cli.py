@@ -37,6 +37,11 @@ VERIFY_HELP = (
     "Check the database's files against its manifest checksum (and for NaN/inf) on opening; "
     "--no-verify skips it for huge databases verified once already."
 )
+CLUSTER_HELP = (
+    "Spread the work over a Ray cluster (pip install drcpo[ray]): 'local' starts one on this "
+    "machine, else a running cluster's address (every node sees the same paths). The output is "
+    "the same as without it."
+)
 
 
 def say_error(message: str) -> None:
@@ -160,17 +165,27 @@ def build_db(
             "non-DontCare class. Default: Car Pedestrian Cyclist."
         ),
     ] = None,
-    workers: Annotated[int, typer.Option(min=1, help="Processes reading frames.")] = 1,
+    workers: Annotated[
+        int, typer.Option(min=1, help="Processes reading frames (with --cluster: its workers).")
+    ] = 1,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
+    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
 ) -> None:
     """Build a ground-truth database from a KITTI split."""
     from drcpo.database.build import build_database
 
     chosen = _class_list(classes, list(ctx.args))
     with progress_bar(f"frames of {split}") as progress:
-        database = build_database(
-            kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
-        )
+        if cluster is None:
+            database = build_database(
+                kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
+            )
+        else:
+            from drcpo.distributed import build_database_cluster
+
+            database = build_database_cluster(
+                kitti, split, out, chosen, overwrite, progress, cluster, workers
+            )
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -241,11 +256,6 @@ def info(
     Console().print(class_table(summary, f"{db} ({len(database)} objects)"))
 
 
-CLUSTER_HELP = (
-    "Spread the work over a Ray cluster (pip install drcpo[ray]): 'local' starts one on this "
-    "machine, else a running cluster's address (every node sees the same paths). The output is "
-    "the same as without it."
-)
 INDEX_CONFIG_HELP = (
     "YAML config file, or a preset: the index is built with its `index` section and the "
     "partition grids and mirrored classes of its drcpo.construction, so that DR.CPO with this "
@@ -291,9 +301,11 @@ def index(
         ),
     ] = None,
     workers: Annotated[
-        int | None, typer.Option(min=1, help="Threads (default: all cores).")
+        int | None,
+        typer.Option(min=1, help="Threads (default: all cores); with --cluster: its workers (2)."),
     ] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing index.")] = False,
+    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
 ) -> None:
     """Index every object's K best candidates (DR.CPO pre-processing).
 
@@ -316,7 +328,7 @@ def index(
         "min_points": min_points,
         "exclude_difficulty": exclude_difficulty,
         "approximate_above": approximate_above,
-        "workers": workers,
+        "workers": workers if cluster is None else None,
     }
     given = {key: value for key, value in options.items() if value is not None}
     settings = dataclasses.replace(settings, **given)
@@ -331,7 +343,12 @@ def index(
             done[name] = objects
             bar(sum(done.values()), total)
 
-        result = build_index(database, settings, progress=progress)
+        if cluster is None:
+            result = build_index(database, settings, progress=progress)
+        else:
+            from drcpo.distributed import build_index_cluster
+
+            result = build_index_cluster(database, settings, progress, cluster, workers or 2)
         path = result.save(db, overwrite=overwrite)
     seconds = time.perf_counter() - start
     table = Table(title=f"{path} (K = {settings.k}, {seconds:.1f} s)")

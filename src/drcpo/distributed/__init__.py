@@ -6,6 +6,16 @@ default, a cluster's address when given (:func:`connect`)."""
 from __future__ import annotations
 
 from drcpo.distributed.augment import augment_kitti_cluster
-from drcpo.distributed.cluster import Cluster, connect, require_ray
+from drcpo.distributed.build import build_database_cluster
+from drcpo.distributed.cluster import Cluster, WorkerLost, connect, require_ray
+from drcpo.distributed.index import build_index_cluster
 
-__all__ = ["Cluster", "augment_kitti_cluster", "connect", "require_ray"]
+__all__ = [
+    "Cluster",
+    "WorkerLost",
+    "augment_kitti_cluster",
+    "build_database_cluster",
+    "build_index_cluster",
+    "connect",
+    "require_ray",
+]

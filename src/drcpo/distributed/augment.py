@@ -116,9 +116,9 @@ def augment_kitti_cluster(
         try:
             ready = ray.get([actor.info.remote() for actor in actors])
             report["startup_s"] = time.perf_counter() - start
-            yield from run_on_actors(
-                actors, lambda a, n: a.augment.remote(str(staging), n), numbers
-            )
+            work = run_on_actors(actors, lambda a, n: a.augment.remote(str(staging), n), numbers)
+            for _, number in work:
+                yield number
             final = ray.get([actor.info.remote() for actor in actors])
             report["workers"] = [
                 {**first, "peak_rss_mb": last["peak_rss_mb"]}

@@ -23,6 +23,7 @@ __all__ = [
     "Cluster",
     "WorkerLost",
     "connect",
+    "in_order",
     "kill_actors",
     "peak_rss_mb",
     "require_ray",
@@ -122,23 +123,29 @@ def run_on_actors(
     call: Callable[[Any, Any], Any],
     items: Iterable[Any],
     ahead: int = 2,
-) -> Iterator[Any]:
+) -> Iterator[tuple[int, Any]]:
     """``call(actor, item)`` (an actor method's ``.remote``) for each item, handed out in order
     to whichever actor is free, ``ahead`` queued per actor so none waits between items; yields
-    each result as it arrives (completion order). An error raised by the work is raised here
-    as itself (not Ray's wrapper); a lost actor raises :class:`WorkerLost`."""
+    ``(position of the item, result)`` as results arrive (completion order; :func:`in_order`
+    restores item order). An error raised by the work is raised here as itself (not Ray's
+    wrapper); a lost actor raises :class:`WorkerLost`."""
     ray = require_ray()
     from ray.exceptions import RayActorError, RayTaskError
 
-    queue = list(items)[::-1]
-    pending: dict[Any, Any] = {}
+    queue = list(enumerate(items))[::-1]
+    pending: dict[Any, tuple[Any, int]] = {}
+
+    def submit(actor: Any) -> None:
+        position, item = queue.pop()
+        pending[call(actor, item)] = (actor, position)
+
     for actor in actors:
         for _ in range(ahead):
             if queue:
-                pending[call(actor, queue.pop())] = actor
+                submit(actor)
     while pending:
         (ready,), _ = ray.wait(list(pending), num_returns=1)
-        actor = pending.pop(ready)
+        actor, position = pending.pop(ready)
         try:
             result = ray.get(ready)
         except RayTaskError as exc:
@@ -152,8 +159,19 @@ def run_on_actors(
                 "continue from what was written"
             ) from exc
         if queue:
-            pending[call(actor, queue.pop())] = actor
-        yield result
+            submit(actor)
+        yield position, result
+
+
+def in_order(results: Iterable[tuple[int, Any]]) -> Iterator[Any]:
+    """The results of :func:`run_on_actors` in item order (later ones held until their turn)."""
+    held: dict[int, Any] = {}
+    nxt = 0
+    for position, result in results:
+        held[position] = result
+        while nxt in held:
+            yield held.pop(nxt)
+            nxt += 1
 
 
 def kill_actors(actors: list[Any]) -> None:
