@@ -94,7 +94,8 @@ def augment_kitti_cluster(
     (a registered transform) over its database opened from disk (``database.path``) and, when it
     holds a candidate index, the index at ``index_path`` (default ``database.path / "index"``).
     The summary adds ``cluster``: the address, ``startup_s`` (connecting, starting the actors
-    and warming them up) and per worker its :meth:`FrameWorker.info`. A cluster this call
+    and warming them up), ``frames_s`` (from then to the last frame written) and per worker its
+    :meth:`FrameWorker.info`. A cluster this call
     started is shut down at its end; a :class:`~drcpo.distributed.cluster.Cluster` passed in
     stays up.
     """
@@ -116,9 +117,11 @@ def augment_kitti_cluster(
         try:
             ready = ray.get([actor.info.remote() for actor in actors])
             report["startup_s"] = time.perf_counter() - start
+            ready_at = time.perf_counter()
             work = run_on_actors(actors, lambda a, n: a.augment.remote(str(staging), n), numbers)
             for _, number in work:
                 yield number
+            report["frames_s"] = time.perf_counter() - ready_at
             final = ray.get([actor.info.remote() for actor in actors])
             report["workers"] = [
                 {**first, "peak_rss_mb": last["peak_rss_mb"]}
