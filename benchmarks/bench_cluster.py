@@ -12,9 +12,11 @@ process (so peak RSS is its own) on the same frames, config and seed:
   ``augment_s`` from then to the last frame written (``total_s`` adds the shut-down). Peak
   RSS per worker (actor) as each reports it, and the driver's.
 
-``frames_per_s`` is frames / ``augment_s``. The two output trees are compared file by file
-(``timings.jsonl`` left out: the only file that holds timings). The machine's load (``uptime``)
-is printed before and after: on a shared machine it moves the figures.
+Both sides run with one BLAS thread (``OMP_NUM_THREADS=1``, ``OPENBLAS_NUM_THREADS=1``), as
+Ray gives its workers. ``frames_per_s`` is frames / ``augment_s``. The two output trees are
+compared file by file (``timings.jsonl`` left out: the only file that holds timings). The
+machine's load (``uptime``) is printed before and after: on a shared machine it moves the
+figures.
 
 Usage: ``python benchmarks/bench_cluster.py [--frames 48] [--workers 2] [--work DIR] [--quick]``;
 needs ``pip install -e ".[ray]"``. The last stdout line is one JSON object ``{"one": {...},
@@ -133,7 +135,10 @@ def main(argv: list[str] | None = None) -> dict:
     load_before = uptime()
     kitti, db = prepare(work, frames)
     sides = {}
-    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0"}
+    # One BLAS thread on both sides, as Ray gives its workers (OMP_NUM_THREADS=1): a threaded
+    # BLAS spins on the other core after each product (README, "Augmentation").
+    threads = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", **threads}
     for side in ("one", "cluster"):
         out = work / f"out-{side}"
         shutil.rmtree(out, ignore_errors=True)
