@@ -93,6 +93,48 @@ def test_without_ray_the_error_names_the_install(monkeypatch, kitti, tmp_path):
     with pytest.raises(ConfigError, match=r"pip install drcpo\[ray\]"):
         augment_kitti_cluster(kitti, "train", random_transform(), tmp_path / "out")
     assert list(tmp_path.iterdir()) == []
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+
+    args = ["build-db", "--kitti", str(kitti), "--out", str(tmp_path / "db"), "--cluster", "local"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 1 and "pip install drcpo[ray]" in result.output
+    assert "Traceback" not in result.output and list(tmp_path.iterdir()) == []
+
+
+# The work queue -------------------------------------------------------------------------------
+def test_work_comes_back_in_item_order_and_a_lost_worker_is_named(cluster):
+    import random
+
+    import ray
+
+    from drcpo.distributed.cluster import WorkerLost, in_order, kill_actors, run_on_actors
+    from drcpo.distributed.index import BlockRanker
+
+    def slow_square(item):  # pickled by value: the workers need no test module
+        time.sleep(random.uniform(0, 0.05))
+        return os.getpid(), item * item
+
+    actors = [ray.remote(BlockRanker).remote() for _ in range(2)]
+    try:
+        ray.get([a.load.remote(slow_square) for a in actors])
+        pairs = list(run_on_actors(actors, lambda a, i: a.rank.remote(i), range(20)))
+        assert sorted(p for p, _ in pairs) == list(range(20))
+        assert len({pid for _, (pid, _) in pairs}) == 2  # both workers took items
+        results = in_order(run_on_actors(actors, lambda a, i: a.rank.remote(i), range(20)))
+        assert [r for _, r in results] == [i * i for i in range(20)]
+
+        def dies_at_5(item):
+            if item == 5:
+                os._exit(1)
+            return item
+
+        ray.get([a.load.remote(dies_at_5) for a in actors])
+        with pytest.raises(WorkerLost, match="rerun the same command"):
+            list(run_on_actors(actors, lambda a, i: a.rank.remote(i), range(10)))
+    finally:
+        kill_actors(actors)
 
 
 # augment --------------------------------------------------------------------------------------

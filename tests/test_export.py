@@ -11,7 +11,7 @@ from export_support import random_transform, small_kitti, tree_bytes
 
 from drcpo.datasets.export import TIMINGS_FILE, augment_kitti
 from drcpo.errors import DataError, OutputError
-from drcpo.outputs import staging_path
+from drcpo.outputs import Interrupted, staging_path
 from drcpo.transforms import GlobalFlip
 
 
@@ -66,11 +66,18 @@ def test_a_stopped_run_resumes_and_ends_identical(kitti, reference, tmp_path, ex
         augment_kitti(kitti, "train", random_transform(), out, seed=5, progress=stop_after(2, exc))
     assert not out.exists()
     assert records_in(out) == ["00000000.json", "00000001.json"]
+    if isinstance(exc, KeyboardInterrupt):
+        with pytest.raises(Interrupted, match=r"kept in .*\.out\.staging: the same command"):
+            augment_kitti(
+                kitti, "train", random_transform(), out, seed=5, progress=stop_after(3, exc)
+            )
+        assert len(records_in(out)) == 3
     seen = []
     summary = augment_kitti(
         kitti, "train", random_transform(), out, seed=5, progress=lambda d, t: seen.append(d)
     )
-    assert summary["resumed"] == 2 and seen == [2, 3, 4, 5, 6]
+    resumed = 3 if isinstance(exc, KeyboardInterrupt) else 2
+    assert summary["resumed"] == resumed and seen == list(range(resumed, 7))
     assert tree_bytes(out) == tree_bytes(reference)
     assert not staging_path(out).exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

@@ -85,7 +85,13 @@ class Interrupted(KeyboardInterrupt):
     ``complete`` tells whether the output had already been moved into place.
     """
 
-    def __init__(self, path: str | os.PathLike, signum: int, complete: bool = False) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        signum: int,
+        complete: bool = False,
+        staging: str | os.PathLike | None = None,
+    ) -> None:
         self.path = Path(path)
         self.signum = int(signum)
         self.complete = complete
@@ -94,6 +100,8 @@ class Interrupted(KeyboardInterrupt):
             message = f"{path}: interrupted by {name} after the output was complete"
         else:
             message = f"{path}: interrupted by {name}; nothing was written there"
+            if staging is not None:  # a resumable output (write_staged)
+                message += f" (the work done is kept in {staging}: the same command resumes it)"
         super().__init__(message)
 
     @property
@@ -333,7 +341,9 @@ def write_staged(
                 _remove(tmp)
                 _remove(staging)
     except KeyboardInterrupt as exc:
-        raise Interrupted(shown, getattr(exc, "signum", signal.SIGINT), committed[0]) from exc
+        signum = getattr(exc, "signum", signal.SIGINT)
+        kept = staging_path(shown) if os.path.lexists(staging_path(shown)) else None
+        raise Interrupted(shown, signum, committed[0], kept) from exc
     return shown
 
 
