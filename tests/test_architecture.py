@@ -49,10 +49,11 @@ LAYERS: dict[str, int] = {
     "drcpo.pipeline": 7,
     "drcpo.datasets.export": 7,
     "drcpo.warmup": 7,
-    "drcpo.integrations": 8,
-    "drcpo.demo": 8,
-    "drcpo.cli": 8,
-    "drcpo": 8,
+    "drcpo.distributed": 8,
+    "drcpo.integrations": 9,
+    "drcpo.demo": 9,
+    "drcpo.cli": 9,
+    "drcpo": 9,
 }
 
 

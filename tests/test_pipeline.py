@@ -930,9 +930,10 @@ def test_augment_cli_writes_kitti_layout_and_stats(kitti_world, kitti_sample, tm
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
-def test_augment_kitti_leaves_nothing_when_a_frame_fails(kitti_world, kitti_sample, tmp_path):
+def test_augment_kitti_leaves_no_output_when_a_frame_fails(kitti_world, kitti_sample, tmp_path):
     from drcpo.datasets.export import augment_kitti
     from drcpo.errors import DataError
+    from drcpo.outputs import staging_path
 
     class Failing(GlobalFlip):
         def apply(self, frame, rng, stats):
@@ -942,7 +943,9 @@ def test_augment_kitti_leaves_nothing_when_a_frame_fails(kitti_world, kitti_samp
 
     with pytest.raises(DataError, match="000001"):
         augment_kitti(kitti_sample, "train", Failing(), tmp_path / "out")
-    assert list(tmp_path.iterdir()) == []
+    # No output; only the staging directory a rerun resumes from (tests/test_export.py).
+    assert list(tmp_path.iterdir()) == [staging_path(tmp_path / "out")]
+    assert (staging_path(tmp_path / "out") / "frames" / "00000000.json").is_file()
 
 
 def test_bench_augment_quick_mode(tmp_path, capsys):

@@ -37,6 +37,11 @@ VERIFY_HELP = (
     "Check the database's files against its manifest checksum (and for NaN/inf) on opening; "
     "--no-verify skips it for huge databases verified once already."
 )
+CLUSTER_HELP = (
+    "Spread the work over a Ray cluster (pip install drcpo[ray]): 'local' starts one on this "
+    "machine, else a running cluster's address (every node sees the same paths). The output is "
+    "the same as without it."
+)
 
 
 def say_error(message: str) -> None:
@@ -160,17 +165,27 @@ def build_db(
             "non-DontCare class. Default: Car Pedestrian Cyclist."
         ),
     ] = None,
-    workers: Annotated[int, typer.Option(min=1, help="Processes reading frames.")] = 1,
+    workers: Annotated[
+        int, typer.Option(min=1, help="Processes reading frames (with --cluster: its workers).")
+    ] = 1,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
+    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
 ) -> None:
     """Build a ground-truth database from a KITTI split."""
     from drcpo.database.build import build_database
 
     chosen = _class_list(classes, list(ctx.args))
     with progress_bar(f"frames of {split}") as progress:
-        database = build_database(
-            kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
-        )
+        if cluster is None:
+            database = build_database(
+                kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
+            )
+        else:
+            from drcpo.distributed import build_database_cluster
+
+            database = build_database_cluster(
+                kitti, split, out, chosen, overwrite, progress, cluster, workers
+            )
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 
 
@@ -286,9 +301,11 @@ def index(
         ),
     ] = None,
     workers: Annotated[
-        int | None, typer.Option(min=1, help="Threads (default: all cores).")
+        int | None,
+        typer.Option(min=1, help="Threads (default: all cores); with --cluster: its workers (2)."),
     ] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing index.")] = False,
+    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
 ) -> None:
     """Index every object's K best candidates (DR.CPO pre-processing).
 
@@ -311,7 +328,7 @@ def index(
         "min_points": min_points,
         "exclude_difficulty": exclude_difficulty,
         "approximate_above": approximate_above,
-        "workers": workers,
+        "workers": workers if cluster is None else None,
     }
     given = {key: value for key, value in options.items() if value is not None}
     settings = dataclasses.replace(settings, **given)
@@ -326,7 +343,12 @@ def index(
             done[name] = objects
             bar(sum(done.values()), total)
 
-        result = build_index(database, settings, progress=progress)
+        if cluster is None:
+            result = build_index(database, settings, progress=progress)
+        else:
+            from drcpo.distributed import build_index_cluster
+
+            result = build_index_cluster(database, settings, progress, cluster, workers or 2)
         path = result.save(db, overwrite=overwrite)
     seconds = time.perf_counter() - start
     table = Table(title=f"{path} (K = {settings.k}, {seconds:.1f} s)")
@@ -365,8 +387,16 @@ def augment(
     fov: Annotated[bool, typer.Option(help="Cut frames to the camera field of view first.")] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
     verify: Annotated[bool, typer.Option(help=VERIFY_HELP)] = True,
+    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
+    workers: Annotated[
+        int, typer.Option(min=1, help="With --cluster: the workers (actors) augmenting frames.")
+    ] = 2,
 ) -> None:
-    """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame."""
+    """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame.
+
+    Resumable: each frame is written atomically into a staging directory beside OUT, so the
+    same command run again after an interruption augments only the frames still missing.
+    """
     from drcpo.config import load_config
     from drcpo.database import GroundTruthDatabase
     from drcpo.datasets.export import augment_kitti
@@ -375,8 +405,16 @@ def augment(
     settings = load_config(config)
     database = GroundTruthDatabase.open(db, verify=verify)
     transform = build_pipeline(settings, database, kind=pipeline)
+    run: Callable[..., dict[str, Any]] = augment_kitti
+    if cluster is not None:
+        from functools import partial
+
+        from drcpo.distributed import augment_kitti_cluster, require_ray
+
+        require_ray()
+        run = partial(augment_kitti_cluster, cluster=cluster, workers=workers)
     with progress_bar(f"frames of {split}") as progress:
-        summary = augment_kitti(
+        summary = run(
             kitti, split, transform, out, frames, seed, fov, overwrite, progress, inputs=[db]
         )
     table = Table(title=f"{out}: {summary['frames']} frames, {summary['points']} points")
@@ -385,6 +423,10 @@ def augment(
     for name, count in sorted(summary["boxes"].items()):
         table.add_row(name, str(count))
     table.add_row("[bold]ms per frame (median)", f"{summary['median_ms']:.1f}")
+    if summary.get("resumed"):
+        table.add_row("frames resumed from an earlier run", str(summary["resumed"]))
+    if "cluster" in summary:
+        table.add_row("cluster", f"{summary['cluster']['address']}, {workers} workers")
     Console().print(table)
 
 

@@ -80,6 +80,7 @@ __all__ = [
     "MAX_K",
     "CandidateIndex",
     "IndexConfig",
+    "MapBlocks",
     "build_index",
     "indexed_mask",
     "load_index",
@@ -380,8 +381,13 @@ def build_index(
     database: GroundTruthDatabase,
     config: IndexConfig | None = None,
     progress: Progress | None = None,
+    map_blocks: MapBlocks | None = None,
 ) -> CandidateIndex:
     """Build the candidate index of ``database`` (see the module docstring for the method).
+
+    ``map_blocks``: who ranks the blocks of objects (:data:`MapBlocks`; e.g. the workers of a
+    cluster, :mod:`drcpo.distributed`); default: ``config.workers`` threads of this process.
+    The index does not depend on it.
 
     Raises :class:`DataError` before any work when the database's data does not match its
     manifest checksum (:meth:`GroundTruthDatabase.verified_checksum`; a database opened with
@@ -416,6 +422,7 @@ def build_index(
                 progress=None if progress is None else _named(progress, name),
                 rows=indexed,
                 out=candidates,
+                map_blocks=map_blocks,
             )
         elif progress is not None:
             progress(name, len(indexed), len(indexed))
@@ -603,6 +610,7 @@ def rank_candidates(
     progress: Callable[[int, int], None] | None = None,
     rows: np.ndarray | None = None,
     out: np.ndarray | None = None,
+    map_blocks: MapBlocks | None = None,
 ) -> np.ndarray:
     """Candidates of every object of one class, best first.
 
@@ -615,6 +623,7 @@ def rank_candidates(
         rows: ``(M,)`` database rows of the objects; with ``out``, object i's candidates are
             written as database rows to ``out[rows[i], :min(k, M - 1)]``.
         out: ``int32 (N, >= min(k, M - 1))`` array to write into.
+        map_blocks: runs the blocks (:data:`MapBlocks`; default: threads of this process).
 
     Returns:
         ``out``, or without it local ids ``int32 (M, min(k, M - 1))``, ``-1`` padded.
@@ -645,10 +654,16 @@ def rank_candidates(
         return start, _fill_rank(ids, densities, totals, position, start, alpha, k)
 
     starts = np.arange(0, m, config.block_size)
-    for start, ranked in _map_blocks(work, starts, m, config, progress):
+    for start, ranked in (map_blocks or _map_blocks)(work, starts, m, config, progress):
         block = search.order[start : start + config.block_size]
         out[labels[block], :k] = labels[ranked]
     return out
+
+
+#: ``map_blocks(work, items, total, config, progress)``: ``work(item)`` of every item, yielded
+#: in item order; ``progress(done, total)`` advances by ``config.block_size`` per item.
+#: ``work`` is a closure over one class's arrays (picklable with cloudpickle).
+MapBlocks = Callable[..., Iterable[Any]]
 
 
 def _map_blocks(

@@ -34,6 +34,7 @@ from drcpo.outputs import check_output
 
 __all__ = [
     "DEFAULT_CLASSES",
+    "MapFrames",
     "Progress",
     "build_database",
     "frame_records",
@@ -138,6 +139,7 @@ def build_database(
     workers: int = 1,
     overwrite: bool = False,
     progress: Progress | None = None,
+    map_frames: MapFrames | None = None,
 ) -> GroundTruthDatabase:
     """Build a ground-truth database from a KITTI split and write it to ``out`` atomically.
 
@@ -150,6 +152,8 @@ def build_database(
         overwrite: replace an existing ``out`` (only a drcpo database; only once the new
             database is complete).
         progress: optional ``progress(frames_done, frames_total)`` callback.
+        map_frames: who reads the frames (:data:`MapFrames`; e.g. a cluster's workers,
+            :mod:`drcpo.distributed`); default: ``workers`` processes. The result is the same.
 
     Returns the database opened from ``out``. Raises :class:`DataError` on bad input (naming the
     file) or when the split holds no object of the chosen classes, :class:`ConfigError` on bad
@@ -164,7 +168,7 @@ def build_database(
     dataset = KittiDataset(root, split)
     records = [
         record
-        for frame_objects in _map_frames(dataset, chosen, workers, progress)
+        for frame_objects in (map_frames or _map_frames)(dataset, chosen, workers, progress)
         for record in frame_objects
     ]
     if not records:
@@ -210,6 +214,11 @@ def _init_worker(dataset: KittiDataset, classes: tuple[str, ...] | None) -> None
 
 def _records_of(frame_id: str) -> list[ObjectRecord]:
     return frame_records(_WORKER_STATE["dataset"].frame(frame_id), _WORKER_STATE["classes"])
+
+
+#: ``map_frames(dataset, classes, workers, progress)``: :func:`frame_records` of every frame of
+#: ``dataset``, yielded in its frame order, calling ``progress(done, total)`` as frames finish.
+MapFrames = Callable[..., Iterable[list[ObjectRecord]]]
 
 
 def _map_frames(
