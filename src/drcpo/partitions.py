@@ -17,8 +17,8 @@ from drcpo.errors import ConfigError
 __all__ = [
     "DEFAULT_GRIDS",
     "DEFAULT_MIRRORED",
-    "NUSCENES_MIRRORED",
     "FALLBACK_GRID",
+    "NUSCENES_MIRRORED",
     "Grid",
     "grid_for",
     "mirror_points",

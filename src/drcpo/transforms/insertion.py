@@ -20,13 +20,16 @@ __all__ = [
     "BOX_SOURCE",
     "PER_BOX_METADATA",
     "STALE_WHEN_BOXES_CHANGE",
+    "TIME_LAG",
     "BoxQuery",
+    "key_sweep",
     "match_features",
     "placed_object",
     "placed_objects",
     "road_plane_heights",
     "sampling_pools",
     "take_rows",
+    "time_lag_column",
     "update_box_metadata",
     "with_box_sources",
 ]
@@ -50,6 +53,31 @@ def match_features(points: np.ndarray, dim: int) -> np.ndarray:
     out = np.zeros((len(points), dim), dtype=np.float32)
     out[:, : points.shape[1]] = points
     return out
+
+
+#: Name of the point feature holding each point's sweep time lag (seconds; 0: the key sweep).
+TIME_LAG = "time_lag"
+
+
+def time_lag_column(frame: Any) -> int | None:
+    """The column of ``frame.points`` holding the sweep time lag, from the feature names in
+    ``metadata["point_features"]`` (``None`` when it names none)."""
+    names = frame.metadata.get("point_features")
+    if names is None or TIME_LAG not in list(names):
+        return None
+    column = 3 + list(names).index(TIME_LAG)
+    return column if column < frame.points.shape[1] else None
+
+
+def key_sweep(points: np.ndarray, frame: Any, start: int = 0) -> np.ndarray:
+    """``points`` (rows ``start:`` inserted into ``frame``) with their time lag 0, in place:
+    an inserted object is seen in the key sweep, whatever sweep its database points came
+    from (and a point's time lag names its sweep, see ``metadata["sweep_time_lags"]``).
+    Unchanged when the frame has no time-lag column."""
+    column = time_lag_column(frame)
+    if column is not None and len(points) > start:
+        points[start:, column] = 0.0
+    return points
 
 
 def placed_object(canonical: np.ndarray, box: np.ndarray, dim: int) -> np.ndarray:
