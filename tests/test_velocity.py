@@ -514,3 +514,59 @@ def test_external_occlusion_takes_the_viewpoint_offset(rng, mode):
     at_origin = occlusion.external_occlusion(points, "second", mode=mode)
     # the same scene seen from the same place relative to it: the same verdicts
     assert (moved == at_origin).mean() > 0.99
+
+
+# The nuscenes preset: per-class defaults for the ten classes ----------------------------------
+NUSCENES = {"Car": "car", "Pedestrian": "pedestrian", "Cyclist": "bicycle"}
+KITTI_NAME = {nuscenes: kitti for kitti, nuscenes in NUSCENES.items()}
+
+
+def test_nuscenes_preset_names_the_ten_classes_their_mirroring_and_grids():
+    from drcpo.config import load_config
+    from drcpo.partitions import DEFAULT_GRIDS, NUSCENES_MIRRORED
+
+    config = load_config("nuscenes")
+    ten = [
+        "car",
+        "truck",
+        "construction_vehicle",
+        "bus",
+        "trailer",
+        "barrier",
+        "motorcycle",
+        "bicycle",
+        "pedestrian",
+        "traffic_cone",
+    ]
+    assert config.known_classes == ten
+    assert set(config.drcpo.sample) == set(config.gt_sampling.targets) == set(ten)
+    assert config.drcpo.construction.mirror == list(NUSCENES_MIRRORED) == config.index.mirror
+    for name in ten:  # every class has its own grid; the long vehicles more cells along x
+        assert config.drcpo.construction.grid(name) == DEFAULT_GRIDS[name]
+    assert DEFAULT_GRIDS["bus"][0] > DEFAULT_GRIDS["truck"][0] > DEFAULT_GRIDS["car"][0]
+    assert config.drcpo.placement.x_range == [-51.2, 51.2]
+
+
+def test_nuscenes_preset_places_objects_all_around_the_sensor():
+    from drcpo.config import load_config
+
+    config = load_config("nuscenes")
+    base = feature_database(np.random.default_rng(7), {"Car": 30, "Pedestrian": 15, "Cyclist": 15})
+    names = np.array([NUSCENES[str(n)] for n in base.names])
+    columns = {"difficulty": base.difficulty, "velocity": base.velocity}
+    db = GroundTruthDatabase.from_arrays(base.points, base.offsets, names, base.boxes, **columns)
+    index = build_index(db, config.index)
+    assert index.config.mirror == config.drcpo.construction.mirror
+    frame = feature_frame(np.random.default_rng(5))
+    frame = frame.replace(names=np.array([NUSCENES[str(n)] for n in frame.names]))
+    transform = DRCPO(db, index, config.drcpo, workers=1)
+    behind = 0
+    for seed in range(6):
+        out = transform(frame, np.random.default_rng(seed))
+        added = out.metadata["box_source"] == "drcpo"
+        behind += int(np.count_nonzero(out.boxes[added, 0] < 0))
+        for k in np.flatnonzero(added):
+            canonical = np.array(CANONICAL[KITTI_NAME[str(out.names[k])]])
+            expected = naive_rotation(canonical[None], out.boxes[k, 6])[0]
+            np.testing.assert_allclose(out.metadata[VELOCITY][k], expected, atol=1e-12)
+    assert behind > 0  # no camera cut: the full circle
