@@ -570,3 +570,103 @@ def test_nuscenes_preset_places_objects_all_around_the_sensor():
             expected = naive_rotation(canonical[None], out.boxes[k, 6])[0]
             np.testing.assert_allclose(out.metadata[VELOCITY][k], expected, atol=1e-12)
     assert behind > 0  # no camera cut: the full circle
+
+
+# Multi-sweep frames ---------------------------------------------------------------------------
+LAGS = np.array([0.0, 0.05, 0.1])  # the feature frames' three sweeps (float32-exact? see below)
+ORIGINS = np.array([[0.0, 0.0, 0.0], [-0.6, 0.1, 0.0], [-1.2, 0.2, 0.01]])
+
+
+def multi_sweep_frame(rng) -> Frame:
+    frame = feature_frame(rng)
+    lags = LAGS.astype(np.float32).astype(np.float64)  # the points hold float32 values
+    return frame.replace(
+        metadata={**frame.metadata, "sweep_origins": ORIGINS, "sweep_time_lags": lags}
+    )
+
+
+def naive_hidden_behind(originals, objects, boxes, viewpoint, radius):
+    """Original points hidden with the objects and visible without them, in the boxes' view
+    windows (e-HPR's inserted scope, step 2), from two plain HPR calls."""
+    from drcpo.occlusion.view_windows import grown_boxes, view_windows
+
+    with_objects = occlusion.hidden_point_removal(
+        np.concatenate([originals, objects]), viewpoint, radius
+    )[: len(originals)]
+    alone = occlusion.hidden_point_removal(originals, viewpoint, radius)
+    windows = view_windows(originals, grown_boxes(boxes), viewpoint, behind=True)
+    return windows & ~with_objects & alone
+
+
+def test_multi_sweep_key_sweep_goes_through_drcpo_alone(world):
+    db, index = world
+    frame = multi_sweep_frame(np.random.default_rng(5))
+    transform = DRCPO(db, index, workers=1)
+    key = frame.points[:, 4] == 0
+    alone = transform(frame.replace(points=frame.points[key]), np.random.default_rng(1))
+    out = transform(frame, np.random.default_rng(1))
+    np.testing.assert_array_equal(out.boxes, alone.boxes)
+    np.testing.assert_array_equal(out.points[: len(alone)], alone.points)
+    assert (out.metadata["box_source"] == "drcpo").any()
+
+
+def test_multi_sweep_earlier_sweeps_are_settled_from_their_own_origins(world):
+    from drcpo.occlusion.view_windows import grown_boxes
+
+    db, index = world
+    frame = multi_sweep_frame(np.random.default_rng(5))
+    transform = DRCPO(db, index, workers=1)
+    key = frame.points[:, 4] == 0
+    alone = transform(frame.replace(points=frame.points[key]), np.random.default_rng(1))
+    out = transform(frame, np.random.default_rng(1))
+    rest = out.points[len(alone) :]
+    added = out.metadata["box_source"] == "drcpo"
+    boxes = out.boxes[added]
+    objects = alone.points[transform_inside(alone.points, boxes)]
+    setting = transform.config.external_occlusion.setting
+    expected, from_key_origin = [], []
+    for s in (1, 2):
+        points = frame.points[frame.points[:, 4] == np.float32(LAGS[s])]
+        points = points[~transform_inside(points, grown_boxes(boxes, transform.room))]
+        viewpoint = ORIGINS[s] + [0.0, 0.0, setting.viewpoint_z]
+        hidden = naive_hidden_behind(
+            points[:, :3], objects[:, :3], boxes, viewpoint, setting.radius
+        )
+        expected.append(points[~hidden])
+        key_view = np.array([0.0, 0.0, setting.viewpoint_z])
+        hidden = naive_hidden_behind(points[:, :3], objects[:, :3], boxes, key_view, setting.radius)
+        from_key_origin.append(points[~hidden])
+    assert any(len(a) != len(b) for a, b in zip(expected, from_key_origin, strict=True))
+    expected = np.concatenate(expected)
+    # the same points (every feature bit for bit), as a set: the order is the frame's
+    as_set = lambda p: sorted(map(bytes, np.ascontiguousarray(p)))  # noqa: E731
+    assert as_set(rest) == as_set(expected)
+    assert len(rest) < int(np.count_nonzero(~key))  # the objects took some away
+
+
+def transform_inside(points, boxes):
+    from drcpo.geometry import points_in_boxes
+
+    if len(boxes) == 0:
+        return np.zeros(len(points), dtype=bool)
+    return points_in_boxes(points, boxes).any(axis=1)
+
+
+def test_multi_sweep_metadata_is_checked(world):
+    db, index = world
+    frame = multi_sweep_frame(np.random.default_rng(5))
+    transform = DRCPO(db, index, workers=1)
+    points = frame.points.copy()
+    points[7, 4] = 0.07
+    with pytest.raises(DataError, match="point row 7 has time lag 0.07.*sweep_time_lags"):
+        transform(frame.replace(points=points), np.random.default_rng(0))
+    bad = {**frame.metadata, "sweep_origins": ORIGINS[:2]}
+    with pytest.raises(DataError, match=r"'sweep_origins' must be \(3, 3\)"):
+        transform(frame.replace(metadata=bad), np.random.default_rng(0))
+    one = {**frame.metadata, "sweep_origins": ORIGINS[:1], "sweep_time_lags": LAGS[:1]}
+    single = frame.replace(points=frame.points[frame.points[:, 4] == 0], metadata=one)
+    plain = {k: v for k, v in single.metadata.items() if not k.startswith("sweep_")}
+    np.testing.assert_array_equal(
+        transform(single, np.random.default_rng(0)).points,
+        transform(single.replace(metadata=plain), np.random.default_rng(0)).points,
+    )

@@ -21,7 +21,7 @@ from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
 from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
-from drcpo.transforms import sensor_steps
+from drcpo.transforms import sensor_steps, sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.drcpo_parts import Insertion, Placed
 from drcpo.transforms.insertion import (
@@ -246,6 +246,18 @@ class DRCPO(Transform):
 
     # The steps ------------------------------------------------------------------------------
     def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
+        split = sweeps.split_sweeps(frame)
+        if split is None:
+            return self._apply(frame, rng, stats)
+        # Multi-sweep: the steps on the key sweep, the others settled from their own origins.
+        out = self._apply(split.key, rng, stats)
+        settings = self.config.external_occlusion
+        mode = {"sensor": "range_image"}.get(settings.mode, settings.mode)
+        return split.join(
+            out, "drcpo", self.room, settings.setting, mode if settings.enabled else None
+        )
+
+    def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
         seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
