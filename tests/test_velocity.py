@@ -670,3 +670,18 @@ def test_multi_sweep_metadata_is_checked(world):
         transform(single, np.random.default_rng(0)).points,
         transform(single.replace(metadata=plain), np.random.default_rng(0)).points,
     )
+
+
+def test_a_dict_of_nine_value_boxes_gives_its_velocities_to_the_frame():
+    boxes = np.array([[1.0, 2, 0, 4, 2, 1.5, 0.3, 5.0, -1.0], [9.0, 2, 0, 4, 2, 1.5, 1.0, 0, 2]])
+    data = {"points": np.zeros((3, 5), np.float32), "gt_boxes": boxes, "gt_names": ["car"] * 2}
+    frame = Frame.from_dict(data)
+    np.testing.assert_array_equal(frame.boxes, boxes[:, :7])
+    np.testing.assert_array_equal(frame.metadata[VELOCITY], boxes[:, 7:])
+    given = Frame.from_dict({**data, VELOCITY: np.ones((2, 2))})
+    np.testing.assert_array_equal(given.metadata[VELOCITY], np.ones((2, 2)))
+    eight = Frame.from_dict({**data, "gt_boxes": boxes[:, :8]})  # a class column: dropped
+    assert VELOCITY not in eight.metadata and eight.boxes.shape == (2, 7)
+    boxes[1, 8] = np.nan
+    with pytest.raises(DataError, match="'velocity' row 1 holds a NaN"):
+        GlobalRotation()({**data, "gt_boxes": boxes}, np.random.default_rng(0))

@@ -102,14 +102,20 @@ class Frame:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Frame:
-        """Build a frame from an OpenPCDet-style dict; other keys become metadata."""
+        """Build a frame from an OpenPCDet-style dict; other keys become metadata.
+
+        ``gt_boxes`` of 9 columns (nuScenes: x, y, z, dx, dy, dz, heading, vx, vy) give their
+        velocities to ``metadata["velocity"]`` (:data:`VELOCITY`) unless the dict has that key;
+        other columns after the seventh are dropped (OpenPCDet appends a class column in some
+        stages)."""
         if "points" not in data:
             raise DataError("data dict has no 'points' key")
         metadata = {k: v for k, v in data.items() if k not in ("points", "gt_boxes", "gt_names")}
         boxes = _real_array(data.get("gt_boxes", np.zeros((0, 7))), "gt_boxes")
         boxes = boxes.astype(np.float64, copy=False)
+        if boxes.ndim == 2 and boxes.shape[1] == 9 and metadata.get(VELOCITY) is None:
+            metadata[VELOCITY] = np.array(boxes[:, 7:9])
         if boxes.ndim == 2 and boxes.shape[1] > 7:
-            # OpenPCDet appends a class column to gt_boxes in some stages; keep the first seven.
             boxes = boxes[:, :7]
         names = data.get("gt_names", np.zeros(len(boxes), dtype="<U1"))
         return cls(points=data["points"], boxes=boxes, names=np.asarray(names), metadata=metadata)
