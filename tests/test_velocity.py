@@ -685,3 +685,37 @@ def test_a_dict_of_nine_value_boxes_gives_its_velocities_to_the_frame():
     boxes[1, 8] = np.nan
     with pytest.raises(DataError, match="'velocity' row 1 holds a NaN"):
         GlobalRotation()({**data, "gt_boxes": boxes}, np.random.default_rng(0))
+
+
+def test_importing_nine_value_dbinfos_keeps_canonical_velocities(tmp_path):
+    import pickle
+
+    from conftest import KITTI_SAMPLE
+
+    from drcpo.database import safe_pickle
+    from drcpo.database.build import import_openpcdet
+
+    if not KITTI_SAMPLE.is_dir():
+        pytest.skip(f"KITTI sample not found at {KITTI_SAMPLE} (only CI and developers have it)")
+    infos = safe_pickle.load(KITTI_SAMPLE / "kitti_dbinfos_train.pkl")
+    rng = np.random.default_rng(0)
+    given = {}
+    for objects in infos.values():
+        for info in objects:
+            velocity = rng.normal(0, 3, 2)
+            info["box3d_lidar"] = np.concatenate([info["box3d_lidar"], velocity])
+            given[(str(info["image_idx"]), int(info["gt_idx"]))] = (velocity, info["box3d_lidar"])
+    (tmp_path / "nine.pkl").write_bytes(pickle.dumps(infos))
+    db = import_openpcdet(tmp_path / "nine.pkl", tmp_path / "db", root=KITTI_SAMPLE)
+    assert db.velocity is not None and len(db) == len(given)
+    for row in range(len(db)):
+        velocity, box = given[(str(db.frame_ids[row]), int(db.index_in_frame[row]))]
+        np.testing.assert_allclose(db.velocity[row], naive_rotation(velocity, -box[6])[0], 1e-12)
+    plain = import_openpcdet(KITTI_SAMPLE / "kitti_dbinfos_train.pkl", tmp_path / "plain")
+    assert plain.velocity is None
+    np.testing.assert_array_equal(plain.points, db.points)
+    first = next(iter(infos.values()))[0]
+    first["box3d_lidar"][8] = np.nan
+    (tmp_path / "bad.pkl").write_bytes(pickle.dumps(infos))
+    with pytest.raises(DataError, match="velocities .* are finite"):
+        import_openpcdet(tmp_path / "bad.pkl", tmp_path / "bad", root=KITTI_SAMPLE)

@@ -379,9 +379,10 @@ def import_openpcdet(
             are relative to it; see :func:`import_mmdet3d`).
 
     OpenPCDet stores each object's points minus the box centre; they are rotated by the box's
-    -heading into canonical pose. Objects are ordered by frame id, then index in frame, as a
-    build from the same frames orders them. Occlusion and truncation, which the infos lack, are
-    read from ``root/training/label_2`` when those label files exist (else left unknown).
+    -heading into canonical pose, as are the velocities of 9-value boxes (nuScenes' dbinfos).
+    Objects are ordered by frame id, then index in frame, as a build from the same frames orders
+    them. Occlusion and truncation, which the infos lack, are read from
+    ``root/training/label_2`` when those label files exist (else left unknown).
 
     Every field of every object is checked (see :func:`validate_dbinfos`) before any point is
     read; a ``path`` outside ``root`` and a ``gt_idx`` past the frame's labels are refused.
@@ -474,8 +475,9 @@ def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
         source: the file, for messages.
 
     Returns one dict per object with ``name``, ``path``, ``image_idx`` (str), ``gt_idx``,
-    ``num_points``, ``difficulty`` (int) and ``box`` (``float64 (7,)``: centre, sizes, heading;
-    any velocities after it are dropped). Raises :class:`DataError` naming ``source``, the
+    ``num_points``, ``difficulty`` (int), ``box`` (``float64 (7,)``: centre, sizes, heading)
+    and ``velocity`` (``float64 (2,)``: values 8 and 9 of a nuScenes-style 9-value box, in the
+    LiDAR frame; ``None`` for 7 or 8 values). Raises :class:`DataError` naming ``source``, the
     record (``Car[3]``) and the field for a wrong type, shape or value, a ``path`` that leaves
     the data root (absolute or through ``..``) and an object listed twice.
     """
@@ -541,6 +543,9 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
     box = _reals(info["box3d_lidar"])
     if box is None or len(box) < 7 or not np.isfinite(box[:7]).all() or (box[3:6] <= 0).any():
         raise bad("box3d_lidar", "a box of >= 7 finite numbers with positive sizes")
+    velocity = box[7:9] if len(box) >= 9 else None  # nuScenes: x, y, z, dx, dy, dz, yaw, vx, vy
+    if velocity is not None and not np.isfinite(velocity).all():
+        raise bad("box3d_lidar", "a box whose velocities (values 8 and 9) are finite")
     if "bbox" in info and ((bbox := _reals(info["bbox"])) is None or bbox.shape != (4,)):
         raise bad("bbox", "4 numbers")
     if "score" in info and _reals([info["score"]]) is None:
@@ -551,6 +556,7 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
         "image_idx": frame_id,
         "gt_idx": gt_idx,
         "box": box[:7],
+        "velocity": velocity,
         "num_points": num_points,
         "difficulty": difficulty,
     }
@@ -627,7 +633,9 @@ def _imported_record(
                 f"{entry['name']} as {entry['path']} says; labels and database disagree"
             )
         occlusion, truncation = int(frame_labels.occlusion[i]), float(frame_labels.truncation[i])
+    velocity = entry.get("velocity")
     return ObjectRecord(
+        velocity=None if velocity is None else rotate_velocities(velocity, -box[6])[0],
         points=rotate_points_z(relative, -box[6]),
         name=entry["name"],
         box=box,
