@@ -496,6 +496,8 @@ def _check_text_columns(path: Path, columns: dict[str, np.ndarray]) -> None:
 
 def _features_manifest(point_dim: int, names: Sequence[str] | None = None) -> dict[str, Any]:
     """The in-memory manifest that records the feature names of ``point_dim`` columns."""
+    if point_dim < 3:
+        return {}  # not points at all: the consistency check names the shape
     names = default_point_features(point_dim) if names is None else tuple(map(str, names))
     if len(names) != point_dim - 3:
         raise DataError(
