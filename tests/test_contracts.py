@@ -17,7 +17,11 @@ column) that every transform changes:
   loop must not stop on it (so a :class:`DataError` here would be a defect, not an option);
 * extra point features (``(N, 3 + C)``, C = 0 and 3) keep the column count, and every original
   point in the output keeps its feature columns bit for bit;
-* the input (the Frame's arrays and metadata, the dict and its arrays) is not modified.
+* the input (the Frame's arrays and metadata, the dict and its arrays) is not modified;
+* nuScenes-style frames (5 point columns: x, y, z, intensity, time lag; velocities per box)
+  against a database of 5-column points with velocities: the original points keep their
+  features bit for bit, inserted points carry the database's intensities and the key sweep's
+  time lag (0), and the velocities stay one finite row per box.
 """
 
 from __future__ import annotations
@@ -30,9 +34,10 @@ from typing import Any
 import numpy as np
 import pytest
 from test_pipeline import synthetic_database, synthetic_frame
+from test_velocity import DB_INTENSITY, feature_database, feature_frame
 
 from drcpo.config import load_config
-from drcpo.frame import Frame, validate_frame
+from drcpo.frame import VELOCITY, Frame, validate_frame
 from drcpo.index import IndexConfig, build_index
 from drcpo.pipeline import build_pipeline
 from drcpo.transforms import (
@@ -190,3 +195,31 @@ def test_input_is_not_modified(made, frame, form):
     after = fields()
     changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
     assert not changed, f"the input's {changed} changed"
+
+
+@pytest.fixture(scope="module")
+def feature_world():
+    db = feature_database(np.random.default_rng(7))
+    return db, build_index(db, IndexConfig(k=10, workers=1))
+
+
+@pytest.mark.parametrize("name", REGISTERED)
+def test_five_feature_points_and_velocities_are_carried(name, feature_world):
+    transform = MAKERS[name](*feature_world)
+    frame = feature_frame(np.random.default_rng(5))
+    out = transform(frame, rng())
+    validate_frame(out, f"{name} output")
+    assert out.points.shape[1] == 5 and out.points.dtype == np.float32
+    velocity = out.metadata[VELOCITY]
+    assert velocity.shape == (len(out.boxes), 2) and velocity.dtype == np.float64
+    inserted = out.points[:, 3] >= DB_INTENSITY  # frame intensities are below 1
+    # the frame's points: every feature bit for bit (intensity is unique per frame point)
+    by_intensity = {float(v): r for r, v in enumerate(frame.points[:, 3])}
+    rows = [by_intensity[float(v)] for v in out.points[~inserted, 3]]
+    assert len(set(rows)) == len(rows)
+    np.testing.assert_array_equal(out.points[~inserted, 3:], frame.points[rows, 3:])
+    # inserted points: the database's intensities, the key sweep's time lag
+    assert np.isin(out.points[inserted, 3], feature_world[0].points[:, 3]).all()
+    assert (out.points[inserted, 4] == 0).all()
+    inserts = name in ("Compose", "GroundTruthSampling") or name.startswith("DRCPO")
+    assert inserted.any() == inserts

@@ -259,9 +259,27 @@ def test_bad_arguments_name_the_culprit(drcpo_db, infos):
         transform(results)
     results = _results(infos)
     boxes = results["gt_bboxes_3d"]
-    results["gt_bboxes_3d"] = LiDARInstance3DBoxes(torch.zeros(len(boxes), 9), box_dim=9)
-    with pytest.raises(DataError, match="box_dim 9"):
+    results["gt_bboxes_3d"] = LiDARInstance3DBoxes(torch.zeros(len(boxes), 8), box_dim=8)
+    with pytest.raises(DataError, match="box_dim 8"):
         transform(results)
+
+
+def test_nine_value_boxes_keep_their_velocities(drcpo_db, infos):
+    """box_dim 9 (vx, vy last): the frame's own boxes keep their velocities bit for bit, the
+    inserted ones get the database's turned to their heading (none here: 0)."""
+    transform = DRCPOAugment(str(drcpo_db), support.CLASS_NAMES, warmup=False, seed=1)
+    results = _results(infos)
+    seven = results["gt_bboxes_3d"].tensor
+    velocity = torch.arange(2 * len(seven), dtype=torch.float32).reshape(-1, 2) + 1.0
+    plain = transform(_results(infos))["gt_bboxes_3d"].tensor
+    results["gt_bboxes_3d"] = LiDARInstance3DBoxes(torch.cat([seven, velocity], 1), box_dim=9)
+    out = transform(results)["gt_bboxes_3d"]
+    assert isinstance(out, LiDARInstance3DBoxes) and out.tensor.shape == (len(plain), 9)
+    assert torch.equal(out.tensor[:, :7], plain) and len(plain) > len(seven)
+    for box in out.tensor:
+        own = torch.nonzero((seven == box[:7]).all(dim=1)).flatten()
+        expected = velocity[own[0]] if len(own) else torch.zeros(2)
+        assert torch.equal(box[7:], expected)
 
 
 # mmdet3d's KITTI train pipeline -----------------------------------------------------------

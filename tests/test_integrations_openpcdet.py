@@ -239,6 +239,55 @@ def test_drcpo_global_stages_give_openpcdet_the_augmentation_matrix(drcpo_db):
     assert len(flipped) > 1, "the flips drawn should differ between frames"
 
 
+def test_nine_value_boxes_move_as_openpcdets_own_augmentor_moves_them(drcpo_db):
+    """nuScenes-style (M, 9) gt_boxes through drcpo's global stages: the boxes and velocities
+    equal what OpenPCDet's own augmentor_utils functions give with the same draws."""
+    from pcdet.datasets.augmentor import augmentor_utils
+
+    entry = _entry(
+        drcpo_db,
+        STAGES=["global_augmentation"],
+        WARMUP=False,
+        CONFIG={"global_augmentation": {"flip": {"probability": 0.5, "axes": ["x", "y"]}}},
+    )
+    augmentor = openpcdet.OpenPCDetAugmentor(entry, "/", support.CLASS_NAMES)
+    rng = np.random.default_rng(0)
+    flips = set()
+    for seed in range(8):
+        boxes = np.column_stack(
+            [
+                rng.uniform(-40, 40, (6, 2)),
+                rng.uniform(-2, 0, (6, 1)),
+                rng.uniform(0.5, 5, (6, 3)),
+                rng.uniform(-np.pi, np.pi, (6, 1)),
+                rng.normal(0, 4, (6, 2)),
+            ]
+        )
+        points = rng.uniform(-40, 40, (50, 5)).astype(np.float32)
+        data = {"points": points, "gt_boxes": boxes, "gt_names": np.array(["Car"] * 6)}
+        out = augmentor(dict(data), np.random.default_rng(seed))
+        theirs, their_points = boxes.copy(), points.copy()
+        theirs, their_points = augmentor_utils.random_flip_along_x(
+            theirs, their_points, enable=bool(out["flip_x"])
+        )
+        theirs, their_points = augmentor_utils.random_flip_along_y(
+            theirs, their_points, enable=bool(out["flip_y"])
+        )
+        theirs, their_points = augmentor_utils.global_rotation(
+            theirs, their_points, None, noise_rotation=float(out["noise_rot"])
+        )
+        theirs[:, :6] *= out["noise_scale"]  # global_scaling draws its own factor
+        theirs[:, 7:] *= out["noise_scale"]
+        flips.add((bool(out["flip_x"]), bool(out["flip_y"])))
+        assert out["gt_boxes"].shape == (6, 9)
+        # OpenPCDet rotates in float32 (torch): agreement to its rounding
+        np.testing.assert_allclose(out["gt_boxes"][:, :6], theirs[:, :6], atol=1e-4)
+        np.testing.assert_allclose(out["gt_boxes"][:, 7:], theirs[:, 7:], atol=1e-5)
+        turn = out["gt_boxes"][:, 6] - theirs[:, 6]
+        np.testing.assert_allclose(np.arctan2(np.sin(turn), np.cos(turn)), 0.0, atol=1e-9)
+    assert len(flips) > 2, "the flips drawn should differ between calls"
+
+
 def test_fov_points_only_reaches_the_augmentor(drcpo_db):
     _, dataset = _dataset(_entry(drcpo_db, WARMUP=False))
     ours = [a for a in dataset.data_augmentor.data_augmentor_queue if hasattr(a, "pipeline")]

@@ -188,13 +188,51 @@ def test_fov_points_only_keeps_inserted_objects_in_the_camera_view(sample_db):
 def test_refuses_boxes_it_cannot_keep_consistent(sample_db):
     augmentor = _augmentor(sample_db)
     data = _frame_dict(sample_db, np.random.default_rng(0))
-    wide = {**data, "gt_boxes": np.hstack([data["gt_boxes"], np.zeros((len(data["gt_boxes"]), 2))])}
-    with pytest.raises(DataError, match=r"shape \(\d+, 9\)"):
+    wide = {**data, "gt_boxes": np.hstack([data["gt_boxes"], np.zeros((len(data["gt_boxes"]), 1))])}
+    with pytest.raises(
+        DataError, match=r"shape \(\d+, 8\); drcpo moves \(M, 7\) boxes and \(M, 9\)"
+    ):
         augmentor(wide)
     with pytest.raises(DataError, match="gt_boxes2d"):
         augmentor({**data, "gt_boxes2d": np.zeros((len(data["gt_boxes"]), 4))})
     with pytest.raises(DataError, match="'points'"):
         augmentor({"gt_boxes": data["gt_boxes"], "gt_names": data["gt_names"]})
+
+
+def test_nine_value_boxes_keep_their_velocities(sample_db):
+    """nuScenes' gt_boxes (M, 9): split into boxes and velocities, joined on the way out; the
+    frame's own boxes keep theirs, inserted ones get the database's (none here: 0), and the
+    global rotation turns them as OpenPCDet's global_rotation does."""
+    data = _frame_dict(sample_db, np.random.default_rng(0))
+    m = len(data["gt_boxes"])
+    velocity = np.random.default_rng(1).normal(0, 3, (m, 2)).astype(np.float32)
+    nine = {**data, "gt_boxes": np.hstack([data["gt_boxes"], velocity])}
+    augmentor = _augmentor(sample_db)
+    out = augmentor(dict(nine), np.random.default_rng(2))
+    seven = augmentor(dict(data), np.random.default_rng(2))
+    assert out["gt_boxes"].shape == (len(seven["gt_boxes"]), 9)
+    assert out["gt_boxes"].dtype == np.float32
+    np.testing.assert_array_equal(out["gt_boxes"][:, :7], seven["gt_boxes"])
+    np.testing.assert_array_equal(out["points"], seven["points"])
+    for box in out["gt_boxes"]:
+        own = np.flatnonzero((data["gt_boxes"] == box[:7]).all(axis=1))
+        expected = velocity[own[0]] if len(own) else np.zeros(2, np.float32)
+        np.testing.assert_array_equal(box[7:], expected)
+    assert len(out["gt_boxes"]) > m  # inserted boxes were checked too
+    rotating = _augmentor(sample_db, STAGES=["global_augmentation"])
+    turned = rotating(dict(nine), np.random.default_rng(3))
+    angle = turned.get("noise_rot", 0.0)
+    flipped = turned.get("flip_x", False)
+    expected = velocity.astype(np.float64)
+    if flipped:
+        expected[:, 1] = -expected[:, 1]
+    c, s_ = np.cos(angle), np.sin(angle)
+    expected = np.column_stack(
+        [c * expected[:, 0] - s_ * expected[:, 1], s_ * expected[:, 0] + c * expected[:, 1]]
+    )
+    np.testing.assert_allclose(
+        turned["gt_boxes"][:, 7:], expected * turned.get("noise_scale", 1.0), rtol=1e-5, atol=1e-5
+    )
 
 
 def test_road_plane_and_openpcdet_calibration_kept_from_the_pre_hook(sample_db, kitti_sample):

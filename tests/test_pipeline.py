@@ -1010,7 +1010,7 @@ def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
 
 @pytest.mark.parametrize("mode", ["hpr", "range_image"])
 def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode, rng):
-    from drcpo.transforms.drcpo import _Insertion
+    from drcpo.transforms.drcpo_parts import Insertion as _Insertion
 
     db, index, _ = synthetic_world
     transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})
@@ -1036,7 +1036,7 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
 
 @pytest.mark.parametrize("mode", ["hpr", "range_image"])
 def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, mode, rng):
-    from drcpo.transforms.drcpo import _Insertion
+    from drcpo.transforms.drcpo_parts import Insertion as _Insertion
 
     db, index, _ = synthetic_world
     transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})

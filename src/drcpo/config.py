@@ -100,8 +100,10 @@ __all__ = [
 #: kept as data in :mod:`drcpo.occlusion.presets` (which the occlusion functions read too).
 DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
 #: Whole-pipeline presets (config files in drcpo/configs): ``paper`` is the method as
-#: published (today's defaults), ``realistic`` adds the sensor-true steps (docs/realism.md).
-PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "realistic")
+#: published (today's defaults), ``realistic`` adds the sensor-true steps (docs/realism.md),
+#: ``nuscenes`` sets nuScenes' ten classes, their mirroring and sample counts and the full
+#: circle around the sensor.
+PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "realistic", "nuscenes")
 SELF_OCCLUSION_MODES = ("hpr", "sensor")
 EXTERNAL_OCCLUSION_MODES = ("hpr", "range_image", "sensor")
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
@@ -522,8 +524,8 @@ def load_config(source: str | os.PathLike | Mapping[str, Any] | AugmentConfig | 
     Args:
         source: ``None`` (the paper defaults), a mapping, a YAML file path, or the name of a
             packaged preset when no file of that name exists: a pipeline preset
-            (:data:`PIPELINE_PRESETS`: ``default``, ``paper``, ``realistic``) or a detector
-            preset (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``).
+            (:data:`PIPELINE_PRESETS`: ``default``, ``paper``, ``realistic``, ``nuscenes``) or a
+            detector preset (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``).
 
     The keys given are applied on top of the defaults; a ``preset`` key first applies that
     detector preset. Raises :class:`ConfigError` naming the file and key on any bad value.

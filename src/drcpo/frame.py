@@ -20,7 +20,20 @@ import numpy as np
 
 from drcpo.errors import DataError
 
-__all__ = ["DICT_FIELDS", "FRAME_FIELDS", "MAX_COORDINATE", "Frame", "validate_frame"]
+__all__ = [
+    "DICT_FIELDS",
+    "FRAME_FIELDS",
+    "MAX_COORDINATE",
+    "VELOCITY",
+    "Frame",
+    "rotate_velocities",
+    "validate_frame",
+]
+
+#: Metadata key of the boxes' velocities: ``float64 (M, 2)`` vx, vy in the LiDAR frame, m/s
+#: (nuScenes; 0 where unknown). OpenPCDet's and MMDetection3D's 9-value boxes are ``boxes``
+#: followed by these two columns.
+VELOCITY = "velocity"
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,14 +102,20 @@ class Frame:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Frame:
-        """Build a frame from an OpenPCDet-style dict; other keys become metadata."""
+        """Build a frame from an OpenPCDet-style dict; other keys become metadata.
+
+        ``gt_boxes`` of 9 columns (nuScenes: x, y, z, dx, dy, dz, heading, vx, vy) give their
+        velocities to ``metadata["velocity"]`` (:data:`VELOCITY`) unless the dict has that key;
+        other columns after the seventh are dropped (OpenPCDet appends a class column in some
+        stages)."""
         if "points" not in data:
             raise DataError("data dict has no 'points' key")
         metadata = {k: v for k, v in data.items() if k not in ("points", "gt_boxes", "gt_names")}
         boxes = _real_array(data.get("gt_boxes", np.zeros((0, 7))), "gt_boxes")
         boxes = boxes.astype(np.float64, copy=False)
+        if boxes.ndim == 2 and boxes.shape[1] == 9 and metadata.get(VELOCITY) is None:
+            metadata[VELOCITY] = np.array(boxes[:, 7:9])
         if boxes.ndim == 2 and boxes.shape[1] > 7:
-            # OpenPCDet appends a class column to gt_boxes in some stages; keep the first seven.
             boxes = boxes[:, :7]
         names = data.get("gt_names", np.zeros(len(boxes), dtype="<U1"))
         return cls(points=data["points"], boxes=boxes, names=np.asarray(names), metadata=metadata)
@@ -120,9 +139,11 @@ def validate_frame(
     Shapes, dtypes and the names' length are checked when a :class:`Frame` is made; this adds
     the values: every point value (x, y, z and features) and every box value finite, point
     coordinates and box values within :data:`MAX_COORDINATE`, box sizes ``dx, dy, dz``
-    positive, and a road plane in ``metadata["plane"]`` (when not ``None``) four
-    finite numbers. The message names ``source``, the field (``fields``: the names of points,
-    boxes and names to use, e.g. :data:`DICT_FIELDS`), the first bad row and its values.
+    positive, a road plane in ``metadata["plane"]`` (when not ``None``) four
+    finite numbers, and velocities in ``metadata["velocity"]`` (:data:`VELOCITY`, when not
+    ``None``) real numbers of shape ``(M, 2)``, all finite. The message names ``source``, the
+    field (``fields``: the names of points, boxes and names to use, e.g.
+    :data:`DICT_FIELDS`), the first bad row and its values.
 
     Cheap enough to run on every frame: whole-array checks first (one pass each), the row is
     looked for only once one has failed.
@@ -142,6 +163,9 @@ def validate_frame(
     plane = frame.metadata.get("plane")
     if plane is not None:
         _check_plane(plane, source)
+    velocity = frame.metadata.get(VELOCITY)
+    if velocity is not None:
+        _check_velocity(velocity, len(boxes), source)
     return frame
 
 
@@ -209,3 +233,42 @@ def _check_plane(plane: Any, source: str) -> None:
         raise DataError(f"{source}: metadata plane must be 4 numbers, got {plane!r}") from None
     if values.shape != (4,) or not np.isfinite(values).all():
         raise DataError(f"{source}: metadata plane must be 4 finite numbers, got {plane!r}")
+
+
+def _check_velocity(velocity: Any, num_boxes: int, source: str) -> None:
+    """``metadata["velocity"]``: real numbers, shape ``(num_boxes, 2)``, finite."""
+    try:
+        values = np.asarray(velocity)
+    except (TypeError, ValueError):  # ragged nested lists
+        values = None
+    if values is None or values.dtype.kind not in "fiu":
+        raise DataError(
+            f"{source}: metadata {VELOCITY!r} must be real numbers (vx, vy per box, m/s), got "
+            f"{type(velocity).__name__} of dtype {getattr(values, 'dtype', None)}"
+        )
+    if values.shape != (num_boxes, 2):
+        raise DataError(
+            f"{source}: metadata {VELOCITY!r} must have shape ({num_boxes}, 2) (vx, vy per "
+            f"box), got {values.shape}"
+        )
+    finite = np.isfinite(values).all(axis=1)
+    if not finite.all():
+        row = int(np.flatnonzero(~finite)[0])
+        raise DataError(
+            f"{source}: metadata {VELOCITY!r} row {row} holds a NaN or infinite value: "
+            f"{values[row].tolist()}"
+        )
+
+
+def rotate_velocities(velocity: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+    """Velocities ``(S, 2)`` (vx, vy, m/s) turned by ``angle`` radians about z (one angle, or
+    ``(S,)``: one per row): ``R(angle) v``, ``float64 (S, 2)``.
+
+    An object stored in canonical pose (heading 0) with velocity ``v`` and placed at heading
+    ``h`` moves with ``R(h) v``; the database stores ``R(-h0) v0`` for an object cut out at
+    heading ``h0``.
+    """
+    v = np.asarray(velocity, dtype=np.float64).reshape(-1, 2)
+    angle = np.asarray(angle, dtype=np.float64)
+    cos, sin = np.cos(angle), np.sin(angle)
+    return np.column_stack([cos * v[:, 0] - sin * v[:, 1], sin * v[:, 0] + cos * v[:, 1]])

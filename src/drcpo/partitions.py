@@ -18,6 +18,7 @@ __all__ = [
     "DEFAULT_GRIDS",
     "DEFAULT_MIRRORED",
     "FALLBACK_GRID",
+    "NUSCENES_MIRRORED",
     "Grid",
     "grid_for",
     "mirror_points",
@@ -28,16 +29,48 @@ __all__ = [
 
 Grid = tuple[int, int, int]
 
-#: The paper's grids per class (along x, y, z).
+#: Grids per class (cells along x = length, y = width, z = height): the paper's for KITTI's
+#: classes, and for nuScenes' ten (lower-case names) cells of about the paper's car cell
+#: (0.4-0.6 m along a 4-5 m x 1.9 m x 1.7 m car) on the class's typical size: the long
+#: vehicles (truck ~7 m, construction_vehicle ~6.5 m, bus and trailer ~11-12 m, all 2.5-3 m
+#: wide and about 3 m tall) get more cells along their length and one more in height;
+#: two-wheelers and pedestrians the paper's Cyclist and Pedestrian grids; a barrier (about
+#: 2.5 m long, 0.5 m thick, 1 m tall) is split along its length only; a traffic cone
+#: (0.4 m x 0.4 m x 1 m) into a lower and an upper half.
 DEFAULT_GRIDS: dict[str, Grid] = {
     "Car": (10, 4, 3),
     "Cyclist": (4, 2, 3),
     "Pedestrian": (2, 2, 3),
+    "car": (10, 4, 3),
+    "truck": (14, 4, 4),
+    "construction_vehicle": (12, 4, 4),
+    "bus": (20, 4, 4),
+    "trailer": (20, 4, 4),
+    "barrier": (4, 1, 2),
+    "motorcycle": (4, 2, 3),
+    "bicycle": (4, 2, 3),
+    "pedestrian": (2, 2, 3),
+    "traffic_cone": (1, 1, 2),
 }
 #: Grid of any class without its own entry.
 FALLBACK_GRID: Grid = (4, 2, 3)
-#: Classes mirrored across the x axis (y -> -y) before densities are measured.
+#: Classes mirrored across the x axis (y -> -y) before densities are measured (the paper's;
+#: the config's default ``drcpo.construction.mirror``).
 DEFAULT_MIRRORED: tuple[str, ...] = ("Car", "Cyclist")
+#: The nuScenes classes to mirror (the ``nuscenes`` preset's ``drcpo.construction.mirror``):
+#: those whose left and right sides look alike, vehicles and two-wheelers, as the paper's Car
+#: and Cyclist. Not pedestrians (as the paper: a walking person is not left-right symmetric),
+#: nor barriers and traffic cones (thin or small: the sensor sees one face, and a mirror image
+#: would put points inside the object, not on its far side).
+NUSCENES_MIRRORED: tuple[str, ...] = (
+    "car",
+    "truck",
+    "construction_vehicle",
+    "bus",
+    "trailer",
+    "motorcycle",
+    "bicycle",
+)
 
 
 def grid_for(name: str, grids: Mapping[str, Grid] | None = None) -> Grid:

@@ -1,10 +1,14 @@
-"""Making a ground-truth database: from a KITTI split, or by importing OpenPCDet's.
+"""Making a ground-truth database: from a KITTI split or any data set of frames (the datasets
+protocol: ``frame_ids`` and ``frame(frame_id)``, e.g. nuScenes-style data), or by importing
+OpenPCDet's.
 
 Both paths give the same database for the same frames: objects cut out of the *full* point
 cloud (not field-of-view filtered) with OpenPCDet's own inside rule, so the per-object point
 counts equal OpenPCDet's ``num_points_in_gt``, then stored in canonical pose with their metadata
 (see :mod:`drcpo.database`). Filters such as minimum points or difficulty are applied later,
-when indexing or sampling, as OpenPCDet does.
+when indexing or sampling, as OpenPCDet does. Every point column is kept (x, y, z and the
+frame's features, e.g. intensity and the sweep time lag), and a frame's per-box velocities
+(``metadata["velocity"]``) are stored in each object's canonical frame.
 """
 
 from __future__ import annotations
@@ -13,12 +17,17 @@ import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path, PurePosixPath
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from drcpo.database import safe_pickle
-from drcpo.database.store import DATABASE_OUTPUT, GroundTruthDatabase, ObjectRecord
+from drcpo.database.store import (
+    DATABASE_OUTPUT,
+    GroundTruthDatabase,
+    ObjectRecord,
+    default_point_features,
+)
 from drcpo.datasets.kitti import (
     DONT_CARE,
     FRAME_ID,
@@ -28,15 +37,17 @@ from drcpo.datasets.kitti import (
     read_points,
 )
 from drcpo.errors import ConfigError, DataError, shown
-from drcpo.frame import Frame
+from drcpo.frame import VELOCITY, Frame, rotate_velocities
 from drcpo.geometry import rotate_points_z, to_canonical
 from drcpo.outputs import check_output
 
 __all__ = [
     "DEFAULT_CLASSES",
+    "Dataset",
     "MapFrames",
     "Progress",
     "build_database",
+    "build_database_from",
     "frame_records",
     "import_mmdet3d",
     "import_openpcdet",
@@ -48,6 +59,18 @@ DEFAULT_CLASSES = ("Car", "Pedestrian", "Cyclist")
 
 Progress = Callable[[int, int], None]
 """Called as ``progress(done, total)`` after each frame (build) or object (import)."""
+
+
+class Dataset(Protocol):
+    """What a database is built from: frames by id (e.g.
+    :class:`~drcpo.datasets.kitti.KittiDataset`). A frame's metadata may carry per-box
+    ``difficulty``, ``occlusion``, ``truncation``, ``velocity`` (``(M, 2)``) and the names of
+    its point features, ``point_features``. It is sent to worker processes, so it must pickle."""
+
+    frame_ids: list[str]
+
+    def frame(self, frame_id: str) -> Frame: ...
+
 
 # OpenPCDet's points_in_boxes_cpu (roiaware_pool3d.cpp, check_pt_in_box3d_cpu) widens the box
 # by this float32 margin in x and y only.
@@ -92,7 +115,9 @@ def frame_records(frame: Frame, classes: Sequence[str] | None = None) -> list[Ob
     """Cut the labelled objects of the chosen ``classes`` (``None``: all) out of a frame.
 
     Per-box ``difficulty``, ``occlusion`` and ``truncation`` come from the frame's metadata
-    (as :class:`~drcpo.datasets.kitti.KittiDataset` fills it) and are unknown when absent.
+    (as :class:`~drcpo.datasets.kitti.KittiDataset` fills it) and are unknown when absent; a
+    velocity (``metadata["velocity"]``, ``(M, 2)`` in the LiDAR frame) is stored rotated by the
+    box's -heading, in the object's canonical frame. Points keep all their columns.
     Each record's ``index_in_frame`` is the object's row in ``frame.boxes``: for KITTI frames
     its row among the non-``DontCare`` labels, OpenPCDet's ``gt_idx``.
     """
@@ -102,6 +127,7 @@ def frame_records(frame: Frame, classes: Sequence[str] | None = None) -> list[Ob
     difficulty = _per_box(frame, "difficulty", -1)
     occlusion = _per_box(frame, "occlusion", -1)
     truncation = _per_box(frame, "truncation", np.nan)
+    velocity = _velocities(frame)
     inside = points_in_boxes_openpcdet(frame.points, frame.boxes[keep])
     return [
         ObjectRecord(
@@ -113,9 +139,24 @@ def frame_records(frame: Frame, classes: Sequence[str] | None = None) -> list[Ob
             difficulty=int(difficulty[i]),
             occlusion=int(occlusion[i]),
             truncation=float(truncation[i]),
+            velocity=None if velocity is None else velocity[i],
         )
         for column, i in enumerate(keep)
     ]
+
+
+def _velocities(frame: Frame) -> np.ndarray | None:
+    """The frame's box velocities in each box's canonical frame, ``(M, 2)``, or ``None``."""
+    values = frame.metadata.get(VELOCITY)
+    if values is None:
+        return None
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != (len(frame.boxes), 2) or not np.isfinite(values).all():
+        raise DataError(
+            f"frame {frame.frame_id}: metadata {VELOCITY!r} must be ({len(frame.boxes)}, 2) "
+            f"finite numbers, got shape {values.shape}"
+        )
+    return rotate_velocities(values, -frame.boxes[:, 6])
 
 
 def _per_box(frame: Frame, key: str, unknown: float) -> np.ndarray:
@@ -160,31 +201,102 @@ def build_database(
     arguments, :class:`~drcpo.errors.OutputError` when ``out`` cannot be written (it exists
     and ``overwrite`` is false, it is not a drcpo database, it overlaps ``root``).
     """
-    chosen = _check_classes(classes)
+    _check_classes(classes)
     if workers < 1:
         raise ConfigError(f"workers must be >= 1, got {workers}")
     out = Path(out)
     check_output(out, DATABASE_OUTPUT, overwrite, inputs=[root])  # before reading any frame
     dataset = KittiDataset(root, split)
-    records = [
-        record
-        for frame_objects in (map_frames or _map_frames)(dataset, chosen, workers, progress)
-        for record in frame_objects
-    ]
-    if not records:
-        raise DataError(
-            f"{dataset.root}: split {split!r} ({len(dataset)} frames) holds no object of "
-            f"classes {classes if chosen is None else list(chosen)}"
-        )
     parameters = {
         "source": "kitti",
         "root": str(Path(root).resolve()),
         "split": split,
+    }
+    return build_database_from(
+        dataset,
+        out,
+        classes,
+        workers,
+        overwrite,
+        progress,
+        parameters=parameters,
+        point_dim=dataset.num_features,
+        describe=f"{dataset.root}: split {split!r}",
+        map_frames=map_frames,
+    )
+
+
+def build_database_from(
+    dataset: Dataset,
+    out: str | os.PathLike,
+    classes: Sequence[str] | str = DEFAULT_CLASSES,
+    workers: int = 1,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    parameters: dict[str, Any] | None = None,
+    point_dim: int | None = None,
+    describe: str | None = None,
+    map_frames: MapFrames | None = None,
+) -> GroundTruthDatabase:
+    """Build a ground-truth database from any data set of frames and write it to ``out``.
+
+    Args:
+        dataset: ``frame_ids`` and ``frame(frame_id) -> Frame`` (:class:`Dataset`), e.g.
+            :class:`~drcpo.datasets.kitti.KittiDataset` or a nuScenes-style reader.
+        out, classes, workers, overwrite, progress: as in :func:`build_database`.
+        parameters: what the manifest records of the source (default: the data set's class
+            name and, when it has one, its ``root``).
+        point_dim: columns per point (default: the first frame's); every frame must have them.
+        describe: the data set in messages (default: its class name).
+        map_frames: who reads the frames (:data:`MapFrames`), as in :func:`build_database`.
+
+    The point features' names come from the data set's ``point_features`` attribute, else the
+    first frame's ``metadata["point_features"]``, else :func:`default_point_features`.
+    Velocities are stored when any frame has ``metadata["velocity"]`` (objects of frames
+    without get 0).
+    """
+    chosen = _check_classes(classes)
+    if workers < 1:
+        raise ConfigError(f"workers must be >= 1, got {workers}")
+    out = Path(out)
+    root = getattr(dataset, "root", None)
+    check_output(out, DATABASE_OUTPUT, overwrite, inputs=[] if root is None else [root])
+    describe = describe or type(dataset).__name__
+    frame_ids = list(dataset.frame_ids)
+    names = getattr(dataset, "point_features", None)
+    if frame_ids and (point_dim is None or names is None) and not isinstance(dataset, KittiDataset):
+        first = dataset.frame(frame_ids[0])
+        point_dim = first.points.shape[1] if point_dim is None else point_dim
+        names = names if names is not None else first.metadata.get("point_features")
+    point_dim = 4 if point_dim is None else int(point_dim)
+    records = []
+    for frame_objects in (map_frames or _map_frames)(dataset, chosen, workers, progress):
+        for record in frame_objects:
+            if record.points.shape[1] != point_dim:
+                raise DataError(
+                    f"{describe}: frame {record.frame_id} has {record.points.shape[1]} point "
+                    f"columns, the first frame {point_dim}; every frame needs the same features"
+                )
+            records.append(record)
+    if not records:
+        raise DataError(
+            f"{describe} ({len(frame_ids)} frames) holds no object of "
+            f"classes {classes if chosen is None else list(chosen)}"
+        )
+    if parameters is None:
+        parameters = {"source": type(dataset).__name__}
+        if root is not None:
+            parameters["root"] = str(Path(root).resolve())
+    parameters = {
+        **parameters,
         "classes": "all" if chosen is None else list(chosen),
-        "frames": len(dataset),
+        "frames": len(frame_ids),
         "inside_rule": "openpcdet points_in_boxes_cpu (full point cloud, not FOV-filtered)",
     }
-    database = GroundTruthDatabase.from_records(records, point_dim=dataset.num_features)
+    features = default_point_features(point_dim) if names is None else tuple(names)
+    database = GroundTruthDatabase.from_records(
+        records, point_dim=point_dim, point_features=features
+    )
     database.save(out, parameters=parameters, overwrite=overwrite)
     return GroundTruthDatabase.open(out)
 
@@ -208,7 +320,7 @@ def _check_classes(classes: Sequence[str] | str) -> tuple[str, ...] | None:
 _WORKER_STATE: dict[str, Any] = {}
 
 
-def _init_worker(dataset: KittiDataset, classes: tuple[str, ...] | None) -> None:
+def _init_worker(dataset: Dataset, classes: tuple[str, ...] | None) -> None:
     _WORKER_STATE.update(dataset=dataset, classes=classes)
 
 
@@ -222,13 +334,13 @@ MapFrames = Callable[..., Iterable[list[ObjectRecord]]]
 
 
 def _map_frames(
-    dataset: KittiDataset,
+    dataset: Dataset,
     classes: tuple[str, ...] | None,
     workers: int,
     progress: Progress | None,
 ) -> Iterator[list[ObjectRecord]]:
     """Records of every frame, in split order, computed by ``workers`` processes."""
-    total = len(dataset)
+    total = len(dataset.frame_ids)
     if workers == 1 or total <= 1:
         results: Iterable[list[ObjectRecord]] = (
             frame_records(dataset.frame(frame_id), classes) for frame_id in dataset.frame_ids
@@ -279,9 +391,10 @@ def import_openpcdet(
             are relative to it; see :func:`import_mmdet3d`).
 
     OpenPCDet stores each object's points minus the box centre; they are rotated by the box's
-    -heading into canonical pose. Objects are ordered by frame id, then index in frame, as a
-    build from the same frames orders them. Occlusion and truncation, which the infos lack, are
-    read from ``root/training/label_2`` when those label files exist (else left unknown).
+    -heading into canonical pose, as are the velocities of 9-value boxes (nuScenes' dbinfos).
+    Objects are ordered by frame id, then index in frame, as a build from the same frames orders
+    them. Occlusion and truncation, which the infos lack, are read from
+    ``root/training/label_2`` when those label files exist (else left unknown).
 
     Every field of every object is checked (see :func:`validate_dbinfos`) before any point is
     read; a ``path`` outside ``root`` and a ``gt_idx`` past the frame's labels are refused.
@@ -374,8 +487,9 @@ def validate_dbinfos(infos: Any, source: str) -> list[dict[str, Any]]:
         source: the file, for messages.
 
     Returns one dict per object with ``name``, ``path``, ``image_idx`` (str), ``gt_idx``,
-    ``num_points``, ``difficulty`` (int) and ``box`` (``float64 (7,)``: centre, sizes, heading;
-    any velocities after it are dropped). Raises :class:`DataError` naming ``source``, the
+    ``num_points``, ``difficulty`` (int), ``box`` (``float64 (7,)``: centre, sizes, heading)
+    and ``velocity`` (``float64 (2,)``: values 8 and 9 of a nuScenes-style 9-value box, in the
+    LiDAR frame; ``None`` for 7 or 8 values). Raises :class:`DataError` naming ``source``, the
     record (``Car[3]``) and the field for a wrong type, shape or value, a ``path`` that leaves
     the data root (absolute or through ``..``) and an object listed twice.
     """
@@ -441,6 +555,9 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
     box = _reals(info["box3d_lidar"])
     if box is None or len(box) < 7 or not np.isfinite(box[:7]).all() or (box[3:6] <= 0).any():
         raise bad("box3d_lidar", "a box of >= 7 finite numbers with positive sizes")
+    velocity = box[7:9] if len(box) >= 9 else None  # nuScenes: x, y, z, dx, dy, dz, yaw, vx, vy
+    if velocity is not None and not np.isfinite(velocity).all():
+        raise bad("box3d_lidar", "a box whose velocities (values 8 and 9) are finite")
     if "bbox" in info and ((bbox := _reals(info["bbox"])) is None or bbox.shape != (4,)):
         raise bad("bbox", "4 numbers")
     if "score" in info and _reals([info["score"]]) is None:
@@ -451,6 +568,7 @@ def _dbinfo_entry(info: Any, where: str) -> dict[str, Any]:
         "image_idx": frame_id,
         "gt_idx": gt_idx,
         "box": box[:7],
+        "velocity": velocity,
         "num_points": num_points,
         "difficulty": difficulty,
     }
@@ -527,7 +645,9 @@ def _imported_record(
                 f"{entry['name']} as {entry['path']} says; labels and database disagree"
             )
         occlusion, truncation = int(frame_labels.occlusion[i]), float(frame_labels.truncation[i])
+    velocity = entry.get("velocity")
     return ObjectRecord(
+        velocity=None if velocity is None else rotate_velocities(velocity, -box[6])[0],
         points=rotate_points_z(relative, -box[6]),
         name=entry["name"],
         box=box,

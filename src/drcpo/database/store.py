@@ -3,8 +3,10 @@
 On-disk layout (a directory; no pickle anywhere)::
 
     DB/
-      manifest.json        format name and version, build parameters, counts, content checksum
-      points.npy           float32 (P, 4)  all objects' points, concatenated, canonical pose
+      manifest.json        format name and version, build parameters, counts, content checksum,
+                           point_features (the names of the point columns after x, y, z)
+      points.npy           float32 (P, 3 + C)  all objects' points, concatenated, canonical pose
+                           (KITTI: C = 1, intensity; nuScenes: intensity, time_lag)
       offsets.npy          int64   (N + 1,) object i owns points[offsets[i]:offsets[i + 1]]
       boxes.npy            float64 (N, 7)  original LiDAR boxes (OpenPCDet convention)
       names.npy            unicode (N,)    class names
@@ -14,6 +16,13 @@ On-disk layout (a directory; no pickle anywhere)::
       difficulty.npy       int8    (N,)    0 easy, 1 moderate, 2 hard, -1 unknown (KITTI)
       occlusion.npy        int8    (N,)    KITTI occlusion level (-1 when unknown)
       truncation.npy       float32 (N,)    KITTI truncation (NaN when unknown)
+      velocity.npy         float64 (N, 2)  optional: vx, vy (m/s) in the object's canonical
+                                           frame, i.e. its LiDAR velocity rotated by -heading
+
+Format version 2 adds ``point_features`` and ``velocity.npy``; version 1 (no velocities, the
+feature names unrecorded: ``intensity``, then ``feature_<column>``) still opens, and a
+database without velocities has the checksum it had as version 1 (the checksum covers
+``velocity.npy`` only when it exists).
 
 ``points.npy`` and ``offsets.npy`` are memory-mapped, so reading one object's points costs O(1)
 and opens no per-object file. Databases are written through :func:`drcpo.outputs.write_directory`
@@ -34,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from drcpo.errors import DataError
+from drcpo.frame import rotate_velocities
 from drcpo.outputs import OutputKind, write_directory
 
 __all__ = [
@@ -41,14 +51,17 @@ __all__ = [
     "DIFFICULTY_NAMES",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "READ_VERSIONS",
     "GroundTruthDatabase",
     "ObjectRecord",
+    "default_point_features",
     "difficulty_name",
     "read_manifest",
 ]
 
 FORMAT_NAME = "drcpo-gt-database"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READ_VERSIONS = (1, 2)  # version 1: no point_features, no velocity.npy
 DIFFICULTY_NAMES = ("easy", "moderate", "hard")  # codes 0, 1, 2; -1 is "unknown"
 DATABASE_OUTPUT = OutputKind("drcpo database", "manifest.json", FORMAT_NAME)
 
@@ -62,10 +75,17 @@ _COLUMNS: dict[str, Any] = {
     "occlusion": np.int8,
     "truncation": np.float32,
 }
-_CHECKSUM_ORDER = ("points", "offsets", *_COLUMNS)
-_FILES = tuple(f"{name}.npy" for name in _CHECKSUM_ORDER)
-_FINITE = ("points", "boxes")  # arrays whose values must all be finite (truncation may be NaN)
+#: Columns a database may lack (version 1 never has them), hashed after the others.
+_OPTIONAL: dict[str, Any] = {"velocity": np.float64}
+_CHECKSUM_ORDER = ("points", "offsets", *_COLUMNS, *_OPTIONAL)
+_FINITE = ("points", "boxes", "velocity")  # all values finite (truncation may be NaN)
 _CHUNK_ROWS = 1 << 18  # rows hashed at a time (4 MiB of points): cache-sized, few calls
+
+
+def default_point_features(point_dim: int) -> tuple[str, ...]:
+    """Names of the point columns after x, y, z when a database does not record them (format
+    version 1, KITTI): ``intensity``, then ``feature_<column>``."""
+    return tuple("intensity" if c == 3 else f"feature_{c}" for c in range(3, point_dim))
 
 
 def difficulty_name(code: int) -> str:
@@ -75,7 +95,11 @@ def difficulty_name(code: int) -> str:
 
 @dataclass(frozen=True)
 class ObjectRecord:
-    """One object to store: canonical points ``float32 (n, 4)`` and its metadata."""
+    """One object to store: canonical points ``float32 (n, 3 + C)`` and its metadata.
+
+    ``velocity``: ``(2,)`` vx, vy (m/s) in the object's canonical frame (its LiDAR velocity
+    rotated by ``-box[6]``), or ``None`` when the source has none.
+    """
 
     points: np.ndarray
     name: str
@@ -85,6 +109,7 @@ class ObjectRecord:
     difficulty: int = -1
     occlusion: int = -1
     truncation: float = float("nan")
+    velocity: np.ndarray | None = None
 
 
 class GroundTruthDatabase:
@@ -123,11 +148,14 @@ class GroundTruthDatabase:
                 an index verifies them all the same (:meth:`verified_checksum`).
         """
         path = Path(path)
-        manifest = read_manifest(path, FORMAT_NAME, FORMAT_VERSION, "not a drcpo database")
+        manifest = read_manifest(path, FORMAT_NAME, READ_VERSIONS, "not a drcpo database")
         points = _load(path / "points.npy", mmap=True)
         offsets = _load(path / "offsets.npy", mmap=True)
         columns = {name: _load(path / f"{name}.npy") for name in _COLUMNS}
+        if manifest["format_version"] >= 2 and manifest.get("velocity"):
+            columns["velocity"] = _load(path / "velocity.npy")
         _check_text_columns(path, columns)
+        _check_features(path, manifest, points)
         database = cls(points, offsets, columns, manifest=manifest, path=path)
         if verify:
             database.verify()
@@ -135,9 +163,17 @@ class GroundTruthDatabase:
 
     @classmethod
     def from_records(
-        cls, records: Iterable[ObjectRecord], point_dim: int = 4
+        cls,
+        records: Iterable[ObjectRecord],
+        point_dim: int = 4,
+        point_features: Sequence[str] | None = None,
     ) -> GroundTruthDatabase:
-        """An in-memory database from :class:`ObjectRecord` objects (in order)."""
+        """An in-memory database from :class:`ObjectRecord` objects (in order).
+
+        ``point_features``: names of the ``point_dim - 3`` columns after x, y, z (default:
+        :func:`default_point_features`). Velocities are stored when any record has one (the
+        others get 0).
+        """
         records = list(records)
         chunks = [np.asarray(r.points, dtype=np.float32).reshape(-1, point_dim) for r in records]
         sizes = np.array([len(c) for c in chunks], dtype=np.int64)
@@ -153,7 +189,12 @@ class GroundTruthDatabase:
             "occlusion": np.array([r.occlusion for r in records], dtype=np.int8),
             "truncation": np.array([r.truncation for r in records], dtype=np.float32),
         }
-        return cls(points, offsets, columns)
+        if any(r.velocity is not None for r in records):
+            columns["velocity"] = np.array(
+                [np.zeros(2) if r.velocity is None else r.velocity for r in records],
+                dtype=np.float64,
+            ).reshape(-1, 2)
+        return cls(points, offsets, columns, manifest=_features_manifest(point_dim, point_features))
 
     @classmethod
     def from_arrays(
@@ -166,7 +207,8 @@ class GroundTruthDatabase:
     ) -> GroundTruthDatabase:
         """An in-memory database from concatenated points, offsets and per-object columns.
 
-        Columns not given get "unknown" values (frame id "", index -1, difficulty -1, ...).
+        Columns not given get "unknown" values (frame id "", index -1, difficulty -1, ...);
+        ``velocity`` (``(N, 2)``, canonical frame) is left out unless given.
         """
         offsets = np.asarray(offsets, dtype=np.int64)
         n = len(offsets) - 1
@@ -180,12 +222,19 @@ class GroundTruthDatabase:
             "occlusion": np.full(n, -1, dtype=np.int8),
             "truncation": np.full(n, np.nan, dtype=np.float32),
         }
-        unknown = set(columns) - set(_COLUMNS)
+        kinds = {**_COLUMNS, **_OPTIONAL}
+        unknown = set(columns) - set(kinds)
         if unknown:
             raise ValueError(f"unknown database columns: {sorted(unknown)}")
         for name, values in columns.items():
-            full[name] = np.asarray(values).astype(_COLUMNS[name], copy=False)
-        return cls(np.asarray(points, dtype=np.float32), offsets, full)
+            full[name] = np.asarray(values).astype(kinds[name], copy=False)
+        points = np.asarray(points, dtype=np.float32)
+        return cls(
+            points,
+            offsets,
+            full,
+            manifest=_features_manifest(points.shape[1] if points.ndim == 2 else 4),
+        )
 
     # Access -------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -197,8 +246,32 @@ class GroundTruthDatabase:
 
     @property
     def points(self) -> np.ndarray:
-        """All objects' canonical points, concatenated: ``float32 (P, 4)`` (memory-mapped)."""
+        """All objects' canonical points, concatenated: ``float32 (P, 3 + C)``
+        (memory-mapped)."""
         return self._points
+
+    @property
+    def point_features(self) -> tuple[str, ...]:
+        """Names of the point columns after x, y, z (e.g. ``("intensity",)``)."""
+        names = self.manifest.get("point_features")
+        if names is None:
+            return default_point_features(self._points.shape[1])
+        return tuple(str(n) for n in names)
+
+    @property
+    def velocity(self) -> np.ndarray | None:
+        """``float64 (N, 2)`` vx, vy (m/s) of the objects in their canonical frames (the LiDAR
+        velocity rotated by the box's -heading), or ``None`` when the database has none."""
+        return self._columns.get("velocity")
+
+    def velocities(self, rows: np.ndarray, headings: np.ndarray) -> np.ndarray | None:
+        """LiDAR velocities ``float64 (S, 2)`` of objects ``rows`` placed at ``headings``
+        ``(S,)`` (radians): their canonical velocities turned by the headings; ``None``
+        when the database has none."""
+        if self.velocity is None:
+            return None
+        rows = np.asarray(rows, dtype=np.int64)
+        return rotate_velocities(self.velocity[rows], np.asarray(headings, dtype=np.float64))
 
     @property
     def offsets(self) -> np.ndarray:
@@ -253,7 +326,8 @@ class GroundTruthDatabase:
         return np.flatnonzero(self.names == name)
 
     def object_points(self, i: int) -> np.ndarray:
-        """Points ``float32 (n, 4)`` of object ``i`` in canonical pose (a read-only view)."""
+        """Points ``float32 (n, 3 + C)`` of object ``i`` in canonical pose (a read-only
+        view)."""
         if not -len(self) <= i < len(self):
             raise IndexError(f"object {i} out of range for a database of {len(self)} objects")
         i = int(i) % len(self)
@@ -278,6 +352,8 @@ class GroundTruthDatabase:
         digest = hashlib.sha256()
         arrays = {"points": self._points, "offsets": self._offsets, **self._columns}
         for name in _CHECKSUM_ORDER:
+            if name not in arrays:  # an optional column this database lacks
+                continue
             array = arrays[name]
             digest.update(f"{name}:{array.dtype.str}:{array.shape}".encode())
             for start in range(0, len(array), _CHUNK_ROWS):
@@ -289,7 +365,8 @@ class GroundTruthDatabase:
 
     def _non_finite(self, name: str, chunk: np.ndarray, start: int) -> None:
         row = start + int(np.flatnonzero(~np.isfinite(chunk.reshape(len(chunk), -1)).all(1))[0])
-        obj = row if name == "boxes" else int(np.searchsorted(self._offsets, row, "right") - 1)
+        per_object = name != "points"
+        obj = row if per_object else int(np.searchsorted(self._offsets, row, "right") - 1)
         where = f"{self.path / f'{name}.npy'}" if self.path else f"<memory> {name}"
         raise DataError(
             f"{where}: row {row} (object {obj}, {self.names[obj]!s}) of database "
@@ -305,11 +382,15 @@ class GroundTruthDatabase:
         stored = self.manifest.get("checksum")
         if stored and stored != actual:
             raise DataError(
-                f"database {self.path}: its files ({', '.join(_FILES)}) do not match the "
+                f"database {self.path}: its files ({', '.join(self._files())}) do not match the "
                 f"checksum in {self.path / 'manifest.json'} ({stored}, data gives {actual}): "
                 "the database was modified or is corrupt; rebuild it"
             )
         self._verified = True
+
+    def _files(self) -> list[str]:
+        names = ("points", "offsets", *self._columns)
+        return [f"{name}.npy" for name in _CHECKSUM_ORDER if name in names]
 
     @property
     def verified(self) -> bool:
@@ -348,6 +429,8 @@ class GroundTruthDatabase:
             "num_objects": len(self),
             "num_points": len(self._points),
             "point_dim": int(self._points.shape[1]),
+            "point_features": list(self.point_features),
+            "velocity": self.velocity is not None,
             "classes": self.summary(),
             "checksum": self.compute_checksum(),
         }
@@ -360,8 +443,11 @@ class GroundTruthDatabase:
         return write_directory(path, write, DATABASE_OUTPUT, overwrite=overwrite)
 
 
-def read_manifest(path: Path, format_name: str, format_version: int, missing: str) -> dict:
-    """Read ``path/manifest.json`` and check its format name and version.
+def read_manifest(
+    path: Path, format_name: str, format_version: int | Sequence[int], missing: str
+) -> dict:
+    """Read ``path/manifest.json`` and check its format name and version (one, or the
+    versions this drcpo reads).
 
     Raises :class:`DataError` naming the file; ``missing`` says what a directory without a
     manifest is not (e.g. "not a drcpo database").
@@ -378,10 +464,13 @@ def read_manifest(path: Path, format_name: str, format_version: int, missing: st
     if not isinstance(manifest, dict) or manifest.get("format") != format_name:
         found = manifest.get("format") if isinstance(manifest, dict) else manifest
         raise DataError(f"{manifest_path}: format is {found!r}, expected {format_name!r}")
-    if manifest.get("format_version") != format_version:
+    versions = (format_version,) if isinstance(format_version, int) else tuple(format_version)
+    found = manifest.get("format_version")
+    if isinstance(found, bool) or found not in versions:
+        readable = " or ".join(str(v) for v in versions)
         raise DataError(
-            f"{manifest_path}: format_version {manifest.get('format_version')} "
-            f"is not supported (this drcpo reads {format_version})"
+            f"{manifest_path}: format_version {found} is not supported (this drcpo reads "
+            f"{readable})"
         )
     return manifest
 
@@ -405,6 +494,36 @@ def _check_text_columns(path: Path, columns: dict[str, np.ndarray]) -> None:
             )
 
 
+def _features_manifest(point_dim: int, names: Sequence[str] | None = None) -> dict[str, Any]:
+    """The in-memory manifest that records the feature names of ``point_dim`` columns."""
+    if point_dim < 3:
+        return {}  # not points at all: the consistency check names the shape
+    names = default_point_features(point_dim) if names is None else tuple(map(str, names))
+    if len(names) != point_dim - 3:
+        raise DataError(
+            f"point_features {list(names)} name {len(names)} columns, the points have "
+            f"{point_dim - 3} after x, y, z"
+        )
+    return {"point_features": list(names)}
+
+
+def _check_features(path: Path, manifest: dict, points: np.ndarray) -> None:
+    """A version-2 manifest's ``point_features`` name each point column after x, y, z."""
+    names = manifest.get("point_features")
+    if names is None and manifest["format_version"] < 2:
+        return
+    dim = points.shape[1] if points.ndim == 2 else 0
+    if (
+        not isinstance(names, list)
+        or not all(isinstance(n, str) for n in names)
+        or len(names) != dim - 3
+    ):
+        raise DataError(
+            f"{path / 'manifest.json'}: point_features = {names!r} must list the names of "
+            f"the {dim - 3} point columns after x, y, z of {path / 'points.npy'}"
+        )
+
+
 def _check_consistent(
     points: np.ndarray, offsets: np.ndarray, columns: dict[str, np.ndarray], where: str
 ) -> None:
@@ -420,5 +539,8 @@ def _check_consistent(
             raise DataError(f"{where}: column {name!r} has {len(array)} rows, expected {n}")
     if columns["boxes"].shape != (n, 7):
         raise DataError(f"{where}: boxes must be ({n}, 7), got {columns['boxes'].shape}")
+    velocity = columns.get("velocity")
+    if velocity is not None and velocity.shape != (n, 2):
+        raise DataError(f"{where}: velocity must be ({n}, 2), got {velocity.shape}")
     if not np.array_equal(columns["num_points"], np.diff(offsets)):
         raise DataError(f"{where}: num_points disagrees with offsets")

@@ -27,6 +27,8 @@ job and DR.CPO's; mmdet3d's RandomFlip3D and GlobalRotScaleTrans follow), ``inde
 Types in and out are mmdet3d's: ``points`` (``LiDARPoints``), ``gt_bboxes_3d``
 (``LiDARInstance3DBoxes``, z at the bottom centre: converted exactly to drcpo's centre and back)
 and ``gt_labels_3d`` (int64; labels -1, classes the dataset ignores, stay obstacles and stay -1).
+Boxes with velocities (``box_dim=9``, nuScenes: vx, vy last) keep them, an inserted object's
+turned with its heading (see :mod:`drcpo.integrations.openpcdet`).
 
 Randomness: with ``seed`` set, each sample gets its own generator from ``(seed, epoch,
 sample_idx)``, the same whatever the worker count or order (``DRCPOFadeHook`` tells the transform
@@ -183,19 +185,26 @@ class DRCPOAugment(BaseTransform):
         points, boxes = results["points"], results["gt_bboxes_3d"]
         labels = np.asarray(results["gt_labels_3d"])
         values = boxes.tensor.numpy()
-        if values.ndim != 2 or values.shape[1] != 7:
+        if values.ndim != 2 or values.shape[1] not in (7, 9):
             raise DataError(
                 f"DRCPOAugment: gt_bboxes_3d has box_dim {values.shape[-1]}; drcpo moves 7-value "
-                "boxes only (extra columns such as velocities would go stale)"
+                "boxes and 9-value ones with velocities (vx, vy last) only (other columns would "
+                "go stale)"
             )
+        drcpo_boxes = to_drcpo_boxes(values[:, :7])
+        if values.shape[1] == 9:  # velocities ride along as OpenPCDet's 9-value boxes
+            drcpo_boxes = np.column_stack([drcpo_boxes, values[:, 7:9].astype(np.float64)])
         data = {
             "points": points.tensor.numpy(),
-            "gt_boxes": to_drcpo_boxes(values),
+            "gt_boxes": drcpo_boxes,
             "gt_names": self._names(labels),
         }
         out = self.augmentor(data, self.generator(results))
         results["points"] = points.new_point(out["points"])
-        results["gt_bboxes_3d"] = boxes.new_box(from_drcpo_boxes(out["gt_boxes"]))
+        moved = from_drcpo_boxes(out["gt_boxes"][:, :7])
+        if values.shape[1] == 9:
+            moved = np.column_stack([moved, out["gt_boxes"][:, 7:9]])
+        results["gt_bboxes_3d"] = boxes.new_box(moved)
         results["gt_labels_3d"] = self._labels(out["gt_names"]).astype(labels.dtype, copy=False)
         return results
 

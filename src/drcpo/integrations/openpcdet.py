@@ -43,8 +43,14 @@ Behaviour:
 * Per-epoch fade: ``DISABLE_AUG_LIST: [drcpo]`` and OpenPCDet's ``DisableAugmentationHook`` work
   as for any augmentor.
 
-Boxes with more than 7 columns (velocities) and 2D boxes (``gt_boxes2d``) are refused with a
-clear error: drcpo does not move them.
+* Velocities: 9-value boxes (nuScenes' ``gt_boxes``: x, y, z, dx, dy, dz, heading, vx, vy) are
+  split into the boxes and their velocities (``metadata["velocity"]``) on the way in and joined
+  on the way out: an inserted object's velocity is its database velocity turned to its new
+  heading (0 when the database has none), and drcpo's global stages move them as OpenPCDet's
+  ``random_world_*`` do.
+
+Boxes of another width than 7 or 9 and 2D boxes (``gt_boxes2d``) are refused with a clear error:
+drcpo does not move them.
 """
 
 from __future__ import annotations
@@ -58,6 +64,7 @@ from typing import Any
 import numpy as np
 
 from drcpo.errors import ConfigError, DataError
+from drcpo.frame import VELOCITY
 
 __all__ = [
     "CONTEXT_KEY",
@@ -267,10 +274,12 @@ class OpenPCDetAugmentor:
         boxes = _check_input(data_dict)
         frame: dict[str, Any] = {
             "points": data_dict["points"],
-            "gt_boxes": boxes,
+            "gt_boxes": boxes[:, :7],
             "gt_names": np.asarray(data_dict["gt_names"]),
             "fov_only": self.fov_points_only,
         }
+        if boxes.shape[1] == 9:
+            frame[VELOCITY] = np.asarray(boxes[:, 7:9], dtype=np.float64)
         if "gt_boxes_mask" in data_dict:
             frame["gt_boxes_mask"] = np.asarray(data_dict["gt_boxes_mask"], dtype=bool)
         calib = data_dict.get("calib", context.get("calib"))
@@ -281,7 +290,10 @@ class OpenPCDetAugmentor:
         out = self.pipeline(frame, self.generator() if rng is None else rng)
         stats = out.get(STATS_KEY, {}).get("stages", {})
         data_dict["points"] = out["points"].astype(data_dict["points"].dtype, copy=False)
-        data_dict["gt_boxes"] = out["gt_boxes"].astype(boxes.dtype, copy=False)
+        joined = out["gt_boxes"]
+        if boxes.shape[1] == 9:
+            joined = np.column_stack([joined, out[VELOCITY]])
+        data_dict["gt_boxes"] = joined.astype(boxes.dtype, copy=False)
         data_dict["gt_names"] = np.asarray(out["gt_names"])
         if "gt_boxes_mask" in frame:
             data_dict["gt_boxes_mask"] = np.asarray(out["gt_boxes_mask"], dtype=bool)
@@ -290,15 +302,17 @@ class OpenPCDetAugmentor:
 
 
 def _check_input(data_dict: Mapping[str, Any]) -> np.ndarray:
-    """The dict's ``gt_boxes`` ``(M, 7)``; refuses what drcpo cannot keep consistent."""
+    """The dict's ``gt_boxes`` ``(M, 7)`` or ``(M, 9)`` (velocities last); refuses what drcpo
+    cannot keep consistent."""
     for key in ("points", "gt_boxes", "gt_names"):
         if key not in data_dict:
             raise DataError(f"drcpo augmentor: the data dict has no {key!r}")
     boxes = np.asarray(data_dict["gt_boxes"])
-    if boxes.ndim != 2 or boxes.shape[1] != 7:
+    if boxes.ndim != 2 or boxes.shape[1] not in (7, 9):
         raise DataError(
-            f"drcpo augmentor: gt_boxes has shape {boxes.shape}; drcpo moves (M, 7) boxes only "
-            "(extra columns such as velocities would go stale)"
+            f"drcpo augmentor: gt_boxes has shape {boxes.shape}; drcpo moves (M, 7) boxes and "
+            "(M, 9) ones with velocities (x, y, z, dx, dy, dz, heading, vx, vy) only (other "
+            "columns would go stale)"
         )
     if "gt_boxes2d" in data_dict:
         raise DataError(

@@ -63,6 +63,7 @@ def external_occlusion(
     mode: str = "hpr",
     radius: float | None = None,
     viewpoint_z: float | None = None,
+    viewpoint_xy: np.ndarray | None = None,
     focus: np.ndarray | None = None,
     focus_margin: float = float(np.deg2rad(2.0)),
     method: str = "auto",
@@ -78,6 +79,8 @@ def external_occlusion(
         mode: ``"hpr"`` (the paper) or ``"range_image"`` (:func:`range_image_occlusion`, not the
             paper's method).
         radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
+        viewpoint_xy: ``(2,)`` x, y of the viewpoint, metres (default: 0, 0), e.g. a sensor
+            mounted off the LiDAR origin.
         focus: optional ``bool (N,)`` mask (or indices) of the points that matter, e.g. inserted
             ones. Only points in the azimuth directions of the focus points (see
             :func:`azimuth_focus`, ``focus_margin`` radians) are decided, exactly, against the
@@ -95,15 +98,14 @@ def external_occlusion(
     xyz = _check_points(points)
     query = None if focus is None else azimuth_focus(xyz, focus, focus_margin)
     height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
+    x, y = (0.0, 0.0) if viewpoint_xy is None else (float(v) for v in viewpoint_xy)
     if mode == "range_image":
-        visible = range_image_occlusion(xyz, (0.0, 0.0, height), **(range_image or {}))
+        visible = range_image_occlusion(xyz, (x, y, height), **(range_image or {}))
         return visible if query is None else visible | ~query
     if mode != "hpr":
         raise ConfigError(f"external occlusion mode must be 'hpr' or 'range_image', got {mode!r}")
     r = setting.radius if radius is None else radius
-    return hidden_point_removal(
-        xyz, (0.0, 0.0, height), r, method=method, query=query, workers=workers
-    )
+    return hidden_point_removal(xyz, (x, y, height), r, method=method, query=query, workers=workers)
 
 
 class InsertedScope(ABC):

@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 from functools import cache, partial
 from typing import Any
 
@@ -17,16 +16,18 @@ from drcpo import construction, occlusion, placement
 from drcpo.config import DRCPOConfig, from_dict, to_dict
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
-from drcpo.frame import Frame
+from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
 from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
-from drcpo.transforms import sensor_steps
+from drcpo.transforms import sensor_steps, sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
+from drcpo.transforms.drcpo_parts import Insertion, Placed
 from drcpo.transforms.insertion import (
     BOX_SOURCE,
     BoxQuery,
+    key_sweep,
     placed_object,
     sampling_pools,
     take_rows,
@@ -42,41 +43,6 @@ __all__ = [
 
 _CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
 _FIT_PAD = 1e-4  # metres between a label's moved face and the point beyond it (see box_holding)
-
-
-@dataclass(frozen=True, eq=False)
-class _Placed:
-    """What e-HPR needs of the placed boxes alone (worked out while the objects are built):
-    the boxes ``(A, 7)``; per frame point, the last box holding it (``int64 (N,)``, -1:
-    none); each box's source row; their view windows."""
-
-    boxes: np.ndarray
-    owners: np.ndarray
-    rows: np.ndarray  # each box's source row
-    windows: tuple[np.ndarray, ...]  # box_windows of the boxes grown by WINDOW_SLACK
-
-    def windows_of(self, insertions: Sequence[_Insertion]) -> tuple[np.ndarray, ...]:
-        """The view windows of the boxes of ``insertions``, some of the placed objects in their
-        order (a box's window does not depend on the others)."""
-        index, k = [], 0
-        for insertion in insertions:
-            while int(self.rows[k]) != insertion.row:
-                k += 1
-            index.append(k)
-            k += 1
-        return tuple(values[np.array(index, dtype=np.int64)] for values in self.windows)
-
-
-@dataclass(frozen=True, eq=False)
-class _Insertion:
-    """One object on its way into the frame: source row, class, placed box, its label (the
-    placed box grown to hold the points, see :meth:`DRCPO._object_s_hpr`), placed points."""
-
-    row: int
-    name: str
-    placed: np.ndarray
-    box: np.ndarray
-    points: np.ndarray
 
 
 @register
@@ -155,6 +121,9 @@ class DRCPO(Transform):
         if not isinstance(config, DRCPOConfig):
             raise TypeError(f"config must be a DRCPOConfig or a mapping, got {type(config)}")
         self.config: DRCPOConfig = config
+        # Where the sensor sits in the LiDAR frame: s-HPR's viewpoint and e-HPR's base.
+        self._mount = np.asarray(config.sensor.base().mount, dtype=np.float64)
+        self._mount.setflags(write=False)
         self.database = database
         self.index = index
         # Per frame, placement inside the camera's view or not; always with room for the label.
@@ -277,11 +246,23 @@ class DRCPO(Transform):
 
     # The steps ------------------------------------------------------------------------------
     def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
+        split = sweeps.split_sweeps(frame)
+        if split is None:
+            return self._apply(frame, rng, stats)
+        # Multi-sweep: the steps on the key sweep, the others settled from their own origins.
+        out = self._apply(split.key, rng, stats)
+        settings = self.config.external_occlusion
+        mode = {"sensor": "range_image"}.get(settings.mode, settings.mode)
+        return split.join(
+            out, "drcpo", self.room, settings.setting, mode if settings.enabled else None
+        )
+
+    def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
         seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
         objects: list[Any] = []
-        placed: Future | None = None  # of a _Placed
+        placed: Future | None = None  # of a Placed
         with ThreadPoolExecutor(max_workers=1) as pool:
             frame_grid = self._frame_grid(frame, rows, pool)
             # s-HPR of each object, done by this thread and the pool's when it is free.
@@ -379,16 +360,16 @@ class DRCPO(Transform):
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         pool: ThreadPoolExecutor,
     ) -> Future | None:
-        """On two cores, start on ``pool`` working out the :class:`_Placed` of the placed
+        """On two cores, start on ``pool`` working out the :class:`Placed` of the placed
         ``boxes`` (of source ``rows``; ``owners``: the room each frame point lies in, if known)
         while the objects are built; its future, or ``None`` when nothing is started."""
         if frame_grid is None or len(boxes) == 0 or not self._two_threads():
             return None
         _, viewpoint = self.e_hpr_setting()
 
-        def place() -> _Placed:
+        def place() -> Placed:
             rooms = owners if owners is not None else self._room_owners(frame, boxes)
-            return _Placed(boxes, rooms, rows, box_windows(grown_boxes(boxes), viewpoint))
+            return Placed(boxes, rooms, rows, box_windows(grown_boxes(boxes), viewpoint))
 
         return pool.submit(place)
 
@@ -572,7 +553,12 @@ class DRCPO(Transform):
             points = sensor_steps.render(points, sensor, seed)
         elif settings.enabled and len(points):
             visible = occlusion.self_occlusion(
-                points, box, settings.radius_factor, method="reference", workers=1
+                points,
+                box,
+                settings.radius_factor,
+                viewpoint=self._mount,
+                method="reference",
+                workers=1,
             )
             points = take_rows(points, visible)
         return points, box_holding(box, points, _FIT_PAD)
@@ -583,7 +569,7 @@ class DRCPO(Transform):
         boxes: np.ndarray,
         visible: Sequence[tuple[np.ndarray, np.ndarray]],
         stats: Stats,
-    ) -> list[_Insertion]:
+    ) -> list[Insertion]:
         """The objects left with at least ``self_occlusion.min_points`` points after s-HPR
         (``visible``: each object's placed points left and its label), the others rejected."""
         minimum = self.config.self_occlusion.min_points
@@ -593,14 +579,14 @@ class DRCPO(Transform):
             if len(points) < minimum:
                 stats.rejected(self.name, name, "self_occlusion")
                 continue
-            insertions.append(_Insertion(int(row), name, box, label, points))
+            insertions.append(Insertion(int(row), name, box, label, points))
         return insertions
 
     def _insert(
         self,
         frame: Frame,
-        insertions: Sequence[_Insertion],
-        placed: _Placed | None = None,
+        insertions: Sequence[Insertion],
+        placed: Placed | None = None,
         clear: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points after insertion (the frame's points outside the objects' room, see
@@ -620,6 +606,7 @@ class DRCPO(Transform):
         points = np.concatenate(
             [take_rows(frame.points, original), *(i.points for i in insertions)]
         )
+        key_sweep(points, frame, int(np.count_nonzero(original)))
         owner = np.concatenate(
             [np.full(int(original.sum()), -1)]
             + [np.full(len(i.points), j) for j, i in enumerate(insertions)]
@@ -630,11 +617,11 @@ class DRCPO(Transform):
         self,
         points: np.ndarray,
         owner: np.ndarray,
-        insertions: Sequence[_Insertion],
+        insertions: Sequence[Insertion],
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
         pool: ThreadPoolExecutor | None = None,
-        placed: _Placed | None = None,
+        placed: Placed | None = None,
         seen: sensor_steps.SensorFrame | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
@@ -674,6 +661,7 @@ class DRCPO(Transform):
                 mode=settings.mode,
                 radius=radius,
                 viewpoint_z=viewpoint[2],
+                viewpoint_xy=viewpoint[:2] if self._mounted else None,
                 workers=self._hpr_workers(),
             )
         if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
@@ -707,7 +695,7 @@ class DRCPO(Transform):
         self,
         points: np.ndarray,
         owner: np.ndarray,
-        insertions: Sequence[_Insertion],
+        insertions: Sequence[Insertion],
         keep: np.ndarray,
     ) -> np.ndarray:
         """``bool (len(insertions),)``: objects with fewer than ``min_points_after`` of their
@@ -719,9 +707,17 @@ class DRCPO(Transform):
         return survivors < self.config.min_points_after
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
-        """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides."""
+        """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides:
+        the preset's height above the sensor's mount (``drcpo.sensor``; the origin unless
+        set)."""
         setting = self.config.external_occlusion.setting
-        return float(setting.radius), np.array([0.0, 0.0, float(setting.viewpoint_z)])
+        viewpoint = np.array([0.0, 0.0, float(setting.viewpoint_z)])
+        return float(setting.radius), viewpoint + self._mount if self._mounted else viewpoint
+
+    @property
+    def _mounted(self) -> bool:
+        """Whether the sensor sits off the LiDAR origin (the viewpoints then follow it)."""
+        return bool(np.any(self._mount))
 
     def _settle(
         self,
@@ -731,7 +727,7 @@ class DRCPO(Transform):
         keep: np.ndarray,
         dropped: np.ndarray,
         cleared_by: np.ndarray,
-        insertions: Sequence[_Insertion],
+        insertions: Sequence[Insertion],
         stats: Stats,
     ) -> Frame:
         """The output frame: drop inserted objects and original boxes left with too few points.
@@ -757,6 +753,12 @@ class DRCPO(Transform):
             stats.label_dropped(str(name))
         inserted_keep = keep & ~np.append(dropped, True)[owner]  # (index -1: not inserted)
         kept_boxes = np.flatnonzero(~drop_original)
+        added_values = {BOX_SOURCE: np.full(len(kept), "drcpo")}
+        if kept and frame.metadata.get(VELOCITY) is not None and self.database.velocity is not None:
+            # The source's canonical velocity turned to the new heading (a mirrored
+            # construction keeps the source's: mirroring fills the shape, not the motion).
+            headings = [i.box[6] for i in kept]
+            added_values[VELOCITY] = self.database.velocities([i.row for i in kept], headings)
         return frame.replace(
             points=np.concatenate(
                 [take_rows(frame.points, ~removed), take_rows(points, inserted_keep)]
@@ -770,7 +772,7 @@ class DRCPO(Transform):
                 len(frame.boxes),
                 keep=kept_boxes if drop_original.any() else None,
                 added=len(kept),
-                added_values={BOX_SOURCE: np.full(len(kept), "drcpo")},
+                added_values=added_values,
             ),
         )
 

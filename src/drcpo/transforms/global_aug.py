@@ -1,5 +1,10 @@
 """Global augmentation: flip, rotation and scaling of the whole scene (the conventional
-baseline's last stages, and DR.CPO's pipeline's)."""
+baseline's last stages, and DR.CPO's pipeline's).
+
+The boxes' velocities (``metadata["velocity"]``, ``(M, 2)``, when a frame has them) move with
+the scene as OpenPCDet's ``augmentor_utils`` moves the velocity columns of its 9-value boxes:
+a flip negates the flipped component, a rotation turns them, a scaling scales them.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +16,7 @@ import numba as nb
 import numpy as np
 
 from drcpo.config import FlipConfig, RotationConfig, ScalingConfig, from_dict
-from drcpo.frame import Frame
+from drcpo.frame import VELOCITY, Frame, rotate_velocities
 from drcpo.geometry import rotate_points_z, wrap_angle
 from drcpo.transforms.base import Stats, Transform, config_body, register
 
@@ -51,6 +56,15 @@ class GlobalFlip(Transform):
                 boxes[:, 6] = -boxes[:, 6] if axis == "x" else np.pi - boxes[:, 6]
             if boxes is not frame.boxes:
                 boxes[:, 6] = wrap_angle(boxes[:, 6])
+            velocity = _velocity(frame)
+            if velocity is not None and record["flipped"][0]:
+                velocity = velocity.copy()
+                for axis in record["flipped"][0]:
+                    column = 1 if axis == "x" else 0  # the flipped coordinate's component
+                    velocity[:, column] = -velocity[:, column]
+                return frame.replace(
+                    points=points, boxes=boxes, metadata={**frame.metadata, VELOCITY: velocity}
+                )
             return frame.replace(points=points, boxes=boxes)
 
 
@@ -77,6 +91,10 @@ class GlobalRotation(Transform):
             points = rotate_points_z(frame.points, angle)
             boxes = rotate_points_z(frame.boxes, angle)
             boxes[:, 6] = wrap_angle(boxes[:, 6] + angle)
+            velocity = _velocity(frame)
+            if velocity is not None:
+                metadata = {**frame.metadata, VELOCITY: rotate_velocities(velocity, angle)}
+                return frame.replace(points=points, boxes=boxes, metadata=metadata)
             return frame.replace(points=points, boxes=boxes)
 
 
@@ -104,7 +122,20 @@ class GlobalScaling(Transform):
             _scale_rows(points, float(scale))
             boxes = frame.boxes.copy()
             boxes[:, :6] *= scale
+            velocity = _velocity(frame)
+            if velocity is not None:
+                metadata = {**frame.metadata, VELOCITY: velocity * scale}
+                return frame.replace(points=points, boxes=boxes, metadata=metadata)
             return frame.replace(points=points, boxes=boxes)
+
+
+def _velocity(frame: Frame) -> np.ndarray | None:
+    """The frame's box velocities ``float64 (M, 2)`` when it has one row per box, else
+    ``None`` (left as they are)."""
+    velocity = frame.metadata.get(VELOCITY)
+    if velocity is None or np.shape(velocity) != (len(frame.boxes), 2):
+        return None
+    return np.asarray(velocity, dtype=np.float64)
 
 
 @nb.njit(cache=True, nogil=True)

@@ -11,11 +11,12 @@ from drcpo import placement
 from drcpo.config import GTSamplingConfig, from_dict, to_dict
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
-from drcpo.frame import Frame
+from drcpo.frame import VELOCITY, Frame
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.insertion import (
     BOX_SOURCE,
     BoxQuery,
+    key_sweep,
     placed_objects,
     road_plane_heights,
     sampling_pools,
@@ -39,7 +40,10 @@ class GroundTruthSampling(Transform):
     a colliding drawn pair go). With a KITTI road plane in ``frame.metadata["plane"]`` and a
     calibration in ``metadata["calib"]``, kept boxes are moved vertically so that their bottom
     lies on the plane; otherwise they keep their original height. Frame points inside kept boxes
-    are removed and the objects' points appended.
+    are removed and the objects' points appended, with the database's point features (a frame
+    column the database lacks is 0, and a ``time_lag`` column 0: the key sweep). With velocities
+    in the frame (``metadata["velocity"]``), an added box gets its object's own (the heading is
+    unchanged), or 0 when the database has none.
 
     Args:
         database: the ground-truth database to draw from.
@@ -152,21 +156,26 @@ class GroundTruthSampling(Transform):
             bottoms = boxes[:, 2] - boxes[:, 5] / 2.0
             boxes[:, 2] += road_plane_heights(plane, calib, boxes[:, :3]) - bottoms
         keep = ~BoxQuery(frame.points).inside_any(boxes)
-        objects = placed_objects(self.database, rows, boxes, frame.points.shape[1])
+        objects = key_sweep(
+            placed_objects(self.database, rows, boxes, frame.points.shape[1]), frame
+        )
         points = np.concatenate([take_rows(frame.points, keep), objects])
         names = np.concatenate([frame.names, self.database.names[rows].astype(str)])
         db = self.database
+        added_values = {
+            "difficulty": db.difficulty[rows],
+            "occlusion": db.occlusion[rows],
+            "truncation": db.truncation[rows],
+            "num_points_in_gt": db.num_points[rows],
+            BOX_SOURCE: np.full(len(rows), "gt_sampling"),
+        }
+        if frame.metadata.get(VELOCITY) is not None and db.velocity is not None:
+            added_values[VELOCITY] = db.velocities(rows, boxes[:, 6])
         metadata = update_box_metadata(
             with_box_sources(frame.metadata, len(frame.boxes)),
             len(frame.boxes),
             added=len(rows),
-            added_values={
-                "difficulty": db.difficulty[rows],
-                "occlusion": db.occlusion[rows],
-                "truncation": db.truncation[rows],
-                "num_points_in_gt": db.num_points[rows],
-                BOX_SOURCE: np.full(len(rows), "gt_sampling"),
-            },
+            added_values=added_values,
         )
         return frame.replace(
             points=points,

@@ -13,19 +13,23 @@ import numpy as np
 from drcpo.config import per_class
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import DataError
+from drcpo.frame import VELOCITY
 from drcpo.geometry import box_members, heading_terms, rows_in_box
 
 __all__ = [
     "BOX_SOURCE",
     "PER_BOX_METADATA",
     "STALE_WHEN_BOXES_CHANGE",
+    "TIME_LAG",
     "BoxQuery",
+    "key_sweep",
     "match_features",
     "placed_object",
     "placed_objects",
     "road_plane_heights",
     "sampling_pools",
     "take_rows",
+    "time_lag_column",
     "update_box_metadata",
     "with_box_sources",
 ]
@@ -49,6 +53,31 @@ def match_features(points: np.ndarray, dim: int) -> np.ndarray:
     out = np.zeros((len(points), dim), dtype=np.float32)
     out[:, : points.shape[1]] = points
     return out
+
+
+#: Name of the point feature holding each point's sweep time lag (seconds; 0: the key sweep).
+TIME_LAG = "time_lag"
+
+
+def time_lag_column(frame: Any) -> int | None:
+    """The column of ``frame.points`` holding the sweep time lag, from the feature names in
+    ``metadata["point_features"]`` (``None`` when it names none)."""
+    names = frame.metadata.get("point_features")
+    if names is None or TIME_LAG not in list(names):
+        return None
+    column = 3 + list(names).index(TIME_LAG)
+    return column if column < frame.points.shape[1] else None
+
+
+def key_sweep(points: np.ndarray, frame: Any, start: int = 0) -> np.ndarray:
+    """``points`` (rows ``start:`` inserted into ``frame``) with their time lag 0, in place:
+    an inserted object is seen in the key sweep, whatever sweep its database points came
+    from (and a point's time lag names its sweep, see ``metadata["sweep_time_lags"]``).
+    Unchanged when the frame has no time-lag column."""
+    column = time_lag_column(frame)
+    if column is not None and len(points) > start:
+        points[start:, column] = 0.0
+    return points
 
 
 def placed_object(canonical: np.ndarray, box: np.ndarray, dim: int) -> np.ndarray:
@@ -206,6 +235,7 @@ PER_BOX_METADATA: dict[str, Any] = {
     "truncation": np.nan,
     "num_points_in_gt": -1,
     "box_source": "",  # see BOX_SOURCE
+    VELOCITY: 0.0,  # (M, 2) vx, vy: an added box whose source gives none stands still
 }
 #: Metadata key of a ``str (M,)`` array saying which stage added each box: ``""`` for the
 #: frame's own, ``"gt_sampling"``, ``"drcpo"`` (sensor-true occlusion treats every added box as
@@ -234,26 +264,31 @@ def update_box_metadata(
 ) -> dict[str, Any]:
     """Metadata with its per-box arrays (:data:`PER_BOX_METADATA`) matching new boxes.
 
+    A per-box array has one row per box: ``(M,)`` or ``(M, k)`` (the velocities, ``(M, 2)``);
+    one of another length is left as it is.
+
     Args:
         metadata: the frame's metadata (not modified).
         num_boxes: boxes before the change.
         keep: indices of the boxes kept, in order (``None``: all).
         added: boxes appended after the kept ones.
-        added_values: values of the appended boxes per key (default: the fill value).
+        added_values: values of the appended boxes per key, ``(added,)`` or ``(added, k)``
+            (default: the fill value in every column).
     """
     if keep is None and added == 0:
         return dict(metadata)
     out = {k: v for k, v in metadata.items() if k not in STALE_WHEN_BOXES_CHANGE}
     for key, fill in PER_BOX_METADATA.items():
         value = metadata.get(key)
-        if value is None or np.ndim(value) != 1 or len(value) != num_boxes:
+        if value is None or np.ndim(value) < 1 or len(value) != num_boxes:
             continue
         value = np.asarray(value)
         kept = value if keep is None else value[keep]
         extra = (added_values or {}).get(key)
         if extra is None:
-            extra = np.full(added, fill)
-        out[key] = np.concatenate([kept, np.asarray(extra)]).astype(
+            extra = np.full((added, *value.shape[1:]), fill)
+        extra = np.asarray(extra).reshape(added, *value.shape[1:])
+        out[key] = np.concatenate([kept, extra]).astype(
             np.result_type(value.dtype, np.asarray(fill).dtype), copy=False
         )
     return out
