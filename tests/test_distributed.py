@@ -251,6 +251,38 @@ def test_cluster_build_db_equals_one_process(cluster, kitti, database, tmp_path)
     assert tree_bytes(tmp_path / "cli") == one
 
 
+def test_cluster_build_db_of_a_nuscenes_style_data_set_equals_one_process(cluster, tmp_path):
+    """Any data set of frames (here nuScenes-style, 5-feature multi-sweep points, velocities)
+    goes to the actors whole and gives the one-process database."""
+    from typer.testing import CliRunner
+
+    from drcpo.cli import app
+    from drcpo.database.build import build_database_from
+    from drcpo.datasets.nuscenes import NuScenesDataset
+    from drcpo.distributed import build_dataset_cluster
+    from drcpo.synth.nuscenes import NuScenesSynthConfig, write_synthetic_nuscenes
+
+    root = tmp_path / "nuscenes"
+    config = NuScenesSynthConfig(samples=3, sweeps_before=2)
+    write_synthetic_nuscenes(root, 2, seed=5, config=config, version="v1.0-mini")
+    dataset = NuScenesDataset(root, "v1.0-mini", sweeps=2)
+    one = build_database_from(dataset, tmp_path / "one", ["car", "pedestrian", "bicycle"])
+    spread = build_dataset_cluster(
+        dataset, tmp_path / "spread", ["car", "pedestrian", "bicycle"], cluster=cluster
+    )
+    assert one.velocity is not None and one.point_features == ("intensity", "time_lag")
+    assert tree_bytes(tmp_path / "spread") == tree_bytes(tmp_path / "one")
+    assert spread.checksum == one.checksum
+    args = ["build-db", "--nuscenes", str(root), "--version", "v1.0-mini", "--sweeps", "2"]
+    args += ["--out", str(tmp_path / "cli"), "--classes", "car,pedestrian,bicycle"]
+    result = CliRunner().invoke(app, [*args, "--cluster", "local", "--workers", "2"])
+    assert result.exit_code == 0, result.output
+    cli_db = tree_bytes(tmp_path / "cli")
+    assert {k: v for k, v in cli_db.items() if k != "manifest.json"} == {
+        k: v for k, v in tree_bytes(tmp_path / "one").items() if k != "manifest.json"
+    }
+
+
 def many_objects(seed: int = 3):
     """A database of 300 cars and 120 pedestrians of random sizes and points (many blocks)."""
     import numpy as np

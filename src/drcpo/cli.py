@@ -155,14 +155,29 @@ def _class_list(classes: list[str] | None, extra: list[str]) -> list[str] | str:
 @app.command("build-db", context_settings={"allow_extra_args": True})
 def build_db(
     ctx: typer.Context,
-    kitti: Annotated[Path, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")],
     out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
-    split: Annotated[str, typer.Option(help="Split: frames of ImageSets/<split>.txt.")] = "train",
+    kitti: Annotated[
+        Path | None, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")
+    ] = None,
+    nuscenes: Annotated[
+        Path | None,
+        typer.Option("--nuscenes", help="nuScenes-style root (v1.0-*/ tables, samples/, sweeps/)."),
+    ] = None,
+    split: Annotated[str, typer.Option(help="KITTI: frames of ImageSets/<split>.txt.")] = "train",
+    version: Annotated[str, typer.Option(help="nuScenes: the tables' version.")] = "v1.0-trainval",
+    scenes: Annotated[
+        Path | None,
+        typer.Option(help="nuScenes: a file of scene names, one per line (default: all scenes)."),
+    ] = None,
+    sweeps: Annotated[
+        int, typer.Option(min=0, help="nuScenes: earlier sweeps joined to each key sweep.")
+    ] = 0,
     classes: Annotated[
         list[str] | None,
         typer.Option(
             help="Classes to keep (e.g. --classes Car Pedestrian), or 'all' for every "
-            "non-DontCare class. Default: Car Pedestrian Cyclist."
+            "non-DontCare class. Default: Car Pedestrian Cyclist (KITTI), the ten detection "
+            "classes (nuScenes)."
         ),
     ] = None,
     workers: Annotated[
@@ -171,7 +186,14 @@ def build_db(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
     cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
 ) -> None:
-    """Build a ground-truth database from a KITTI split."""
+    """Build a ground-truth database from a KITTI split or a nuScenes-style data set."""
+    if (kitti is None) == (nuscenes is None):
+        fail("build-db: give exactly one of --kitti ROOT or --nuscenes ROOT")
+    if nuscenes is not None:
+        _build_db_nuscenes(
+            ctx, nuscenes, out, version, scenes, sweeps, classes, workers, overwrite, cluster
+        )
+        return
     from drcpo.database.build import build_database
 
     chosen = _class_list(classes, list(ctx.args))
@@ -185,6 +207,45 @@ def build_db(
 
             database = build_database_cluster(
                 kitti, split, out, chosen, overwrite, progress, cluster, workers
+            )
+    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
+
+
+def _build_db_nuscenes(
+    ctx: typer.Context,
+    root: Path,
+    out: Path,
+    version: str,
+    scenes: Path | None,
+    sweeps: int,
+    classes: list[str] | None,
+    workers: int,
+    overwrite: bool,
+    cluster: str | None,
+) -> None:
+    """``build-db --nuscenes``: the key samples of the chosen scenes, ``sweeps`` joined."""
+    from drcpo.database.build import build_database_from
+    from drcpo.datasets.nuscenes import NUSCENES_CLASSES, NuScenesDataset
+
+    chosen = list(NUSCENES_CLASSES) if not classes else _class_list(classes, list(ctx.args))
+    dataset = NuScenesDataset(root, version, scenes=scenes, sweeps=sweeps)
+    parameters = {
+        "source": "nuscenes",
+        "root": str(root.resolve()),
+        "version": version,
+        "scenes": None if scenes is None else str(scenes),
+        "sweeps": sweeps,
+    }
+    with progress_bar(f"samples of {version}") as progress:
+        if cluster is None:
+            database = build_database_from(
+                dataset, out, chosen, workers, overwrite, progress, parameters=parameters
+            )
+        else:
+            from drcpo.distributed import build_dataset_cluster
+
+            database = build_dataset_cluster(
+                dataset, out, chosen, overwrite, progress, cluster, workers, parameters
             )
     Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
 

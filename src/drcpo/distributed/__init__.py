@@ -1,12 +1,13 @@
 """Data-set-wide work spread over a Ray cluster (the optional extra ``drcpo[ray]``): offline
-generation (:func:`augment_kitti_cluster`), the database (:func:`build_database_cluster`) and the
-index (:func:`build_index_cluster`), each giving the same bytes as one process. A local cluster by
-default, a cluster's address when given (:func:`connect`)."""
+generation (:func:`augment_kitti_cluster`), the database (:func:`build_database_cluster`; any
+data set of frames: :func:`build_dataset_cluster`) and the index (:func:`build_index_cluster`),
+each giving the same bytes as one process. A local cluster by default, a cluster's address when
+given (:func:`connect`)."""
 
 from __future__ import annotations
 
 from drcpo.distributed.augment import augment_kitti_cluster
-from drcpo.distributed.build import build_database_cluster
+from drcpo.distributed.build import build_database_cluster, build_dataset_cluster
 from drcpo.distributed.cluster import Cluster, WorkerLost, connect, require_ray
 from drcpo.distributed.index import build_index_cluster
 
@@ -15,6 +16,7 @@ __all__ = [
     "WorkerLost",
     "augment_kitti_cluster",
     "build_database_cluster",
+    "build_dataset_cluster",
     "build_index_cluster",
     "connect",
     "require_ray",

@@ -9,7 +9,12 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from drcpo.database import GroundTruthDatabase, ObjectRecord
-from drcpo.database.build import DEFAULT_CLASSES, build_database, frame_records
+from drcpo.database.build import (
+    DEFAULT_CLASSES,
+    build_database,
+    build_database_from,
+    frame_records,
+)
 from drcpo.distributed.cluster import (
     LOCAL,
     Cluster,
@@ -20,7 +25,7 @@ from drcpo.distributed.cluster import (
     run_on_actors,
 )
 
-__all__ = ["FrameReader", "build_database_cluster"]
+__all__ = ["FrameReader", "build_database_cluster", "build_dataset_cluster"]
 
 #: Chunks per worker: small enough to balance the load, large enough to keep calls few.
 CHUNKS_PER_WORKER = 8
@@ -94,6 +99,36 @@ def build_database_cluster(
             workers=workers,
             overwrite=overwrite,
             progress=progress,
+            map_frames=cluster_frames(connection, workers),
+        )
+    finally:
+        if connection is not cluster:
+            connection.close()
+
+
+def build_dataset_cluster(
+    dataset: Any,
+    out: str | os.PathLike,
+    classes: Sequence[str] | str = DEFAULT_CLASSES,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    cluster: str | Cluster | None = LOCAL,
+    workers: int = 2,
+    parameters: dict[str, Any] | None = None,
+) -> GroundTruthDatabase:
+    """:func:`~drcpo.database.build.build_database_from` (any data set of frames, e.g. a
+    nuScenes-style one) with the frames read by ``workers`` actors of ``cluster``; the same
+    database. The data set object goes to each actor, so it must pickle (the readers do)."""
+    connection = connect(cluster, workers)
+    try:
+        return build_database_from(
+            dataset,
+            out,
+            classes,
+            workers=workers,
+            overwrite=overwrite,
+            progress=progress,
+            parameters=parameters,
             map_frames=cluster_frames(connection, workers),
         )
     finally:
