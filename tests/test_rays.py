@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drcpo.errors import ConfigError, DataError
-from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.rays import RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.sensor import Sensor, sensor_preset
 
@@ -209,6 +209,54 @@ def test_ray_occlusion_matches_the_reference(seed: int) -> None:
     # radii given per inserted point only: the same
     again = ray_occlusion(points, owner, sensor, radii=radii[owner >= 0], tolerance=0.1)
     np.testing.assert_array_equal(again, removed)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_without_objects_matches_the_reference_on_the_rest(seed: int) -> None:
+    """RayOcclusion.without: the verdict of the points left once some objects are taken out
+    equals the plain loop run on those points alone; the taken-out objects' points go."""
+    rng = np.random.default_rng(10 + seed)
+    sensor = small_sensor()
+    frame = scene(rng, 1500, sensor)
+    parts, owners = [frame], [np.full(len(frame), -1)]
+    for k in range(4):
+        # two pairs of objects in a row, so that taking the nearer out uncovers the farther
+        if k % 2 == 0:
+            angle, distance = rng.uniform(-math.pi, math.pi), rng.uniform(4, 12)
+        else:
+            distance += 5.0
+        centre = (distance * math.cos(angle), distance * math.sin(angle), -0.9)
+        local = rng.uniform(-0.5, 0.5, (250, 3)) * (3.0, 1.6, 1.4)
+        parts.append(
+            np.column_stack([local + np.array(centre), rng.random(250)]).astype(np.float32)
+        )
+        owners.append(np.full(250, k))
+    points, owner = np.concatenate(parts), np.concatenate(owners)
+    radii = rng.uniform(0.05, 0.3, len(points))
+    rays = RayOcclusion(points, owner, sensor, radii=radii, tolerance=0.1)
+    np.testing.assert_array_equal(
+        rays.removed, reference_occlusion(points, owner, sensor, radii, 0.1)
+    )
+    for gone in ([0], [0, 2], [1, 3], np.array([True, False, False, True])):
+        out = np.zeros(4, bool)
+        out[gone] = True
+        live = ~out[np.maximum(owner, 0)] | (owner < 0)
+        expected = np.ones(len(points), bool)
+        kept_owner = np.unique(owner[live], return_inverse=True)[1] - 1  # -1 stays first
+        expected[live] = reference_occlusion(points[live], kept_owner, sensor, radii[live], 0.1)
+        got = rays.without(np.asarray(gone))
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(
+            got[live], ray_occlusion(points[live], kept_owner, sensor, radii[live], 0.1)
+        )
+        assert not (got & ~rays.removed & live).any()  # kept with them, kept without
+    # what the nearer objects hid of the farther ones comes back
+    assert (rays.removed[owner == 1] & ~rays.without([0])[owner == 1]).any()
+    np.testing.assert_array_equal(rays.without([]), rays.removed)
+    with pytest.raises(DataError, match="objects"):
+        rays.without([4])
+    with pytest.raises(DataError, match="objects"):
+        rays.without(np.ones(3, bool))
 
 
 def test_rendered_object_hides_what_is_behind_it() -> None:

@@ -36,7 +36,7 @@ from drcpo.occlusion.render import (
 )
 from drcpo.sensor import Sensor
 
-__all__ = ["RangeImage", "ray_occlusion"]
+__all__ = ["RangeImage", "RayOcclusion", "ray_occlusion"]
 
 
 class RangeImage:
@@ -133,24 +133,86 @@ def ray_occlusion(
             :func:`~drcpo.occlusion.render.surfel_radii` of each object's points.
         tolerance: metres a surface must lie nearer to hide a point.
     """
-    array = _frame_points(points)
-    owner = _check_owner(owner, len(array))
-    tolerance = _check_tolerance(tolerance)
-    inserted = np.flatnonzero(owner >= 0)
-    removed = np.zeros(len(array), dtype=bool)
-    surfel = _inserted_radii(array, owner, inserted, radii)
-    bad = _ray_occlusion(
-        array,
-        owner,
-        inserted,
-        surfel,
-        tolerance,
-        removed,
-        *sensor_tables(sensor).geometry,
-    )
-    if bad >= 0:
-        raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
-    return removed
+    return RayOcclusion(points, owner, sensor, radii, tolerance).removed.copy()
+
+
+class RayOcclusion:
+    """:func:`ray_occlusion` of one frame after insertion, with its work (cells, surface
+    elements and their windows) kept, so that the verdict without some of the objects costs
+    little more (:meth:`without`).
+
+    Args: as :func:`ray_occlusion`.
+
+    Attributes:
+        removed: ``bool (N,)`` :func:`ray_occlusion` of all the points (read-only).
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        owner: np.ndarray,
+        sensor: Sensor,
+        radii: np.ndarray | None = None,
+        tolerance: float = 0.1,
+    ) -> None:
+        array = _frame_points(points)
+        self._owner = owner = _check_owner(owner, len(array))
+        self._tolerance = _check_tolerance(tolerance)
+        self._inserted = inserted = np.flatnonzero(owner >= 0)
+        self._radii = _inserted_radii(array, owner, inserted, radii)
+        self._tables = tables = sensor_tables(sensor)
+        self._objects = int(owner.max()) + 1 if len(inserted) else 0
+        index = _ray_index(array, owner, inserted, self._radii, *tables.geometry)
+        if index[0] >= 0:
+            raise DataError(f"points hold NaN/inf coordinates (first: row {index[0]})")
+        self._index = index[1:]
+        self.removed = self._decide(np.ones(self._objects, dtype=bool), None)
+        self.removed.setflags(write=False)
+
+    def without(self, objects: np.ndarray) -> np.ndarray:
+        """``bool (N,)``: what :func:`ray_occlusion` removes of the points without those of
+        ``objects`` (object numbers, or ``bool`` per object), as if those had never been
+        inserted; their own points are ``True`` (removed with them).
+
+        Taking objects out only takes surfaces away, so a point kept with them is kept
+        without them: only the points :attr:`removed` are decided again."""
+        alive = np.ones(self._objects, dtype=bool)
+        gone = np.asarray(objects)
+        if gone.dtype == bool:
+            if gone.shape != (self._objects,):
+                raise DataError(
+                    f"objects mask must have shape ({self._objects},), got {gone.shape}"
+                )
+            alive &= ~gone
+        else:
+            gone = gone.astype(np.int64, copy=False).reshape(-1)
+            if gone.size and (gone.min() < 0 or gone.max() >= self._objects):
+                raise DataError(f"objects must be numbers in [0, {self._objects}), got {gone}")
+            alive[gone] = False
+        if alive.all():
+            return self.removed.copy()
+        return self._decide(alive, self.removed)
+
+    def _decide(self, alive: np.ndarray, pending: np.ndarray | None) -> np.ndarray:
+        """The verdict with the objects ``alive`` only, deciding the points of ``pending``
+        (``bool (N,)``; ``None``: all)."""
+        removed = np.zeros(len(self._owner), dtype=bool)
+        if pending is None:
+            pending = np.ones(len(self._owner), dtype=bool)
+        tables = self._tables.geometry
+        _ray_decide(
+            self._inserted,
+            self._radii,
+            *self._index,
+            alive,
+            pending,
+            self._tolerance,
+            removed,
+            tables[4],  # offsets
+            tables[1],  # edge_lut
+            tables[-1],  # constants
+        )
+        return removed
 
 
 def _frame_points(points: np.ndarray) -> np.ndarray:
@@ -453,13 +515,11 @@ def _visible_rays(
 
 
 @numba.njit(cache=True, nogil=True)
-def _ray_occlusion(
+def _ray_index(
     points,
     owner,
     inserted,
     radii,
-    tolerance,
-    removed,
     edge_slopes,
     edge_lut,
     beam_slopes,
@@ -476,7 +536,10 @@ def _ray_occlusion(
     bound_sin,
     constants,
 ):  # pragma: no cover - numba
-    # Sets `removed`; returns the first row with a non-finite coordinate, or -1.
+    # The work of ray_occlusion that does not depend on which objects are kept: the inserted
+    # points' cells and their elements' windows of cells, the original points that may matter
+    # and the frame's nearest return per cell (see _ray_decide). First: the first row with a
+    # non-finite coordinate, or -1 (then the rest is empty).
     beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
     step, phase, per_radian = constants[0], constants[1], constants[4]
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
@@ -502,7 +565,7 @@ def _ray_occlusion(
         constants,
     )
     if bad >= 0:
-        return bad
+        return _no_index(bad)
     # 2. Each element's window of cells: rows 0..B + 1 (above, in and below the beams) of the
     #    edges' tangents its cone spans, columns from one end of its azimuths to the other.
     #    Per column: the object whose windows reach it (-2: several, -1: none), whether it
@@ -575,22 +638,7 @@ def _ray_occlusion(
         if covered[c] != -1 or wanted[c]:
             slot[c] = used
             used += 1
-    # 3. Per cell of the used columns: the nearest inserted return, its object, and the
-    #    nearest of another object; the elements of each cell in one array, cell by cell.
-    nearest = np.full(rows * used, np.inf)
-    nearest_owner = np.full(rows * used, -1, np.int64)
-    other = np.full(rows * used, np.inf)
-    for j in range(m):
-        if own_beam[j] < 0:
-            continue
-        cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
-        distance, k = own_distance[j], element_owner[j]
-        if distance < nearest[cell]:
-            if nearest_owner[cell] != k:
-                other[cell] = nearest[cell]
-            nearest[cell], nearest_owner[cell] = distance, k
-        elif k != nearest_owner[cell] and distance < other[cell]:
-            other[cell] = distance
+    # 3. The elements of each cell of the used columns in one array, cell by cell.
     start = np.zeros(rows * used + 1, np.int64)
     for j in range(m):
         for r in range(window[j, 0] - top, window[j, 1] + 1 - top):
@@ -634,7 +682,7 @@ def _ray_occlusion(
         y = np.float64(points[i, 1]) - mount[1]
         z = np.float64(points[i, 2]) - mount[2]
         if not np.isfinite(x + y + z):
-            return i
+            return _no_index(i)
         if x == 0.0 and y == 0.0:
             continue
         k = _pseudo_bin(x, y, bins)
@@ -673,29 +721,113 @@ def _ray_occlusion(
         if beam[q] >= 0 and wanted[column[q]] and top <= beam[q] + 1 <= bottom:
             cell = (beam[q] + 1 - top) * used + slot[column[q]]
             frame[cell] = min(frame[cell], distance[q])
-    hidden = _behind_elements(
-        near, beam, column, distance, np.full(found, -1, np.int64), covered, slot, used, top,
-        bottom, offsets, rel, radii, element_owner, entries, start, tolerance, edge_lut, constants,
+    return (
+        -1, own_beam, own_column, own_distance, rel, element_owner, covered, slot, used, top,
+        bottom, entries, start, candidates, beam, column, distance, near, frame,
     )  # fmt: skip
-    for q in range(found):
-        removed[candidates[q]] = hidden[q]
-    # 5. The inserted returns: behind the frame or another object in their cell, or behind
-    #    another object's elements along their ray.
+
+
+@numba.njit(cache=True, nogil=True)
+def _no_index(bad):  # pragma: no cover - numba
+    # _ray_index's answer for a non-finite row: the row, then empty arrays.
+    none, empty = np.zeros(0, np.int64), np.zeros(0)
+    return (
+        bad, none, none, empty, np.zeros((0, 3)), none, none, none, 0, 0, -1,
+        np.zeros(0, np.int32), none, none, none, none, empty, np.zeros((0, 3)), empty,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_decide(
+    inserted,
+    radii,
+    own_beam,
+    own_column,
+    own_distance,
+    rel,
+    element_owner,
+    covered,
+    slot,
+    used,
+    top,
+    bottom,
+    entries,
+    start,
+    candidates,
+    beam,
+    column,
+    distance,
+    near,
+    frame,
+    alive,
+    pending,
+    tolerance,
+    removed,
+    offsets,
+    edge_lut,
+    constants,
+):  # pragma: no cover - numba
+    # Sets `removed` of the points of `pending` from _ray_index's work, with the objects
+    # `alive` only (the points of the others are removed). The windows and original points
+    # that _ray_index kept for all the objects cover those of any of them: a column's
+    # `covered` may name several objects where one is left, which only costs a look.
+    m = inserted.shape[0]
+    rows = max(bottom - top + 1, 0)
+    # Per cell of the used columns: the nearest inserted return, its object, and the nearest
+    # of another object.
+    nearest = np.full(rows * used, np.inf)
+    nearest_owner = np.full(rows * used, -1, np.int64)
+    other = np.full(rows * used, np.inf)
     for j in range(m):
-        if own_beam[j] < 0:
+        if own_beam[j] < 0 or not alive[element_owner[j]]:
             continue
         cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
-        distance_j = own_distance[j]
-        rival = other[cell] if nearest_owner[cell] == element_owner[j] else nearest[cell]
-        if frame[cell] < distance_j - tolerance or rival < distance_j - tolerance:
-            removed[inserted[j]] = True
+        distance_j, k = own_distance[j], element_owner[j]
+        if distance_j < nearest[cell]:
+            if nearest_owner[cell] != k:
+                other[cell] = nearest[cell]
+            nearest[cell], nearest_owner[cell] = distance_j, k
+        elif k != nearest_owner[cell] and distance_j < other[cell]:
+            other[cell] = distance_j
+    # The original points: behind an element along their own ray.
+    found = candidates.shape[0]
+    ask = np.empty(found, np.bool_)
+    for q in range(found):
+        ask[q] = pending[candidates[q]]
     hidden = _behind_elements(
-        rel, own_beam, own_column, own_distance, element_owner, covered, slot, used, top,
-        bottom, offsets, rel, radii, element_owner, entries, start, tolerance, edge_lut, constants,
+        near, beam, column, distance, np.full(found, -1, np.int64), ask, alive, covered, slot,
+        used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
+        edge_lut, constants,
+    )  # fmt: skip
+    for q in range(found):
+        if ask[q]:
+            removed[candidates[q]] = hidden[q]
+    # The inserted returns: behind the frame or another object in their cell, or else behind
+    # another object's elements along their ray.
+    ask = np.zeros(m, np.bool_)
+    for j in range(m):
+        i = inserted[j]
+        if not alive[element_owner[j]]:
+            removed[i] = True
+            continue
+        if not pending[i]:
+            continue
+        if own_beam[j] >= 0:
+            cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
+            distance_j = own_distance[j]
+            rival = other[cell] if nearest_owner[cell] == element_owner[j] else nearest[cell]
+            if frame[cell] < distance_j - tolerance or rival < distance_j - tolerance:
+                removed[i] = True
+                continue
+        ask[j] = True
+    hidden = _behind_elements(
+        rel, own_beam, own_column, own_distance, element_owner, ask, alive, covered, slot,
+        used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
+        edge_lut, constants,
     )  # fmt: skip
     for j in range(m):
-        removed[inserted[j]] |= hidden[j]
-    return -1
+        if ask[j]:
+            removed[inserted[j]] = hidden[j]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -705,6 +837,8 @@ def _behind_elements(
     column,
     distance,
     skip,
+    ask,
+    alive,
     covered,
     slot,
     used,
@@ -726,13 +860,14 @@ def _behind_elements(
     # whether an element not of object skip[q] lies within its radius of the ray from that
     # origin (the mount outside every beam) through the point, more than `tolerance` nearer
     # along it. The elements looked at are those of the cell of the ray's direction (its row
-    # among the beam edges, seen from that origin).
+    # among the beam edges, seen from that origin). Only the queries `ask`ed, against the
+    # elements of the objects `alive`.
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
     beams = offsets.shape[0]
     hidden = np.zeros(queries.shape[0], np.bool_)
     for q in range(queries.shape[0]):
         c = column[q]
-        if c < 0 or covered[c] == -1 or covered[c] == skip[q]:
+        if not ask[q] or c < 0 or covered[c] == -1 or covered[c] == skip[q]:
             continue  # no element, or only the query's own object's
         lift = offsets[beam[q]] if beam[q] >= 0 else 0.0
         x, y, dz = queries[q, 0], queries[q, 1], queries[q, 2] - lift
@@ -752,7 +887,7 @@ def _behind_elements(
         ux, uy, uz = x * inverse, y * inverse, dz * inverse
         for e in range(start[cell], start[cell + 1]):
             j = entries[e]
-            if element_owner[j] == skip[q]:
+            if element_owner[j] == skip[q] or not alive[element_owner[j]]:
                 continue
             vx, vy, vz = rel[j, 0], rel[j, 1], rel[j, 2] - lift
             t = vx * ux + vy * uy + vz * uz

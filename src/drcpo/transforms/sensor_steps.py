@@ -8,7 +8,7 @@
   (:meth:`~drcpo.occlusion.rays.RangeImage.visible_rays`);
 * s-HPR mode ``sensor``: each object rendered through the sensor
   (:func:`~drcpo.occlusion.render.render_object`);
-* e-HPR mode ``sensor``: occlusion along the rays (:func:`~drcpo.occlusion.rays.ray_occlusion`),
+* e-HPR mode ``sensor``: occlusion along the rays (:class:`~drcpo.occlusion.rays.RayOcclusion`),
   with the added boxes of earlier stages as inserted objects too.
 
 Each function returns data; :mod:`drcpo.transforms.drcpo` orders the steps.
@@ -27,7 +27,7 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.ground import GroundModel
-from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.rays import RangeImage, RayOcclusion
 from drcpo.occlusion.render import render_object
 from drcpo.placement import frame_ground
 from drcpo.sensor import Sensor
@@ -235,29 +235,21 @@ def sensor_occlusion(
             its points (its label then goes with the frame's sparse boxes).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
-    without them, decides every point, so a dropped object hides nothing.
+    without them, decides every point, so a dropped object hides nothing (the work of the
+    first kept: :meth:`~drcpo.occlusion.rays.RayOcclusion.without`).
     """
     first = len(added_owner)
     num_drcpo = int(owner.max()) + 1 if len(owner) > first else 0
     combined = owner.copy()
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
-    removed = ray_occlusion(points, combined, sensor)
+    rays = RayOcclusion(points, combined, sensor)
+    removed = rays.removed
     dropped = count_kept(~removed[first:])
-    gone = np.zeros(len(points), dtype=bool)
-    gone[first:] = (owner[first:] >= 0) & np.append(dropped, False)[owner[first:]]
+    gone = np.zeros(int(combined.max(initial=-1)) + 1, dtype=bool)  # per object
+    gone[:num_drcpo] = dropped
     if added_owner.max(initial=-1) >= 0:
         sparse = count_added(~removed[:first]) < min_points
-        gone[:first] = (added_owner >= 0) & sparse[np.maximum(added_owner, 0)]
+        gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
-        removed = np.ones(len(points), dtype=bool)
-        live = ~gone
-        removed[live] = ray_occlusion(take_rows(points, live), _renumbered(combined[live]), sensor)
+        removed = rays.without(gone)
     return ~removed, dropped
-
-
-def _renumbered(owner: np.ndarray) -> np.ndarray:
-    """``owner`` with its objects numbered 0, 1, ... in order (-1 stays)."""
-    objects = owner >= 0
-    out = owner.copy()
-    out[objects] = np.unique(owner[objects], return_inverse=True)[1]
-    return out
