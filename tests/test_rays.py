@@ -183,6 +183,69 @@ def test_visible_rays_see_through_empty_space_only() -> None:
     assert 0 < empty.visible_rays(behind, occluders=front)[0] < empty.visible_rays(behind)[0]
 
 
+def reference_in_turn(image, boxes, need, placed, placed_need) -> list[bool]:
+    """Box by box: hidden by the boxes accepted before it, or hiding one of them, each counted
+    against all of them."""
+    accepted, needs, hidden = list(placed), list(placed_need), []
+    for box, n in zip(boxes, need, strict=True):
+        occluders = np.array(accepted).reshape(-1, 7)
+        seen = image.visible_rays(box[None], occluders if len(accepted) else None)[0]
+        if seen < n:
+            hidden.append(True)
+            continue
+        if accepted:
+            left = image.visible_rays(occluders, np.concatenate([occluders, box[None]]))
+            if (left < np.array(needs)).any():
+                hidden.append(True)
+                continue
+        accepted.append(box)
+        needs.append(n)
+        hidden.append(False)
+    return hidden
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_hidden_in_turn_matches_box_by_box(seed: int) -> None:
+    """Boxes in rows along a few directions, some behind others: the first come is kept."""
+    rng = np.random.default_rng(seed)
+    sensor = small_sensor() if seed % 2 else HDL64E
+    image = RangeImage.build(scene(rng, 3000, sensor), sensor)
+    boxes = []
+    for _ in range(14):
+        angle = rng.choice([-2.0, 0.3, 0.35, 1.5]) + rng.normal(0, 0.05)
+        distance = rng.uniform(3, 25)
+        boxes.append(
+            [
+                distance * math.cos(angle),
+                distance * math.sin(angle),
+                rng.uniform(-1, 0.5),
+                rng.uniform(0.5, 4),
+                rng.uniform(0.5, 2),
+                rng.uniform(0.5, 2),
+                rng.uniform(-math.pi, math.pi),
+            ]
+        )
+    boxes = np.array(boxes)
+    crossing = RangeImage(sensor, np.full(image.ranges.shape, np.inf)).visible_rays(boxes)
+    need = np.maximum(3, np.ceil(0.4 * crossing)).astype(np.int64)
+    # two rounds, as placement draws them: the second among the first's accepted boxes
+    placed, placed_need = boxes[:0], need[:0]
+    for part in (slice(0, 7), slice(7, None)):
+        got = image.hidden_in_turn(boxes[part], need[part], placed, placed_need)
+        expected = reference_in_turn(image, boxes[part], need[part], placed, placed_need)
+        assert got.tolist() == expected
+        assert 0 < got.sum() < len(got)  # some hidden, some kept
+        placed = np.concatenate([placed, boxes[part][~got]])
+        placed_need = np.concatenate([placed_need, need[part][~got]])
+    with pytest.raises(DataError, match="need"):
+        image.hidden_in_turn(boxes, need[:3])
+    with pytest.raises(DataError, match="placed_need"):
+        image.hidden_in_turn(boxes[4:], need[4:], boxes[:4], need[:2])
+    with pytest.raises(DataError, match="need"):
+        image.hidden_in_turn(boxes, need.astype(float))
+    assert image.hidden_in_turn(boxes[:0], need[:0]).shape == (0,)
+
+
 # ----------------------------------------------------------------------------------------------
 # ray_occlusion
 # ----------------------------------------------------------------------------------------------

@@ -106,6 +106,49 @@ class RangeImage:
         )
         return counts
 
+    def hidden_in_turn(
+        self,
+        boxes: np.ndarray,
+        need: np.ndarray,
+        placed: np.ndarray | None = None,
+        placed_need: np.ndarray | None = None,
+        tolerance: float = 0.1,
+    ) -> np.ndarray:
+        """``bool (M,)``: the ``boxes`` ``(M, 7)`` to reject when they are taken in turn, first
+        come first served, among ``placed`` ``(K, 7)`` boxes accepted before.
+
+        Box ``m`` is rejected when fewer than ``need[m]`` rays reach it (:meth:`visible_rays`)
+        with the placed boxes and the boxes accepted before it as occluders, or when it would
+        leave one of those with fewer rays than its own need (``placed_need`` ``(K,)`` for the
+        placed ones); else it is accepted. Objects in a row along a street would hide each
+        other. Only boxes whose azimuth spans (their bounding circles seen from the mount)
+        overlap can hide each other, so only those are counted again.
+        """
+        boxes = _check_boxes(boxes, "boxes")
+        placed = _check_boxes(np.zeros((0, 7)) if placed is None else placed, "placed")
+        tolerance = _check_tolerance(tolerance)
+        need = _check_need(need, len(boxes), "need")
+        placed_need = _check_need(
+            np.zeros(0) if placed_need is None else placed_need, len(placed), "placed_need"
+        )
+        hidden = np.zeros(len(boxes), dtype=bool)
+        if len(boxes) == 0:
+            return hidden
+        every = np.concatenate([placed, boxes])
+        tables = sensor_tables(self.sensor)
+        _hidden_in_turn(
+            every,
+            *heading_terms(every),
+            _windows(every, *tables.geometry),
+            np.concatenate([placed_need, need]),
+            len(placed),
+            self.ranges,
+            np.array([tolerance, self.sensor.max_range]),
+            hidden,
+            *tables.geometry,
+        )
+        return hidden
+
 
 def ray_occlusion(
     points: np.ndarray,
@@ -253,6 +296,15 @@ def _check_boxes(boxes: np.ndarray, name: str) -> np.ndarray:
             f"{name} must be finite with positive sizes; row {int(np.flatnonzero(bad)[0])} is not"
         )
     return array
+
+
+def _check_need(need: np.ndarray, count: int, name: str) -> np.ndarray:
+    array = np.asarray(need)
+    if array.shape != (count,):
+        raise DataError(f"{name} must have shape ({count},), one per box, got {array.shape}")
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise DataError(f"{name} must hold whole numbers of rays, got dtype {array.dtype}")
+    return array.astype(np.int64)
 
 
 def _check_tolerance(tolerance: float) -> float:
@@ -512,6 +564,102 @@ def _visible_rays(
                     if reaches:
                         counts[m] += 1
                 c = c + 1 if c + 1 < columns else 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _hidden_in_turn(
+    boxes,
+    cos,
+    sin,
+    windows,
+    need,
+    first,
+    ranges,
+    settings,
+    hidden,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first_column,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # RangeImage.hidden_in_turn: `boxes` are the placed ones (rows < first), then the
+    # candidates; sets hidden[m] for candidate first + m. The azimuth span (centre, half
+    # angle) of each box's bounding circle, seen from the mount: the whole circle around it.
+    geometry = (
+        edge_slopes, edge_lut, beam_slopes, beam_lut, offsets, mount, beam_cos, beam_sin,
+        column_cos, column_sin, first_column, crosses, bound_cos, bound_sin, constants,
+    )  # fmt: skip
+    total = boxes.shape[0]
+    spans = np.empty((total, 2))
+    for m in range(total):
+        x, y = boxes[m, 0] - mount[0], boxes[m, 1] - mount[1]
+        reach = math.hypot(boxes[m, 3], boxes[m, 4]) / 2.0
+        distance = math.hypot(x, y)
+        spans[m, 0] = math.atan2(y, x)
+        spans[m, 1] = (
+            math.asin(min(reach / max(distance, 1e-9), 1.0)) if distance > reach else np.pi
+        )
+    # every candidate against the placed boxes at once
+    counts = np.zeros(total - first, np.int64)
+    _visible_rays(
+        boxes[first:], cos[first:], sin[first:], windows[first:], boxes[:first], cos[:first],
+        sin[:first], windows[:first], ranges, settings, counts, *geometry,
+    )  # fmt: skip
+    accepted = np.empty(total, np.int64)
+    accepted[:first] = np.arange(first)
+    count = first
+    for m in range(total - first):
+        if counts[m] < need[first + m]:
+            hidden[m] = True
+            continue
+        g = first + m
+        near = np.empty(count, np.int64)  # the accepted boxes it may hide or be hidden by
+        found, late = 0, False
+        for n in range(count):
+            a = accepted[n]
+            gap = abs((spans[a, 0] - spans[g, 0] + np.pi) % (2.0 * np.pi) - np.pi)
+            if gap <= spans[a, 1] + spans[g, 1]:
+                near[found] = a
+                found += 1
+                late |= a >= first
+        near = near[:found]
+        if late:  # this round's boxes accepted before it may hide it
+            mine = np.zeros(1, np.int64)
+            _visible_rays(
+                boxes[g : g + 1], cos[g : g + 1], sin[g : g + 1], windows[g : g + 1],
+                boxes[near], cos[near], sin[near], windows[near], ranges, settings, mine,
+                *geometry,
+            )  # fmt: skip
+            if mine[0] < need[g]:
+                hidden[m] = True
+                continue
+        if found:  # and it may leave one of those too few rays
+            with_it = accepted[: count + 1].copy()
+            with_it[count] = g
+            left = np.zeros(found, np.int64)
+            _visible_rays(
+                boxes[near], cos[near], sin[near], windows[near], boxes[with_it], cos[with_it],
+                sin[with_it], windows[with_it], ranges, settings, left, *geometry,
+            )  # fmt: skip
+            short = False
+            for n in range(found):
+                short |= left[n] < need[near[n]]
+            if short:
+                hidden[m] = True
+                continue
+        accepted[count] = g
+        count += 1
 
 
 @numba.njit(cache=True, nogil=True)

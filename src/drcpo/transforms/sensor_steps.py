@@ -148,7 +148,6 @@ class SensorFrame:
         ``placed`` and this round's), or that would leave one of those so (objects in a row
         along a street would hide each other). A box's share counts: the rays left reaching a
         mostly hidden box pass its corners, where the object leaves the box empty."""
-        image = self.range_image
         accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
 
         def needed(crossing: np.ndarray) -> np.ndarray:
@@ -158,47 +157,7 @@ class SensorFrame:
         # the boxes placed before were this call's boxes of an earlier round: counted then
         need, accepted_need = needed(crossing), needed(self._crossing_of(accepted))
         self._crossing.update(zip(map(bytes, boxes), crossing.tolist(), strict=True))
-        # Boxes hidden already by the frame and the earlier rounds' boxes, all in one call;
-        # the others one by one against the boxes of this round accepted before them.
-        hidden = image.visible_rays(boxes, occluders=accepted if len(accepted) else None) < need
-        spans = _azimuth_spans(accepted)
-        first = len(accepted)
-        for i in np.flatnonzero(~hidden):
-            box = boxes[i : i + 1]
-            span = _azimuth_spans(box)
-            near = np.flatnonzero(_overlapping(spans, span[0]))  # in front or behind
-            if (near >= first).any():  # this round's boxes may hide it too
-                if image.visible_rays(box, occluders=accepted[near])[0] < need[i]:
-                    hidden[i] = True
-                    continue
-            if len(near):
-                occluders = np.concatenate([accepted, box])
-                left = image.visible_rays(accepted[near], occluders=occluders)
-                if (left < accepted_need[near]).any():
-                    hidden[i] = True
-                    continue
-            accepted = np.concatenate([accepted, box])
-            accepted_need = np.append(accepted_need, need[i])
-            spans = np.concatenate([spans, span])
-        return hidden
-
-
-def _azimuth_spans(boxes: np.ndarray) -> np.ndarray:
-    """``float64 (B, 2)``: each box's azimuth interval seen from the origin (centre azimuth
-    +- the half angle its bounding circle covers; the whole circle when it holds the origin)."""
-    centre = np.arctan2(boxes[:, 1], boxes[:, 0])
-    reach = np.hypot(boxes[:, 3], boxes[:, 4]) / 2.0
-    distance = np.hypot(boxes[:, 0], boxes[:, 1])
-    half = np.where(
-        distance > reach, np.arcsin(np.minimum(reach / np.maximum(distance, 1e-9), 1.0)), np.pi
-    )
-    return np.column_stack([centre, half])
-
-
-def _overlapping(spans: np.ndarray, span: np.ndarray) -> np.ndarray:
-    """``bool (B,)``: ``spans`` (centre, half angle) that overlap ``span``."""
-    gap = np.abs((spans[:, 0] - span[0] + np.pi) % (2.0 * np.pi) - np.pi)
-    return gap <= spans[:, 1] + span[1]
+        return self.range_image.hidden_in_turn(boxes, need, accepted, accepted_need)
 
 
 def render(points: np.ndarray, sensor: Sensor, seed: int) -> np.ndarray:
