@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drcpo.errors import ConfigError, DataError
-from drcpo.occlusion.rays import RangeImage, RayOcclusion, ray_occlusion
+from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.sensor import Sensor, sensor_preset
 
@@ -205,8 +205,10 @@ def reference_in_turn(image, boxes, need, placed, placed_need) -> list[bool]:
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_hidden_in_turn_matches_box_by_box(seed: int) -> None:
-    """Boxes in rows along a few directions, some behind others: the first come is kept."""
+def test_placed_view_matches_box_by_box(seed: int) -> None:
+    """Boxes in rows along a few directions, some behind others, in two rounds as placement
+    draws them: the first come is kept, as the plain count of every box against all the
+    boxes accepted says; a view started from the placed boxes answers the same."""
     rng = np.random.default_rng(seed)
     sensor = small_sensor() if seed % 2 else HDL64E
     image = RangeImage.build(scene(rng, 3000, sensor), sensor)
@@ -228,22 +230,28 @@ def test_hidden_in_turn_matches_box_by_box(seed: int) -> None:
     boxes = np.array(boxes)
     crossing = RangeImage(sensor, np.full(image.ranges.shape, np.inf)).visible_rays(boxes)
     need = np.maximum(3, np.ceil(0.4 * crossing)).astype(np.int64)
-    # two rounds, as placement draws them: the second among the first's accepted boxes
+    view = PlacedView(image, 3, 0.6)
     placed, placed_need = boxes[:0], need[:0]
     for part in (slice(0, 7), slice(7, None)):
-        got = image.hidden_in_turn(boxes[part], need[part], placed, placed_need)
+        fresh = PlacedView(image, 3, 0.6, placed=placed)
+        assert view.holds(placed[::-1]) and fresh.holds(placed)
+        got = view.admit(boxes[part])
         expected = reference_in_turn(image, boxes[part], need[part], placed, placed_need)
         assert got.tolist() == expected
+        assert fresh.admit(boxes[part]).tolist() == expected
         assert 0 < got.sum() < len(got)  # some hidden, some kept
         placed = np.concatenate([placed, boxes[part][~got]])
         placed_need = np.concatenate([placed_need, need[part][~got]])
-    with pytest.raises(DataError, match="need"):
-        image.hidden_in_turn(boxes, need[:3])
-    with pytest.raises(DataError, match="placed_need"):
-        image.hidden_in_turn(boxes[4:], need[4:], boxes[:4], need[:2])
-    with pytest.raises(DataError, match="need"):
-        image.hidden_in_turn(boxes, need.astype(float))
-    assert image.hidden_in_turn(boxes[:0], need[:0]).shape == (0,)
+        np.testing.assert_array_equal(view.boxes, placed)
+        np.testing.assert_array_equal(view.need, placed_need)
+        # each accepted box's rays left: its count against all the others
+        np.testing.assert_array_equal(view.left, image.visible_rays(placed, placed))
+    assert not view.holds(placed[1:])
+    assert view.admit(boxes[:0]).shape == (0,)
+    with pytest.raises(ConfigError, match="max_hidden"):
+        PlacedView(image, 3, 1.5)
+    with pytest.raises(ConfigError, match="min_rays"):
+        PlacedView(image, 2.5, 0.5)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ from drcpo.occlusion.render import (
 )
 from drcpo.sensor import Sensor
 
-__all__ = ["RangeImage", "RayOcclusion", "ray_occlusion"]
+__all__ = ["PlacedView", "RangeImage", "RayOcclusion", "ray_occlusion"]
 
 
 class RangeImage:
@@ -106,47 +106,98 @@ class RangeImage:
         )
         return counts
 
-    def hidden_in_turn(
-        self,
-        boxes: np.ndarray,
-        need: np.ndarray,
-        placed: np.ndarray | None = None,
-        placed_need: np.ndarray | None = None,
-        tolerance: float = 0.1,
-    ) -> np.ndarray:
-        """``bool (M,)``: the ``boxes`` ``(M, 7)`` to reject when they are taken in turn, first
-        come first served, among ``placed`` ``(K, 7)`` boxes accepted before.
 
-        Box ``m`` is rejected when fewer than ``need[m]`` rays reach it (:meth:`visible_rays`)
-        with the placed boxes and the boxes accepted before it as occluders, or when it would
-        leave one of those with fewer rays than its own need (``placed_need`` ``(K,)`` for the
-        placed ones); else it is accepted. Objects in a row along a street would hide each
-        other. Only boxes whose azimuth spans (their bounding circles seen from the mount)
-        overlap can hide each other, so only those are counted again.
-        """
-        boxes = _check_boxes(boxes, "boxes")
-        placed = _check_boxes(np.zeros((0, 7)) if placed is None else placed, "placed")
-        tolerance = _check_tolerance(tolerance)
-        need = _check_need(need, len(boxes), "need")
-        placed_need = _check_need(
-            np.zeros(0) if placed_need is None else placed_need, len(placed), "placed_need"
+class PlacedView:
+    """Placement's visibility test of one frame over its rounds: boxes taken in turn, first
+    come first served, each rejected when too few of the sensor's rays would reach it or when
+    it would leave a box accepted before with too few.
+
+    A box needs ``max(min_rays, ceil((1 - max_hidden) * crossing))`` rays, ``crossing`` the
+    rays that cross it (within ``max_range``); a ray reaches it as in
+    :meth:`RangeImage.visible_rays` with the boxes accepted before as occluders. The view keeps
+    the frame's nearest return per ray cell with the accepted boxes painted in (each ray's
+    nearest entry into one of them: a ray reaches a box iff that is no nearer than where it
+    enters the box, minus ``tolerance``) and each accepted box's rays left, so that a box
+    costs its own rays only. Only boxes whose azimuth spans (bounding circles seen from the
+    mount) overlap can hide each other.
+
+    Args:
+        image: the frame's range image.
+        min_rays: fewest rays a box needs.
+        max_hidden: the largest share of its crossing rays that may be hidden, in ``[0, 1]``.
+        placed: ``(K, 7)`` boxes accepted before (counted against each other).
+        tolerance: metres, as in :meth:`RangeImage.visible_rays`.
+
+    Attributes:
+        boxes: ``float64 (A, 7)`` the boxes accepted so far, ``placed`` first.
+        need: ``int64 (A,)`` the rays each needs; ``left``: ``int64 (A,)`` the rays reaching
+            each now.
+    """
+
+    def __init__(
+        self,
+        image: RangeImage,
+        min_rays: int,
+        max_hidden: float,
+        placed: np.ndarray | None = None,
+        tolerance: float = 0.1,
+    ) -> None:
+        if isinstance(min_rays, bool) or not isinstance(min_rays, (int, np.integer)):
+            raise ConfigError(f"min_rays must be a whole number of rays, got {min_rays!r}")
+        if not (isinstance(max_hidden, (int, float)) and 0.0 <= max_hidden <= 1.0):
+            raise ConfigError(f"max_hidden must be a share in [0, 1], got {max_hidden!r}")
+        self._image = image
+        self._tables = sensor_tables(image.sensor)
+        self._settings = np.array(
+            [_check_tolerance(tolerance), image.sensor.max_range, int(min_rays), max_hidden]
         )
+        self._combined = np.array(image.ranges, dtype=np.float64)  # a writable copy
+        self.boxes = np.zeros((0, 7))
+        self.need = np.zeros(0, dtype=np.int64)
+        self.left = np.zeros(0, dtype=np.int64)
+        placed = _check_boxes(np.zeros((0, 7)) if placed is None else placed, "placed")
+        if len(placed):
+            self._admit(placed, every=True)
+
+    def admit(self, boxes: np.ndarray) -> np.ndarray:
+        """``bool (M,)``: which of ``boxes`` ``(M, 7)``, taken in turn after the boxes accepted
+        before, are rejected; the others are accepted (appended to :attr:`boxes`)."""
+        boxes = _check_boxes(boxes, "boxes")
+        return self._admit(boxes, every=False)
+
+    def holds(self, boxes: np.ndarray) -> bool:
+        """Whether ``boxes`` ``(K, 7)`` are the boxes accepted so far, in any order."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        if len(boxes) != len(self.boxes):
+            return False
+        return sorted(map(bytes, boxes)) == sorted(map(bytes, self.boxes))
+
+    def _admit(self, boxes: np.ndarray, every: bool) -> np.ndarray:
+        """Take ``boxes`` in turn (``every``: accept them all, as boxes placed before, counted
+        once all are painted in)."""
         hidden = np.zeros(len(boxes), dtype=bool)
         if len(boxes) == 0:
             return hidden
-        every = np.concatenate([placed, boxes])
-        tables = sensor_tables(self.sensor)
-        _hidden_in_turn(
+        first = len(self.boxes)
+        boxes_all = np.concatenate([self.boxes, boxes])
+        need = np.concatenate([self.need, np.zeros(len(boxes), np.int64)])
+        left = np.concatenate([self.left, np.zeros(len(boxes), np.int64)])
+        geometry = self._tables.geometry
+        _admit(
+            boxes_all,
+            *heading_terms(boxes_all),
+            _windows(boxes_all, *geometry),
+            first,
             every,
-            *heading_terms(every),
-            _windows(every, *tables.geometry),
-            np.concatenate([placed_need, need]),
-            len(placed),
-            self.ranges,
-            np.array([tolerance, self.sensor.max_range]),
+            need,
+            left,
+            self._combined,
+            self._settings,
             hidden,
-            *tables.geometry,
+            *geometry,
         )
+        keep = np.concatenate([np.ones(first, dtype=bool), ~hidden])
+        self.boxes, self.need, self.left = boxes_all[keep], need[keep], left[keep]
         return hidden
 
 
@@ -296,15 +347,6 @@ def _check_boxes(boxes: np.ndarray, name: str) -> np.ndarray:
             f"{name} must be finite with positive sizes; row {int(np.flatnonzero(bad)[0])} is not"
         )
     return array
-
-
-def _check_need(need: np.ndarray, count: int, name: str) -> np.ndarray:
-    array = np.asarray(need)
-    if array.shape != (count,):
-        raise DataError(f"{name} must have shape ({count},), one per box, got {array.shape}")
-    if array.size and not np.issubdtype(array.dtype, np.integer):
-        raise DataError(f"{name} must hold whole numbers of rays, got dtype {array.dtype}")
-    return array.astype(np.int64)
 
 
 def _check_tolerance(tolerance: float) -> float:
@@ -567,14 +609,16 @@ def _visible_rays(
 
 
 @numba.njit(cache=True, nogil=True)
-def _hidden_in_turn(
+def _admit(
     boxes,
     cos,
     sin,
     windows,
-    need,
     first,
-    ranges,
+    every,
+    need,
+    left,
+    combined,
     settings,
     hidden,
     edge_slopes,
@@ -593,73 +637,136 @@ def _hidden_in_turn(
     bound_sin,
     constants,
 ):  # pragma: no cover - numba
-    # RangeImage.hidden_in_turn: `boxes` are the placed ones (rows < first), then the
-    # candidates; sets hidden[m] for candidate first + m. The azimuth span (centre, half
-    # angle) of each box's bounding circle, seen from the mount: the whole circle around it.
-    geometry = (
-        edge_slopes, edge_lut, beam_slopes, beam_lut, offsets, mount, beam_cos, beam_sin,
-        column_cos, column_sin, first_column, crosses, bound_cos, bound_sin, constants,
-    )  # fmt: skip
+    # PlacedView._admit: `boxes` are the accepted ones (rows < first; their need and left
+    # given), then the candidates, whose need, left (when accepted) and hidden[m] (row
+    # first + m) it sets; `combined` (B, C): the frame's nearest return per cell with the
+    # accepted boxes' entries painted in. every: accept all the candidates, painted in first
+    # and counted after.
+    tolerance, max_range = settings[0], settings[1]
+    min_rays, share = settings[2], settings[3]
+    columns = column_cos.shape[0]
     total = boxes.shape[0]
+    # each box's azimuth span (centre, half angle) of its bounding circle seen from the mount
     spans = np.empty((total, 2))
     for m in range(total):
         x, y = boxes[m, 0] - mount[0], boxes[m, 1] - mount[1]
         reach = math.hypot(boxes[m, 3], boxes[m, 4]) / 2.0
         distance = math.hypot(x, y)
         spans[m, 0] = math.atan2(y, x)
-        spans[m, 1] = (
-            math.asin(min(reach / max(distance, 1e-9), 1.0)) if distance > reach else np.pi
-        )
-    # every candidate against the placed boxes at once
-    counts = np.zeros(total - first, np.int64)
-    _visible_rays(
-        boxes[first:], cos[first:], sin[first:], windows[first:], boxes[:first], cos[:first],
-        sin[:first], windows[:first], ranges, settings, counts, *geometry,
-    )  # fmt: skip
+        half = math.asin(min(reach / max(distance, 1e-9), 1.0))
+        spans[m, 1] = half if distance > reach else np.pi
+    if every:
+        for g in range(first, total):
+            _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
+                   column_cos, column_sin)  # fmt: skip
     accepted = np.empty(total, np.int64)
     accepted[:first] = np.arange(first)
     count = first
-    for m in range(total - first):
-        if counts[m] < need[first + m]:
-            hidden[m] = True
+    near = np.empty(total, np.int64)
+    lost = np.zeros(total, np.int64)
+    for g in range(first, total):
+        b0, b1, c0, width = windows[g, 0], windows[g, 1], windows[g, 2], windows[g, 3]
+        crossing, seen = 0, 0
+        for b in range(b0, b1 + 1):
+            ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+            c = c0
+            for _ in range(width):
+                dx, dy = beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c]
+                enter, leave = _slab(
+                    ox, oy, oz, dx, dy, beam_sin[b], boxes[g, 0], boxes[g, 1], boxes[g, 2],
+                    boxes[g, 3] / 2.0, boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
+                )  # fmt: skip
+                if enter <= leave and enter <= max_range:
+                    crossing += 1
+                    if combined[b, c] >= enter - tolerance:
+                        seen += 1
+                c = c + 1 if c + 1 < columns else 0
+        need[g] = max(min_rays, math.ceil((1.0 - share) * crossing))
+        if every:
+            left[g] = seen
             continue
-        g = first + m
-        near = np.empty(count, np.int64)  # the accepted boxes it may hide or be hidden by
-        found, late = 0, False
+        if seen < need[g]:
+            hidden[g - first] = True
+            continue
+        found = 0  # the accepted boxes whose spans overlap: the only ones it may hide
         for n in range(count):
             a = accepted[n]
             gap = abs((spans[a, 0] - spans[g, 0] + np.pi) % (2.0 * np.pi) - np.pi)
             if gap <= spans[a, 1] + spans[g, 1]:
                 near[found] = a
+                lost[found] = 0
                 found += 1
-                late |= a >= first
-        near = near[:found]
-        if late:  # this round's boxes accepted before it may hide it
-            mine = np.zeros(1, np.int64)
-            _visible_rays(
-                boxes[g : g + 1], cos[g : g + 1], sin[g : g + 1], windows[g : g + 1],
-                boxes[near], cos[near], sin[near], windows[near], ranges, settings, mine,
-                *geometry,
-            )  # fmt: skip
-            if mine[0] < need[g]:
-                hidden[m] = True
-                continue
-        if found:  # and it may leave one of those too few rays
-            with_it = accepted[: count + 1].copy()
-            with_it[count] = g
-            left = np.zeros(found, np.int64)
-            _visible_rays(
-                boxes[near], cos[near], sin[near], windows[near], boxes[with_it], cos[with_it],
-                sin[with_it], windows[with_it], ranges, settings, left, *geometry,
-            )  # fmt: skip
+        if found:
+            for b in range(b0, b1 + 1):
+                ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+                c = c0
+                for _ in range(width):
+                    dx, dy = beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c]
+                    dz = beam_sin[b]
+                    into, out = _slab(
+                        ox, oy, oz, dx, dy, dz, boxes[g, 0], boxes[g, 1], boxes[g, 2],
+                        boxes[g, 3] / 2.0, boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
+                    )  # fmt: skip
+                    if into <= out:  # the ray enters it: it hides what lies beyond
+                        for n in range(found):
+                            a = near[n]
+                            enter, leave = _slab(
+                                ox, oy, oz, dx, dy, dz, boxes[a, 0], boxes[a, 1], boxes[a, 2],
+                                boxes[a, 3] / 2.0, boxes[a, 4] / 2.0, boxes[a, 5] / 2.0, cos[a],
+                                sin[a],
+                            )  # fmt: skip
+                            if (
+                                enter <= leave
+                                and enter <= max_range
+                                and combined[b, c] >= enter - tolerance
+                                and into < enter - tolerance
+                            ):
+                                lost[n] += 1
+                    c = c + 1 if c + 1 < columns else 0
             short = False
             for n in range(found):
-                short |= left[n] < need[near[n]]
+                short |= left[near[n]] - lost[n] < need[near[n]]
             if short:
-                hidden[m] = True
+                hidden[g - first] = True
                 continue
+            for n in range(found):
+                left[near[n]] -= lost[n]
+        _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
+               column_cos, column_sin)  # fmt: skip
+        left[g] = seen
         accepted[count] = g
         count += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _paint(
+    g,
+    boxes,
+    cos,
+    sin,
+    windows,
+    combined,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+):  # pragma: no cover - numba
+    # Box g's entry distance into each cell of `combined` its rays cross, where nearer.
+    columns = column_cos.shape[0]
+    for b in range(windows[g, 0], windows[g, 1] + 1):
+        ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+        c = windows[g, 2]
+        for _ in range(windows[g, 3]):
+            enter, leave = _slab(
+                ox, oy, oz, beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c],
+                beam_sin[b], boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] / 2.0,
+                boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
+            )  # fmt: skip
+            if enter <= leave and enter < combined[b, c]:
+                combined[b, c] = enter
+            c = c + 1 if c + 1 < columns else 0
 
 
 @numba.njit(cache=True, nogil=True)

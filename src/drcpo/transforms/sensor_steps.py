@@ -27,7 +27,7 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.ground import GroundModel
-from drcpo.occlusion.rays import RangeImage, RayOcclusion
+from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion
 from drcpo.occlusion.render import render_object
 from drcpo.placement import frame_ground
 from drcpo.sensor import Sensor
@@ -59,7 +59,7 @@ class SensorFrame:
     frame: Frame
     config: SensorConfig
     fallback: str = field(default="", init=False)
-    _crossing: dict[bytes, int] = field(default_factory=dict, init=False, repr=False)
+    _view: tuple[tuple[int, float], PlacedView] | None = field(default=None, init=False, repr=False)
 
     @cached_property
     def added(self) -> np.ndarray:
@@ -125,20 +125,6 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
 
-    def _crossing_of(self, boxes: np.ndarray) -> np.ndarray:
-        """``int64 (B,)``: the rays crossing each of ``boxes`` (counted in an earlier round when
-        it was drawn, else now)."""
-        known = [self._crossing.get(bytes(box)) for box in boxes]
-        if all(k is not None for k in known):
-            return np.array(known, dtype=np.int64)
-        return self.empty_image.visible_rays(boxes)
-
-    @cached_property
-    def empty_image(self) -> RangeImage:
-        """A range image without returns: what the sensor's rays would cross alone."""
-        sensor = self.sensor
-        return RangeImage(sensor, np.full((sensor.num_beams, sensor.num_columns), np.inf))
-
     def hidden(
         self, boxes: np.ndarray, placed: np.ndarray, min_rays: int, max_hidden: float = 1.0
     ) -> np.ndarray:
@@ -147,17 +133,15 @@ class SensorFrame:
         cross it (in front of the frame's returns and of the boxes accepted before it,
         ``placed`` and this round's), or that would leave one of those so (objects in a row
         along a street would hide each other). A box's share counts: the rays left reaching a
-        mostly hidden box pass its corners, where the object leaves the box empty."""
-        accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
+        mostly hidden box pass its corners, where the object leaves the box empty.
 
-        def needed(crossing: np.ndarray) -> np.ndarray:
-            return np.maximum(min_rays, np.ceil((1.0 - max_hidden) * crossing)).astype(np.int64)
-
-        crossing = self.empty_image.visible_rays(boxes)
-        # the boxes placed before were this call's boxes of an earlier round: counted then
-        need, accepted_need = needed(crossing), needed(self._crossing_of(accepted))
-        self._crossing.update(zip(map(bytes, boxes), crossing.tolist(), strict=True))
-        return self.range_image.hidden_in_turn(boxes, need, accepted, accepted_need)
+        The rounds of a call share one :class:`~drcpo.occlusion.rays.PlacedView` (the boxes
+        accepted in earlier rounds are the ``placed`` ones), so each box is counted once."""
+        view = self._view
+        key = (int(min_rays), float(max_hidden))
+        if view is None or view[0] != key or not view[1].holds(placed):
+            view = self._view = (key, PlacedView(self.range_image, *key, placed=placed))
+        return view[1].admit(boxes)
 
 
 def render(points: np.ndarray, sensor: Sensor, seed: int) -> np.ndarray:
