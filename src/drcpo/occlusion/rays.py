@@ -3,12 +3,20 @@
 
 :class:`RangeImage` holds the frame's nearest return per ray cell (beam, column) of a
 :class:`~drcpo.sensor.Sensor`; :meth:`RangeImage.visible_rays` counts, per box, the rays that
-reach it. :func:`ray_occlusion` decides, after insertion, which points the sensor could not
-have recorded: an original point behind an inserted object's surface elements along its own
-ray, an inserted return behind a nearer return in its ray cell or behind another object's
-surface. The ray cells, surface elements and their windows are those of
+reach it; :class:`PlacedView` takes a placement round's boxes in turn, first come first
+served, against the frame and the boxes accepted before (kept over a call's rounds).
+:func:`ray_occlusion` decides, after insertion, which points the sensor could not have
+recorded: an original point behind an inserted object's surface elements along its own ray, an
+inserted return behind a nearer return in its ray cell or behind another object's surface;
+:class:`RayOcclusion` keeps that work, so that the verdict without the objects then dropped
+costs little more. The ray cells, surface elements and their windows are those of
 :mod:`~drcpo.occlusion.render`. Imports :mod:`drcpo.errors`, :mod:`drcpo.geometry`,
 :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.render` only.
+
+Longer than 800 lines because its numba kernels share one slab test, one window rule and the
+cell look-ups of :mod:`~drcpo.occlusion.render`, which must stay exactly the same for the
+box counts and the point verdicts to agree; split, they would be copied or exported across
+modules as private kernels.
 """
 
 from __future__ import annotations
