@@ -254,6 +254,29 @@ def test_placed_view_matches_box_by_box(seed: int) -> None:
         PlacedView(image, 2.5, 0.5)
 
 
+def test_placed_view_passes_over_a_group_once_one_is_taken() -> None:
+    """Poses of one object (a group) are alternatives: the first accepted is taken, the
+    group's later ones are neither rejected nor taken and hide nothing."""
+    sensor = HDL64E
+    image = RangeImage.build(np.zeros((0, 4), np.float32), sensor)
+    near = [8.0, 0.0, -0.9, 4.0, 1.8, 1.5, 0.0]
+    behind = [16.0, 0.0, -0.9, 4.0, 1.8, 1.5, 0.0]  # in the near box's shadow
+    aside = [8.0, 6.0, -0.9, 4.0, 1.8, 1.5, 0.0]
+    boxes = np.array([near, aside, behind])
+    alone = PlacedView(image, 12, 0.7).admit(boxes)
+    assert alone.tolist() == [False, False, True]  # the near box hides the one behind it
+    view = PlacedView(image, 12, 0.7)
+    got = view.admit(boxes, groups=np.array([0, 0, 1]))  # near and aside: one object's poses
+    assert got.tolist() == [False, False, True]
+    np.testing.assert_array_equal(view.boxes, boxes[:1])  # aside passed over, not taken
+    view = PlacedView(image, 12, 0.7)
+    got = view.admit(np.array([near, behind, aside]), groups=np.array([0, 1, 1]))
+    assert got.tolist() == [False, True, False]  # behind hidden: its second pose is tried
+    np.testing.assert_array_equal(view.boxes, np.array([near, aside]))
+    with pytest.raises(DataError, match="groups"):
+        view.admit(boxes, groups=np.array([0, 1]))
+
+
 # ----------------------------------------------------------------------------------------------
 # ray_occlusion
 # ----------------------------------------------------------------------------------------------

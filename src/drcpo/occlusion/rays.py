@@ -167,11 +167,22 @@ class PlacedView:
         if len(placed):
             self._admit(placed, every=True)
 
-    def admit(self, boxes: np.ndarray) -> np.ndarray:
+    def admit(self, boxes: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
         """``bool (M,)``: which of ``boxes`` ``(M, 7)``, taken in turn after the boxes accepted
-        before, are rejected; the others are accepted (appended to :attr:`boxes`)."""
+        before, are rejected; the others are accepted (appended to :attr:`boxes`).
+
+        ``groups`` ``int (M,)``: boxes of one group are alternatives (poses of one object): once
+        one is accepted, the group's later boxes are passed over (neither rejected nor
+        accepted, ``False``)."""
         boxes = _check_boxes(boxes, "boxes")
-        return self._admit(boxes, every=False)
+        if groups is None:
+            groups = np.arange(len(boxes), dtype=np.int64)
+        groups = np.asarray(groups)
+        if groups.shape != (len(boxes),) or (
+            groups.size and not np.issubdtype(groups.dtype, np.integer)
+        ):
+            raise DataError(f"groups must be {len(boxes)} integers, one per box, got {groups!r}")
+        return self._admit(boxes, every=False, groups=groups.astype(np.int64))
 
     def holds(self, boxes: np.ndarray) -> bool:
         """Whether ``boxes`` ``(K, 7)`` are the boxes accepted so far, in any order."""
@@ -180,12 +191,17 @@ class PlacedView:
             return False
         return sorted(map(bytes, boxes)) == sorted(map(bytes, self.boxes))
 
-    def _admit(self, boxes: np.ndarray, every: bool) -> np.ndarray:
+    def _admit(
+        self, boxes: np.ndarray, every: bool, groups: np.ndarray | None = None
+    ) -> np.ndarray:
         """Take ``boxes`` in turn (``every``: accept them all, as boxes placed before, counted
-        once all are painted in)."""
+        once all are painted in); ``groups``: see :meth:`admit`."""
         hidden = np.zeros(len(boxes), dtype=bool)
         if len(boxes) == 0:
             return hidden
+        if groups is None:
+            groups = np.arange(len(boxes), dtype=np.int64)
+        taken = np.zeros(len(boxes), dtype=bool)
         first = len(self.boxes)
         boxes_all = np.concatenate([self.boxes, boxes])
         need = np.concatenate([self.need, np.zeros(len(boxes), np.int64)])
@@ -201,10 +217,12 @@ class PlacedView:
             left,
             self._combined,
             self._settings,
+            groups,
             hidden,
+            taken,
             *geometry,
         )
-        keep = np.concatenate([np.ones(first, dtype=bool), ~hidden])
+        keep = np.concatenate([np.ones(first, dtype=bool), taken])
         self.boxes, self.need, self.left = boxes_all[keep], need[keep], left[keep]
         return hidden
 
@@ -628,7 +646,9 @@ def _admit(
     left,
     combined,
     settings,
+    groups,
     hidden,
+    taken,
     edge_slopes,
     edge_lut,
     beam_slopes,
@@ -647,9 +667,10 @@ def _admit(
 ):  # pragma: no cover - numba
     # PlacedView._admit: `boxes` are the accepted ones (rows < first; their need and left
     # given), then the candidates, whose need, left (when accepted) and hidden[m] (row
-    # first + m) it sets; `combined` (B, C): the frame's nearest return per cell with the
-    # accepted boxes' entries painted in. every: accept all the candidates, painted in first
-    # and counted after.
+    # first + m) and taken[m] (accepted) it sets; `combined` (B, C): the frame's nearest return
+    # per cell with the accepted boxes' entries painted in. every: accept all the candidates,
+    # painted in first and counted after. A candidate whose group (groups[m]) had one taken
+    # is passed over.
     tolerance, max_range = settings[0], settings[1]
     min_rays, share = settings[2], settings[3]
     columns = column_cos.shape[0]
@@ -673,6 +694,12 @@ def _admit(
     near = np.empty(total, np.int64)
     lost = np.zeros(total, np.int64)
     for g in range(first, total):
+        if not every:
+            done = False
+            for n in range(first, count):
+                done |= groups[accepted[n] - first] == groups[g - first]
+            if done:
+                continue
         b0, b1, c0, width = windows[g, 0], windows[g, 1], windows[g, 2], windows[g, 3]
         crossing, seen = 0, 0
         for b in range(b0, b1 + 1):
@@ -692,6 +719,7 @@ def _admit(
         need[g] = max(min_rays, math.ceil((1.0 - share) * crossing))
         if every:
             left[g] = seen
+            taken[g - first] = True
             continue
         if seen < need[g]:
             hidden[g - first] = True
@@ -742,6 +770,7 @@ def _admit(
         _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
                column_cos, column_sin)  # fmt: skip
         left[g] = seen
+        taken[g - first] = True
         accepted[count] = g
         count += 1
 
