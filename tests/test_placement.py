@@ -774,8 +774,8 @@ def test_several_poses_per_round_are_tried_in_turn(rng):
         hidden = verdicts.random(len(objects)) < 0.5
         taken = {}
         for i, obj in enumerate(objects.tolist()):  # the caller's rule: first accepted wins
-            if obj in taken:
-                hidden[i] = False  # passed over: neither
+            if obj in taken or drawn.conflicts[i, list(taken.values())].any():
+                hidden[i] = False  # passed over: neither (a conflict: placement rejects it)
             elif not hidden[i]:
                 taken[obj] = i
         for obj, i in taken.items():
@@ -788,6 +788,7 @@ def test_several_poses_per_round_are_tried_in_turn(rng):
         np.testing.assert_array_equal(result.boxes[k], placed_from[int(obj)])
     assert result.attempts == len(result.accepted) + sum(result.rejected.values())
     assert result.rejected["occluded"] > 0 and len(result.accepted) > 5
+    assert result.rejected["collision"] > 0  # conflicts among the round's poses, once taken
     assert not bev_collisions(result.boxes, result.boxes)[
         ~np.eye(len(result.boxes), dtype=bool)
     ].any()

@@ -273,8 +273,16 @@ def test_placed_view_passes_over_a_group_once_one_is_taken() -> None:
     got = view.admit(np.array([near, behind, aside]), groups=np.array([0, 1, 1]))
     assert got.tolist() == [False, True, False]  # behind hidden: its second pose is tried
     np.testing.assert_array_equal(view.boxes, np.array([near, aside]))
+    # a box conflicting with one taken before (say their footprints overlap) is passed over
+    view = PlacedView(image, 12, 0.7)
+    conflicts = np.zeros((3, 3), bool)
+    conflicts[1, 0] = conflicts[0, 1] = True
+    assert view.admit(boxes, conflicts=conflicts).tolist() == [False, False, True]
+    np.testing.assert_array_equal(view.boxes, boxes[:1])
     with pytest.raises(DataError, match="groups"):
         view.admit(boxes, groups=np.array([0, 1]))
+    with pytest.raises(DataError, match="conflicts"):
+        view.admit(boxes, conflicts=np.zeros((3, 2), bool))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -320,11 +320,16 @@ class Round:
             at most one per object, the first it accepts).
         placed: ``float64 (P, 7)`` the boxes placed in earlier rounds, in object order.
         objects: ``int64 (B,)`` the object (index into ``dims``) of each of ``boxes``.
+        conflicts: ``bool (B, B)`` with ``poses_per_round`` > 1, the pairs of ``boxes`` of two
+            objects whose footprints (with their clearance) overlap: taken in turn, a box is
+            rejected (``"collision"``) when it conflicts with one taken before (with one pose
+            per round, the boxes that did already went, and none is left).
     """
 
     boxes: np.ndarray
     placed: np.ndarray
     objects: np.ndarray
+    conflicts: np.ndarray
 
 
 class PlacementRounds:
@@ -402,30 +407,48 @@ class PlacementRounds:
             tried = tried[: cap - self._attempts]
         self._attempts += len(tried)
         boxes = sample_poses(self._room[tried], self._rng, config, self._cells)
+        several = config.poses_per_round > 1
         verdict = _judge(
-            boxes, tried, self._dims, self._source_z, self._occupied, self._obstacles, config
+            boxes,
+            tried,
+            self._dims,
+            self._source_z,
+            self._occupied,
+            self._obstacles,
+            config,
+            first_come=not several,
         )
         if self._cells is not None and len(self._cells.corners) == 0:
             verdict[verdict == _OUT_OF_RANGE] = _NO_GROUND  # no observed ground to stand on
         own = boxes.copy()  # the objects' own footprints, without the clearance
         own[:, 3:5] = self._dims[tried, :2]
         passed = np.flatnonzero(verdict == 0)
-        self._open = (tried, boxes, own, verdict, passed)
+        # With several poses per object, the round's poses collide only once taken (in turn,
+        # see settle): a pose left unused or hidden blocks nothing.
+        conflicts = np.zeros((len(passed), len(passed)), dtype=bool)
+        if several and len(passed):
+            conflicts = bev_collisions(boxes[passed], boxes[passed])
+            conflicts &= tried[passed][:, None] != tried[passed][None, :]
+        self._open = (tried, boxes, own, verdict, passed, conflicts)
         placed = self._placed[np.isfinite(self._placed[:, 0])]
-        return Round(boxes=own[passed], placed=placed, objects=tried[passed])
+        return Round(boxes=own[passed], placed=placed, objects=tried[passed], conflicts=conflicts)
 
     def settle(self, occluded: np.ndarray | None = None) -> None:
         """Close the current round: ``occluded`` ``bool (B,)`` marks its boxes to reject
         (reason ``"occluded"``; tried again like the others), ``None``: none."""
         if self._open is None:
             raise RuntimeError("no round to settle: call next_round first")
-        tried, boxes, own, verdict, passed = self._open
+        tried, boxes, own, verdict, passed, conflicts = self._open
         if occluded is not None:
             hidden = np.asarray(occluded, dtype=bool).reshape(-1)
             if len(hidden) != len(passed):
                 raise ValueError(f"{len(hidden)} occluded verdicts for {len(passed)} boxes")
             verdict[passed[hidden]] = _OCCLUDED
         self._open = None
+        if conflicts.any():
+            verdict[passed[_taken_in_turn(tried[passed], verdict[passed] == 0, conflicts)]] = (
+                _COLLISION
+            )
         ok = verdict == 0
         used = _up_to_first(tried, ok)  # an object's poses after its placed one: unused
         self._attempts -= len(tried) - int(used.sum())
@@ -472,10 +495,12 @@ def _judge(
     occupied: np.ndarray,
     obstacles: _Obstacles,
     config: PlacementConfig,
+    first_come: bool = True,
 ) -> np.ndarray:
     """Set each box's height and return its verdict ``int64 (K,)``: 0 (placed) or 1 + the
     index of its rejection reason in :data:`REASONS`. ``boxes`` are the footprints with their
-    clearance; the obstacle test takes the objects' own sizes, ``dims[pending]``."""
+    clearance; the obstacle test takes the objects' own sizes, ``dims[pending]``.
+    ``first_come``: a box colliding with an earlier one of the batch that passed goes too."""
     verdict = np.zeros(len(boxes), dtype=np.int64)
     fits = np.isfinite(boxes[:, 0])
     verdict[~fits] = _OUT_OF_RANGE
@@ -499,12 +524,31 @@ def _judge(
     verdict[live[blocked]] = _OBSTACLE
     live = live[~blocked]
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
+    if not first_come:
+        return verdict
     kept = np.zeros(len(live), dtype=bool)
     if len(live):
         candidates = boxes[live]
         _first_come(candidates, *heading_terms(candidates), pending[live], kept)
     verdict[live[~kept]] = _COLLISION
     return verdict
+
+
+def _taken_in_turn(objects: np.ndarray, ok: np.ndarray, conflicts: np.ndarray) -> np.ndarray:
+    """``bool (B,)``: the ``ok`` boxes that, taken in turn, conflict with one taken before
+    (a box is taken when ok, its object has none taken yet and it conflicts with none)."""
+    clash = np.zeros(len(objects), dtype=bool)
+    taken: list[int] = []
+    done: set[int] = set()
+    for i in np.flatnonzero(ok).tolist():
+        if int(objects[i]) in done:
+            continue
+        if taken and conflicts[i, taken].any():
+            clash[i] = True
+            continue
+        taken.append(i)
+        done.add(int(objects[i]))
+    return clash
 
 
 def _up_to_first(objects: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -167,22 +167,30 @@ class PlacedView:
         if len(placed):
             self._admit(placed, every=True)
 
-    def admit(self, boxes: np.ndarray, groups: np.ndarray | None = None) -> np.ndarray:
+    def admit(
+        self,
+        boxes: np.ndarray,
+        groups: np.ndarray | None = None,
+        conflicts: np.ndarray | None = None,
+    ) -> np.ndarray:
         """``bool (M,)``: which of ``boxes`` ``(M, 7)``, taken in turn after the boxes accepted
         before, are rejected; the others are accepted (appended to :attr:`boxes`).
 
         ``groups`` ``int (M,)``: boxes of one group are alternatives (poses of one object): once
         one is accepted, the group's later boxes are passed over (neither rejected nor
-        accepted, ``False``)."""
+        accepted, ``False``). ``conflicts`` ``bool (M, M)``: a box conflicting with one
+        accepted before is passed over too (its caller rejects it for that)."""
         boxes = _check_boxes(boxes, "boxes")
-        if groups is None:
-            groups = np.arange(len(boxes), dtype=np.int64)
-        groups = np.asarray(groups)
-        if groups.shape != (len(boxes),) or (
+        count = len(boxes)
+        groups = np.arange(count) if groups is None else np.asarray(groups)
+        if groups.shape != (count,) or (
             groups.size and not np.issubdtype(groups.dtype, np.integer)
         ):
-            raise DataError(f"groups must be {len(boxes)} integers, one per box, got {groups!r}")
-        return self._admit(boxes, every=False, groups=groups.astype(np.int64))
+            raise DataError(f"groups must be {count} integers, one per box, got {groups!r}")
+        conflicts = np.zeros((count, count), bool) if conflicts is None else np.asarray(conflicts)
+        if conflicts.shape != (count, count) or conflicts.dtype != bool:
+            raise DataError(f"conflicts must be bool ({count}, {count}), got {conflicts.shape}")
+        return self._admit(boxes, False, groups.astype(np.int64), conflicts)
 
     def holds(self, boxes: np.ndarray) -> bool:
         """Whether ``boxes`` ``(K, 7)`` are the boxes accepted so far, in any order."""
@@ -192,15 +200,21 @@ class PlacedView:
         return sorted(map(bytes, boxes)) == sorted(map(bytes, self.boxes))
 
     def _admit(
-        self, boxes: np.ndarray, every: bool, groups: np.ndarray | None = None
+        self,
+        boxes: np.ndarray,
+        every: bool,
+        groups: np.ndarray | None = None,
+        conflicts: np.ndarray | None = None,
     ) -> np.ndarray:
         """Take ``boxes`` in turn (``every``: accept them all, as boxes placed before, counted
-        once all are painted in); ``groups``: see :meth:`admit`."""
+        once all are painted in); ``groups``, ``conflicts``: see :meth:`admit`."""
         hidden = np.zeros(len(boxes), dtype=bool)
         if len(boxes) == 0:
             return hidden
         if groups is None:
             groups = np.arange(len(boxes), dtype=np.int64)
+        if conflicts is None:
+            conflicts = np.zeros((len(boxes), len(boxes)), dtype=bool)
         taken = np.zeros(len(boxes), dtype=bool)
         first = len(self.boxes)
         boxes_all = np.concatenate([self.boxes, boxes])
@@ -218,6 +232,7 @@ class PlacedView:
             self._combined,
             self._settings,
             groups,
+            conflicts,
             hidden,
             taken,
             *geometry,
@@ -647,6 +662,7 @@ def _admit(
     combined,
     settings,
     groups,
+    conflicts,
     hidden,
     taken,
     edge_slopes,
@@ -669,8 +685,8 @@ def _admit(
     # given), then the candidates, whose need, left (when accepted) and hidden[m] (row
     # first + m) and taken[m] (accepted) it sets; `combined` (B, C): the frame's nearest return
     # per cell with the accepted boxes' entries painted in. every: accept all the candidates,
-    # painted in first and counted after. A candidate whose group (groups[m]) had one taken
-    # is passed over.
+    # painted in first and counted after. A candidate whose group (groups[m]) had one taken,
+    # or that conflicts with one taken (conflicts[m, m']), is passed over.
     tolerance, max_range = settings[0], settings[1]
     min_rays, share = settings[2], settings[3]
     columns = column_cos.shape[0]
@@ -698,6 +714,7 @@ def _admit(
             done = False
             for n in range(first, count):
                 done |= groups[accepted[n] - first] == groups[g - first]
+                done |= conflicts[g - first, accepted[n] - first]
             if done:
                 continue
         b0, b1, c0, width = windows[g, 0], windows[g, 1], windows[g, 2], windows[g, 3]

@@ -132,6 +132,7 @@ class SensorFrame:
         min_rays: int,
         max_hidden: float = 1.0,
         objects: np.ndarray | None = None,
+        conflicts: np.ndarray | None = None,
     ) -> np.ndarray:
         """``bool (B,)``: the round's ``boxes`` to reject, first come first served: a box that
         fewer than ``min_rays`` rays would reach, or only ``1 - max_hidden`` of the rays that
@@ -141,7 +142,9 @@ class SensorFrame:
         mostly hidden box pass its corners, where the object leaves the box empty.
 
         ``objects``: the object of each box (a round may hold several poses of one, tried in
-        turn: once one is accepted, its later ones are passed over, ``False``).
+        turn: once one is accepted, its later ones are passed over, ``False``); ``conflicts``:
+        see :class:`~drcpo.placement.Round` (a box conflicting with one accepted before is
+        passed over; placement rejects it).
 
         The rounds of a call share one :class:`~drcpo.occlusion.rays.PlacedView` (the boxes
         accepted in earlier rounds are the ``placed`` ones), so each box is counted once."""
@@ -149,7 +152,7 @@ class SensorFrame:
         key = (int(min_rays), float(max_hidden))
         if view is None or view[0] != key or not view[1].holds(placed):
             view = self._view = (key, PlacedView(self.range_image, *key, placed=placed))
-        return view[1].admit(boxes, objects)
+        return view[1].admit(boxes, objects, conflicts)
 
 
 def render(points: np.ndarray, sensor: Sensor, seed: int) -> np.ndarray:
