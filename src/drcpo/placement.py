@@ -446,19 +446,13 @@ class PlacementRounds:
             verdict[passed[hidden]] = _OCCLUDED
         self._open = None
         if conflicts.any():
-            verdict[passed[_taken_in_turn(tried[passed], verdict[passed] == 0, conflicts)]] = (
-                _COLLISION
-            )
+            clash = _taken_in_turn(tried[passed], verdict[passed] == 0, conflicts)
+            verdict[passed[clash]] = _COLLISION
         ok = verdict == 0
         used = _up_to_first(tried, ok)  # an object's poses after its placed one: unused
         self._attempts -= len(tried) - int(used.sum())
-        tried, verdict, ok, boxes, own = (
-            tried[used],
-            verdict[used],
-            ok[used],
-            boxes[used],
-            own[used],
-        )
+        tried, verdict, boxes, own = (a[used] for a in (tried, verdict, boxes, own))
+        ok = verdict == 0
         self._counts += np.bincount(verdict, minlength=len(self._counts))
         np.add.at(self._tries, tried, 1)
         self._verdicts[tried] = verdict  # (each object's last pose tried comes last)
@@ -537,33 +531,23 @@ def _judge(
 def _taken_in_turn(objects: np.ndarray, ok: np.ndarray, conflicts: np.ndarray) -> np.ndarray:
     """``bool (B,)``: the ``ok`` boxes that, taken in turn, conflict with one taken before
     (a box is taken when ok, its object has none taken yet and it conflicts with none)."""
-    clash = np.zeros(len(objects), dtype=bool)
-    taken: list[int] = []
-    done: set[int] = set()
+    clash, taken = np.zeros(len(objects), dtype=bool), []
     for i in np.flatnonzero(ok).tolist():
-        if int(objects[i]) in done:
-            continue
-        if taken and conflicts[i, taken].any():
-            clash[i] = True
-            continue
-        taken.append(i)
-        done.add(int(objects[i]))
+        if objects[i] in objects[taken]:
+            continue  # its object has one taken: an unused alternative
+        clash[i] = conflicts[i, taken].any()
+        if not clash[i]:
+            taken.append(i)
     return clash
 
 
 def _up_to_first(objects: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """``bool (T,)``: the poses ``objects`` ``(T,)`` (object of each, in the order tried) up to
     and including each object's first ``ok`` one; the object's later poses are not needed."""
-    used = np.ones(len(objects), dtype=bool)
-    placed = objects[ok]
-    if len(placed) == len(np.unique(placed)) and not np.isin(objects[~ok], placed).any():
-        return used  # one pose per placed object (always so with one pose per round)
-    first = {}
-    for i in np.flatnonzero(ok):
-        first.setdefault(int(objects[i]), i)
-    for i, obj in enumerate(objects.tolist()):
-        used[i] = i <= first.get(obj, i)
-    return used
+    order = np.arange(len(objects))
+    first = np.full(int(objects.max(initial=-1)) + 1, len(objects))
+    np.minimum.at(first, objects[ok], order[ok])
+    return order <= first[objects]
 
 
 def _on_observed_ground(
