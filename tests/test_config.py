@@ -308,6 +308,7 @@ BAD_VALUES = {
     "drcpo.placement.max_slope": -0.1,
     "drcpo.placement.ground_gap": 2.0,
     "drcpo.placement.max_attempts_per_frame": 0,
+    "drcpo.placement.poses_per_round": 0,
     "drcpo.placement.occluded_fraction": 0,
     "drcpo.placement.camera_fov": "sometimes",
     "drcpo.self_occlusion.enabled": "true",

@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -751,6 +752,55 @@ def test_max_attempts_per_frame_caps_the_poses(rng):
     # Same seed, same capped output.
     again, _ = run(100)
     assert again.reasons.tolist() == capped.reasons.tolist()
+
+
+def test_several_poses_per_round_are_tried_in_turn(rng):
+    """poses_per_round = 3: an object's poses come in turn (first poses of every object, then
+    the second ones, ...); the first one the caller accepts is placed and its later ones are
+    unused (not attempts); the same attempts per object in a third of the rounds."""
+    frame = scene(rng, existing_boxes())
+    config = PlacementConfig(attempts=6, poses_per_round=3, x_range=(0, 40), y_range=(-20, 20))
+    rounds = PlacementRounds(frame, sizes(25), None, np.random.default_rng(8), config)
+    verdicts = np.random.default_rng(9)
+    count, placed_from = 0, {}
+    while (drawn := rounds.next_round()) is not None:
+        count += 1
+        objects = drawn.objects
+        assert len(objects) == len(drawn.boxes)
+        # blocks of increasing object numbers: first poses, then second ones, ...
+        starts = np.flatnonzero(np.diff(objects) <= 0) + 1
+        for block in np.split(objects, starts):
+            assert (np.diff(block) > 0).all()
+        hidden = verdicts.random(len(objects)) < 0.5
+        taken = {}
+        for i, obj in enumerate(objects.tolist()):  # the caller's rule: first accepted wins
+            if obj in taken or drawn.conflicts[i, list(taken.values())].any():
+                hidden[i] = False  # passed over: neither (a conflict: placement rejects it)
+            elif not hidden[i]:
+                taken[obj] = i
+        for obj, i in taken.items():
+            placed_from[obj] = drawn.boxes[i]
+        rounds.settle(hidden)
+    result = rounds.result()
+    assert count == 2  # 6 attempts, 3 per round
+    assert sorted(placed_from) == result.accepted.tolist()
+    for k, obj in enumerate(result.accepted):
+        np.testing.assert_array_equal(result.boxes[k], placed_from[int(obj)])
+    assert result.attempts == len(result.accepted) + sum(result.rejected.values())
+    assert result.rejected["occluded"] > 0 and len(result.accepted) > 5
+    assert result.rejected["collision"] > 0  # conflicts among the round's poses, once taken
+    assert not bev_collisions(result.boxes, result.boxes)[
+        ~np.eye(len(result.boxes), dtype=bool)
+    ].any()
+    assert not bev_collisions(result.boxes, frame.boxes).any()
+    # one pose per round is the default, and draws as before
+    one = PlacementConfig(attempts=6, x_range=(0, 40), y_range=(-20, 20))
+    same = dataclasses.replace(one, poses_per_round=1)
+    a = place_objects(frame, sizes(25), None, np.random.default_rng(8), one)
+    b = place_objects(frame, sizes(25), None, np.random.default_rng(8), same)
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+    with pytest.raises(ConfigError, match="placement.poses_per_round"):
+        PlacementConfig(poses_per_round=0)
 
 
 def test_new_keys_are_checked():

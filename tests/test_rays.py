@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drcpo.errors import ConfigError, DataError
-from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.sensor import Sensor, sensor_preset
 
@@ -183,6 +183,108 @@ def test_visible_rays_see_through_empty_space_only() -> None:
     assert 0 < empty.visible_rays(behind, occluders=front)[0] < empty.visible_rays(behind)[0]
 
 
+def reference_in_turn(image, boxes, need, placed, placed_need) -> list[bool]:
+    """Box by box: hidden by the boxes accepted before it, or hiding one of them, each counted
+    against all of them."""
+    accepted, needs, hidden = list(placed), list(placed_need), []
+    for box, n in zip(boxes, need, strict=True):
+        occluders = np.array(accepted).reshape(-1, 7)
+        seen = image.visible_rays(box[None], occluders if len(accepted) else None)[0]
+        if seen < n:
+            hidden.append(True)
+            continue
+        if accepted:
+            left = image.visible_rays(occluders, np.concatenate([occluders, box[None]]))
+            if (left < np.array(needs)).any():
+                hidden.append(True)
+                continue
+        accepted.append(box)
+        needs.append(n)
+        hidden.append(False)
+    return hidden
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_placed_view_matches_box_by_box(seed: int) -> None:
+    """Boxes in rows along a few directions, some behind others, in two rounds as placement
+    draws them: the first come is kept, as the plain count of every box against all the
+    boxes accepted says; a view started from the placed boxes answers the same."""
+    rng = np.random.default_rng(seed)
+    sensor = small_sensor() if seed % 2 else HDL64E
+    image = RangeImage.build(scene(rng, 3000, sensor), sensor)
+    boxes = []
+    for _ in range(14):
+        angle = rng.choice([-2.0, 0.3, 0.35, 1.5]) + rng.normal(0, 0.05)
+        distance = rng.uniform(3, 25)
+        boxes.append(
+            [
+                distance * math.cos(angle),
+                distance * math.sin(angle),
+                rng.uniform(-1, 0.5),
+                rng.uniform(0.5, 4),
+                rng.uniform(0.5, 2),
+                rng.uniform(0.5, 2),
+                rng.uniform(-math.pi, math.pi),
+            ]
+        )
+    boxes = np.array(boxes)
+    crossing = RangeImage(sensor, np.full(image.ranges.shape, np.inf)).visible_rays(boxes)
+    need = np.maximum(3, np.ceil(0.4 * crossing)).astype(np.int64)
+    view = PlacedView(image, 3, 0.6)
+    placed, placed_need = boxes[:0], need[:0]
+    for part in (slice(0, 7), slice(7, None)):
+        fresh = PlacedView(image, 3, 0.6, placed=placed)
+        assert view.holds(placed[::-1]) and fresh.holds(placed)
+        got = view.admit(boxes[part])
+        expected = reference_in_turn(image, boxes[part], need[part], placed, placed_need)
+        assert got.tolist() == expected
+        assert fresh.admit(boxes[part]).tolist() == expected
+        assert 0 < got.sum() < len(got)  # some hidden, some kept
+        placed = np.concatenate([placed, boxes[part][~got]])
+        placed_need = np.concatenate([placed_need, need[part][~got]])
+        np.testing.assert_array_equal(view.boxes, placed)
+        np.testing.assert_array_equal(view.need, placed_need)
+        # each accepted box's rays left: its count against all the others
+        np.testing.assert_array_equal(view.left, image.visible_rays(placed, placed))
+    assert not view.holds(placed[1:])
+    assert view.admit(boxes[:0]).shape == (0,)
+    with pytest.raises(ConfigError, match="max_hidden"):
+        PlacedView(image, 3, 1.5)
+    with pytest.raises(ConfigError, match="min_rays"):
+        PlacedView(image, 2.5, 0.5)
+
+
+def test_placed_view_passes_over_a_group_once_one_is_taken() -> None:
+    """Poses of one object (a group) are alternatives: the first accepted is taken, the
+    group's later ones are neither rejected nor taken and hide nothing."""
+    sensor = HDL64E
+    image = RangeImage.build(np.zeros((0, 4), np.float32), sensor)
+    near = [8.0, 0.0, -0.9, 4.0, 1.8, 1.5, 0.0]
+    behind = [16.0, 0.0, -0.9, 4.0, 1.8, 1.5, 0.0]  # in the near box's shadow
+    aside = [8.0, 6.0, -0.9, 4.0, 1.8, 1.5, 0.0]
+    boxes = np.array([near, aside, behind])
+    alone = PlacedView(image, 12, 0.7).admit(boxes)
+    assert alone.tolist() == [False, False, True]  # the near box hides the one behind it
+    view = PlacedView(image, 12, 0.7)
+    got = view.admit(boxes, groups=np.array([0, 0, 1]))  # near and aside: one object's poses
+    assert got.tolist() == [False, False, True]
+    np.testing.assert_array_equal(view.boxes, boxes[:1])  # aside passed over, not taken
+    view = PlacedView(image, 12, 0.7)
+    got = view.admit(np.array([near, behind, aside]), groups=np.array([0, 1, 1]))
+    assert got.tolist() == [False, True, False]  # behind hidden: its second pose is tried
+    np.testing.assert_array_equal(view.boxes, np.array([near, aside]))
+    # a box conflicting with one taken before (say their footprints overlap) is passed over
+    view = PlacedView(image, 12, 0.7)
+    conflicts = np.zeros((3, 3), bool)
+    conflicts[1, 0] = conflicts[0, 1] = True
+    assert view.admit(boxes, conflicts=conflicts).tolist() == [False, False, True]
+    np.testing.assert_array_equal(view.boxes, boxes[:1])
+    with pytest.raises(DataError, match="groups"):
+        view.admit(boxes, groups=np.array([0, 1]))
+    with pytest.raises(DataError, match="conflicts"):
+        view.admit(boxes, conflicts=np.zeros((3, 2), bool))
+
+
 # ----------------------------------------------------------------------------------------------
 # ray_occlusion
 # ----------------------------------------------------------------------------------------------
@@ -209,6 +311,54 @@ def test_ray_occlusion_matches_the_reference(seed: int) -> None:
     # radii given per inserted point only: the same
     again = ray_occlusion(points, owner, sensor, radii=radii[owner >= 0], tolerance=0.1)
     np.testing.assert_array_equal(again, removed)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_without_objects_matches_the_reference_on_the_rest(seed: int) -> None:
+    """RayOcclusion.without: the verdict of the points left once some objects are taken out
+    equals the plain loop run on those points alone; the taken-out objects' points go."""
+    rng = np.random.default_rng(10 + seed)
+    sensor = small_sensor()
+    frame = scene(rng, 1500, sensor)
+    parts, owners = [frame], [np.full(len(frame), -1)]
+    for k in range(4):
+        # two pairs of objects in a row, so that taking the nearer out uncovers the farther
+        if k % 2 == 0:
+            angle, distance = rng.uniform(-math.pi, math.pi), rng.uniform(4, 12)
+        else:
+            distance += 5.0
+        centre = (distance * math.cos(angle), distance * math.sin(angle), -0.9)
+        local = rng.uniform(-0.5, 0.5, (250, 3)) * (3.0, 1.6, 1.4)
+        parts.append(
+            np.column_stack([local + np.array(centre), rng.random(250)]).astype(np.float32)
+        )
+        owners.append(np.full(250, k))
+    points, owner = np.concatenate(parts), np.concatenate(owners)
+    radii = rng.uniform(0.05, 0.3, len(points))
+    rays = RayOcclusion(points, owner, sensor, radii=radii, tolerance=0.1)
+    np.testing.assert_array_equal(
+        rays.removed, reference_occlusion(points, owner, sensor, radii, 0.1)
+    )
+    for gone in ([0], [0, 2], [1, 3], np.array([True, False, False, True])):
+        out = np.zeros(4, bool)
+        out[gone] = True
+        live = ~out[np.maximum(owner, 0)] | (owner < 0)
+        expected = np.ones(len(points), bool)
+        kept_owner = np.unique(owner[live], return_inverse=True)[1] - 1  # -1 stays first
+        expected[live] = reference_occlusion(points[live], kept_owner, sensor, radii[live], 0.1)
+        got = rays.without(np.asarray(gone))
+        np.testing.assert_array_equal(got, expected)
+        np.testing.assert_array_equal(
+            got[live], ray_occlusion(points[live], kept_owner, sensor, radii[live], 0.1)
+        )
+        assert not (got & ~rays.removed & live).any()  # kept with them, kept without
+    # what the nearer objects hid of the farther ones comes back
+    assert (rays.removed[owner == 1] & ~rays.without([0])[owner == 1]).any()
+    np.testing.assert_array_equal(rays.without([]), rays.removed)
+    with pytest.raises(DataError, match="objects"):
+        rays.without([4])
+    with pytest.raises(DataError, match="objects"):
+        rays.without(np.ones(3, bool))
 
 
 def test_rendered_object_hides_what_is_behind_it() -> None:

@@ -88,7 +88,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first eleven fields.
+    section ``drcpo.placement``, whose keys are the first twelve fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -104,6 +104,9 @@ class PlacementConfig(Checked):
             of the range (``max_gap`` of :meth:`drcpo.ground.GroundModel.observed_height_at`).
         max_attempts_per_frame: poses tried in all per call, over every object (``None``: no
             cap); a count, not a time budget, so that the same seed gives the same output.
+        poses_per_round: poses drawn per object and round (within its ``attempts``), tried in
+            turn: the first that passes every check is placed and the object's later ones
+            are left unused (not counted as attempts). More per round, fewer rounds.
         occluded_fraction: for the caller's occlusion test (``occluded`` of
             :func:`place_objects`; DR.CPO's rejects a box once e-HPR would hide this share of
             its sensor-facing surface; ``None``: no test).
@@ -177,6 +180,16 @@ class PlacementConfig(Checked):
             low=1,
             high=1_000_000,
             optional=True,
+        ),
+    )
+    poses_per_round: int = field(
+        default=1,
+        metadata=spec(
+            "int",
+            "poses drawn per object and round, tried in turn until one is placed (fewer "
+            "rounds for the same attempts; 1: one per round)",
+            low=1,
+            high=100,
         ),
     )
     occluded_fraction: float | None = field(
@@ -301,12 +314,22 @@ class Round:
 
     Attributes:
         boxes: ``float64 (B, 7)`` the boxes that passed the geometric checks (area, collision,
-            obstacle), the objects' own sizes (without the clearance), in object order.
+            obstacle), the objects' own sizes (without the clearance), in the order they are
+            tried: object order, each object's first pose, then its second, ... (with
+            ``poses_per_round`` > 1; a caller's verdict takes them in this order and keeps
+            at most one per object, the first it accepts).
         placed: ``float64 (P, 7)`` the boxes placed in earlier rounds, in object order.
+        objects: ``int64 (B,)`` the object (index into ``dims``) of each of ``boxes``.
+        conflicts: ``bool (B, B)`` with ``poses_per_round`` > 1, the pairs of ``boxes`` of two
+            objects whose footprints (with their clearance) overlap: taken in turn, a box is
+            rejected (``"collision"``) when it conflicts with one taken before (with one pose
+            per round, the boxes that did already went, and none is left).
     """
 
     boxes: np.ndarray
     placed: np.ndarray
+    objects: np.ndarray
+    conflicts: np.ndarray
 
 
 class PlacementRounds:
@@ -358,7 +381,7 @@ class PlacementRounds:
         self._room = dims.copy()
         self._room[:, :2] += 2.0 * config.clearance
         self._pending = np.arange(len(dims))
-        self._rounds = 0
+        self._tries = np.zeros(len(dims), dtype=np.int64)  # poses tried per object
         self._attempts = 0
         self._open: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
@@ -369,52 +392,73 @@ class PlacementRounds:
         before the next round."""
         if self._open is not None:
             raise RuntimeError("settle the current round before drawing the next")
-        cap = self._config.max_attempts_per_frame
+        config = self._config
+        cap = config.max_attempts_per_frame
         spent = cap is not None and self._attempts >= cap
-        if self._rounds == self._config.attempts or len(self._pending) == 0 or spent:
+        pending = self._pending
+        if len(pending) == 0 or spent or (self._tries[pending] >= config.attempts).all():
             return None
-        self._rounds += 1
-        pending = self._pending if cap is None else self._pending[: cap - self._attempts]
-        self._attempts += len(pending)
-        boxes = sample_poses(self._room[pending], self._rng, self._config, self._cells)
+        # each pending object's poses (within its attempts), its first ones first
+        per = np.minimum(config.poses_per_round, config.attempts - self._tries[pending])
+        tried = pending
+        if (per != 1).any():
+            tried = np.concatenate([pending[per > k] for k in range(int(per.max()))])
+        if cap is not None:
+            tried = tried[: cap - self._attempts]
+        self._attempts += len(tried)
+        boxes = sample_poses(self._room[tried], self._rng, config, self._cells)
+        several = config.poses_per_round > 1
         verdict = _judge(
             boxes,
-            pending,
+            tried,
             self._dims,
             self._source_z,
             self._occupied,
             self._obstacles,
-            self._config,
+            config,
+            first_come=not several,
         )
         if self._cells is not None and len(self._cells.corners) == 0:
             verdict[verdict == _OUT_OF_RANGE] = _NO_GROUND  # no observed ground to stand on
         own = boxes.copy()  # the objects' own footprints, without the clearance
-        own[:, 3:5] = self._dims[pending, :2]
+        own[:, 3:5] = self._dims[tried, :2]
         passed = np.flatnonzero(verdict == 0)
-        self._open = (pending, boxes, own, verdict, passed)
+        # With several poses per object, the round's poses collide only once taken (in turn,
+        # see settle): a pose left unused or hidden blocks nothing.
+        conflicts = np.zeros((len(passed), len(passed)), dtype=bool)
+        if several and len(passed):
+            conflicts = bev_collisions(boxes[passed], boxes[passed])
+            conflicts &= tried[passed][:, None] != tried[passed][None, :]
+        self._open = (tried, boxes, own, verdict, passed, conflicts)
         placed = self._placed[np.isfinite(self._placed[:, 0])]
-        return Round(boxes=own[passed], placed=placed)
+        return Round(boxes=own[passed], placed=placed, objects=tried[passed], conflicts=conflicts)
 
     def settle(self, occluded: np.ndarray | None = None) -> None:
         """Close the current round: ``occluded`` ``bool (B,)`` marks its boxes to reject
         (reason ``"occluded"``; tried again like the others), ``None``: none."""
         if self._open is None:
             raise RuntimeError("no round to settle: call next_round first")
-        tried, boxes, own, verdict, passed = self._open
+        tried, boxes, own, verdict, passed, conflicts = self._open
         if occluded is not None:
             hidden = np.asarray(occluded, dtype=bool).reshape(-1)
             if len(hidden) != len(passed):
                 raise ValueError(f"{len(hidden)} occluded verdicts for {len(passed)} boxes")
             verdict[passed[hidden]] = _OCCLUDED
         self._open = None
-        self._counts += np.bincount(verdict, minlength=len(self._counts))
-        self._verdicts[tried] = verdict
+        if conflicts.any():
+            clash = _taken_in_turn(tried[passed], verdict[passed] == 0, conflicts)
+            verdict[passed[clash]] = _COLLISION
         ok = verdict == 0
+        used = _up_to_first(tried, ok)  # an object's poses after its placed one: unused
+        self._attempts -= len(tried) - int(used.sum())
+        tried, verdict, boxes, own = (a[used] for a in (tried, verdict, boxes, own))
+        ok = verdict == 0
+        self._counts += np.bincount(verdict, minlength=len(self._counts))
+        np.add.at(self._tries, tried, 1)
+        self._verdicts[tried] = verdict  # (each object's last pose tried comes last)
         self._occupied = np.concatenate([self._occupied, boxes[ok]])
         self._placed[tried[ok]] = own[ok]
-        left = np.ones(len(self._pending), dtype=bool)  # those tried lead the pending ones
-        left[: len(tried)] = ~ok
-        self._pending = self._pending[left]
+        self._pending = self._pending[~np.isin(self._pending, tried[ok])]
 
     def result(self) -> PlacementResult:
         """The outcome of the rounds settled so far."""
@@ -445,10 +489,12 @@ def _judge(
     occupied: np.ndarray,
     obstacles: _Obstacles,
     config: PlacementConfig,
+    first_come: bool = True,
 ) -> np.ndarray:
     """Set each box's height and return its verdict ``int64 (K,)``: 0 (placed) or 1 + the
     index of its rejection reason in :data:`REASONS`. ``boxes`` are the footprints with their
-    clearance; the obstacle test takes the objects' own sizes, ``dims[pending]``."""
+    clearance; the obstacle test takes the objects' own sizes, ``dims[pending]``.
+    ``first_come``: a box colliding with an earlier one of the batch that passed goes too."""
     verdict = np.zeros(len(boxes), dtype=np.int64)
     fits = np.isfinite(boxes[:, 0])
     verdict[~fits] = _OUT_OF_RANGE
@@ -472,12 +518,36 @@ def _judge(
     verdict[live[blocked]] = _OBSTACLE
     live = live[~blocked]
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
+    if not first_come:
+        return verdict
     kept = np.zeros(len(live), dtype=bool)
     if len(live):
         candidates = boxes[live]
-        _first_come(candidates, *heading_terms(candidates), kept)
+        _first_come(candidates, *heading_terms(candidates), pending[live], kept)
     verdict[live[~kept]] = _COLLISION
     return verdict
+
+
+def _taken_in_turn(objects: np.ndarray, ok: np.ndarray, conflicts: np.ndarray) -> np.ndarray:
+    """``bool (B,)``: the ``ok`` boxes that, taken in turn, conflict with one taken before
+    (a box is taken when ok, its object has none taken yet and it conflicts with none)."""
+    clash, taken = np.zeros(len(objects), dtype=bool), []
+    for i in np.flatnonzero(ok).tolist():
+        if objects[i] in objects[taken]:
+            continue  # its object has one taken: an unused alternative
+        clash[i] = conflicts[i, taken].any()
+        if not clash[i]:
+            taken.append(i)
+    return clash
+
+
+def _up_to_first(objects: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``bool (T,)``: the poses ``objects`` ``(T,)`` (object of each, in the order tried) up to
+    and including each object's first ``ok`` one; the object's later poses are not needed."""
+    order = np.arange(len(objects))
+    first = np.full(int(objects.max(initial=-1)) + 1, len(objects))
+    np.minimum.at(first, objects[ok], order[ok])
+    return order <= first[objects]
 
 
 def _on_observed_ground(
@@ -672,12 +742,13 @@ def _collisions(a, ca, sa, b, cb, sb, out):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_come(boxes, cos, sin, kept):  # pragma: no cover - numba
-    # Each box is kept unless it overlaps an earlier box that was kept.
+def _first_come(boxes, cos, sin, objects, kept):  # pragma: no cover - numba
+    # Each box is kept unless it overlaps an earlier box of another object that was kept (an
+    # object's own poses are alternatives: at most one is placed).
     for i in range(boxes.shape[0]):
         kept[i] = True
         for j in range(i):
-            if kept[j] and _overlap(
+            if kept[j] and objects[j] != objects[i] and _overlap(
                 boxes[i, 0], boxes[i, 1], boxes[i, 3], boxes[i, 4], cos[i], sin[i],
                 boxes[j, 0], boxes[j, 1], boxes[j, 3], boxes[j, 4], cos[j], sin[j],
             ):  # fmt: skip

@@ -3,12 +3,20 @@
 
 :class:`RangeImage` holds the frame's nearest return per ray cell (beam, column) of a
 :class:`~drcpo.sensor.Sensor`; :meth:`RangeImage.visible_rays` counts, per box, the rays that
-reach it. :func:`ray_occlusion` decides, after insertion, which points the sensor could not
-have recorded: an original point behind an inserted object's surface elements along its own
-ray, an inserted return behind a nearer return in its ray cell or behind another object's
-surface. The ray cells, surface elements and their windows are those of
+reach it; :class:`PlacedView` takes a placement round's boxes in turn, first come first
+served, against the frame and the boxes accepted before (kept over a call's rounds).
+:func:`ray_occlusion` decides, after insertion, which points the sensor could not have
+recorded: an original point behind an inserted object's surface elements along its own ray, an
+inserted return behind a nearer return in its ray cell or behind another object's surface;
+:class:`RayOcclusion` keeps that work, so that the verdict without the objects then dropped
+costs little more. The ray cells, surface elements and their windows are those of
 :mod:`~drcpo.occlusion.render`. Imports :mod:`drcpo.errors`, :mod:`drcpo.geometry`,
 :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.render` only.
+
+Longer than 800 lines because its numba kernels share one slab test, one window rule and the
+cell look-ups of :mod:`~drcpo.occlusion.render`, which must stay exactly the same for the
+box counts and the point verdicts to agree; split, they would be copied or exported across
+modules as private kernels.
 """
 
 from __future__ import annotations
@@ -36,7 +44,7 @@ from drcpo.occlusion.render import (
 )
 from drcpo.sensor import Sensor
 
-__all__ = ["RangeImage", "ray_occlusion"]
+__all__ = ["PlacedView", "RangeImage", "RayOcclusion", "ray_occlusion"]
 
 
 class RangeImage:
@@ -107,6 +115,133 @@ class RangeImage:
         return counts
 
 
+class PlacedView:
+    """Placement's visibility test of one frame over its rounds: boxes taken in turn, first
+    come first served, each rejected when too few of the sensor's rays would reach it or when
+    it would leave a box accepted before with too few.
+
+    A box needs ``max(min_rays, ceil((1 - max_hidden) * crossing))`` rays, ``crossing`` the
+    rays that cross it (within ``max_range``); a ray reaches it as in
+    :meth:`RangeImage.visible_rays` with the boxes accepted before as occluders. The view keeps
+    the frame's nearest return per ray cell with the accepted boxes painted in (each ray's
+    nearest entry into one of them: a ray reaches a box iff that is no nearer than where it
+    enters the box, minus ``tolerance``) and each accepted box's rays left, so that a box
+    costs its own rays only. Only boxes whose azimuth spans (bounding circles seen from the
+    mount) overlap can hide each other.
+
+    Args:
+        image: the frame's range image.
+        min_rays: fewest rays a box needs.
+        max_hidden: the largest share of its crossing rays that may be hidden, in ``[0, 1]``.
+        placed: ``(K, 7)`` boxes accepted before (counted against each other).
+        tolerance: metres, as in :meth:`RangeImage.visible_rays`.
+
+    Attributes:
+        boxes: ``float64 (A, 7)`` the boxes accepted so far, ``placed`` first.
+        need: ``int64 (A,)`` the rays each needs; ``left``: ``int64 (A,)`` the rays reaching
+            each now.
+    """
+
+    def __init__(
+        self,
+        image: RangeImage,
+        min_rays: int,
+        max_hidden: float,
+        placed: np.ndarray | None = None,
+        tolerance: float = 0.1,
+    ) -> None:
+        if isinstance(min_rays, bool) or not isinstance(min_rays, (int, np.integer)):
+            raise ConfigError(f"min_rays must be a whole number of rays, got {min_rays!r}")
+        if not (isinstance(max_hidden, (int, float)) and 0.0 <= max_hidden <= 1.0):
+            raise ConfigError(f"max_hidden must be a share in [0, 1], got {max_hidden!r}")
+        self._image = image
+        self._tables = sensor_tables(image.sensor)
+        self._settings = np.array(
+            [_check_tolerance(tolerance), image.sensor.max_range, int(min_rays), max_hidden]
+        )
+        self._combined = np.array(image.ranges, dtype=np.float64)  # a writable copy
+        self.boxes = np.zeros((0, 7))
+        self.need = np.zeros(0, dtype=np.int64)
+        self.left = np.zeros(0, dtype=np.int64)
+        placed = _check_boxes(np.zeros((0, 7)) if placed is None else placed, "placed")
+        if len(placed):
+            self._admit(placed, every=True)
+
+    def admit(
+        self,
+        boxes: np.ndarray,
+        groups: np.ndarray | None = None,
+        conflicts: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """``bool (M,)``: which of ``boxes`` ``(M, 7)``, taken in turn after the boxes accepted
+        before, are rejected; the others are accepted (appended to :attr:`boxes`).
+
+        ``groups`` ``int (M,)``: boxes of one group are alternatives (poses of one object): once
+        one is accepted, the group's later boxes are passed over (neither rejected nor
+        accepted, ``False``). ``conflicts`` ``bool (M, M)``: a box conflicting with one
+        accepted before is passed over too (its caller rejects it for that)."""
+        boxes = _check_boxes(boxes, "boxes")
+        count = len(boxes)
+        groups = np.arange(count) if groups is None else np.asarray(groups)
+        if groups.shape != (count,) or (
+            groups.size and not np.issubdtype(groups.dtype, np.integer)
+        ):
+            raise DataError(f"groups must be {count} integers, one per box, got {groups!r}")
+        conflicts = np.zeros((count, count), bool) if conflicts is None else np.asarray(conflicts)
+        if conflicts.shape != (count, count) or conflicts.dtype != bool:
+            raise DataError(f"conflicts must be bool ({count}, {count}), got {conflicts.shape}")
+        return self._admit(boxes, False, groups.astype(np.int64), conflicts)
+
+    def holds(self, boxes: np.ndarray) -> bool:
+        """Whether ``boxes`` ``(K, 7)`` are the boxes accepted so far, in any order."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+        if len(boxes) != len(self.boxes):
+            return False
+        return sorted(map(bytes, boxes)) == sorted(map(bytes, self.boxes))
+
+    def _admit(
+        self,
+        boxes: np.ndarray,
+        every: bool,
+        groups: np.ndarray | None = None,
+        conflicts: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Take ``boxes`` in turn (``every``: accept them all, as boxes placed before, counted
+        once all are painted in); ``groups``, ``conflicts``: see :meth:`admit`."""
+        hidden = np.zeros(len(boxes), dtype=bool)
+        if len(boxes) == 0:
+            return hidden
+        if groups is None:
+            groups = np.arange(len(boxes), dtype=np.int64)
+        if conflicts is None:
+            conflicts = np.zeros((len(boxes), len(boxes)), dtype=bool)
+        taken = np.zeros(len(boxes), dtype=bool)
+        first = len(self.boxes)
+        boxes_all = np.concatenate([self.boxes, boxes])
+        need = np.concatenate([self.need, np.zeros(len(boxes), np.int64)])
+        left = np.concatenate([self.left, np.zeros(len(boxes), np.int64)])
+        geometry = self._tables.geometry
+        _admit(
+            boxes_all,
+            *heading_terms(boxes_all),
+            _windows(boxes_all, *geometry),
+            first,
+            every,
+            need,
+            left,
+            self._combined,
+            self._settings,
+            groups,
+            conflicts,
+            hidden,
+            taken,
+            *geometry,
+        )
+        keep = np.concatenate([np.ones(first, dtype=bool), taken])
+        self.boxes, self.need, self.left = boxes_all[keep], need[keep], left[keep]
+        return hidden
+
+
 def ray_occlusion(
     points: np.ndarray,
     owner: np.ndarray,
@@ -133,24 +268,86 @@ def ray_occlusion(
             :func:`~drcpo.occlusion.render.surfel_radii` of each object's points.
         tolerance: metres a surface must lie nearer to hide a point.
     """
-    array = _frame_points(points)
-    owner = _check_owner(owner, len(array))
-    tolerance = _check_tolerance(tolerance)
-    inserted = np.flatnonzero(owner >= 0)
-    removed = np.zeros(len(array), dtype=bool)
-    surfel = _inserted_radii(array, owner, inserted, radii)
-    bad = _ray_occlusion(
-        array,
-        owner,
-        inserted,
-        surfel,
-        tolerance,
-        removed,
-        *sensor_tables(sensor).geometry,
-    )
-    if bad >= 0:
-        raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
-    return removed
+    return RayOcclusion(points, owner, sensor, radii, tolerance).removed.copy()
+
+
+class RayOcclusion:
+    """:func:`ray_occlusion` of one frame after insertion, with its work (cells, surface
+    elements and their windows) kept, so that the verdict without some of the objects costs
+    little more (:meth:`without`).
+
+    Args: as :func:`ray_occlusion`.
+
+    Attributes:
+        removed: ``bool (N,)`` :func:`ray_occlusion` of all the points (read-only).
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        owner: np.ndarray,
+        sensor: Sensor,
+        radii: np.ndarray | None = None,
+        tolerance: float = 0.1,
+    ) -> None:
+        array = _frame_points(points)
+        self._owner = owner = _check_owner(owner, len(array))
+        self._tolerance = _check_tolerance(tolerance)
+        self._inserted = inserted = np.flatnonzero(owner >= 0)
+        self._radii = _inserted_radii(array, owner, inserted, radii)
+        self._tables = tables = sensor_tables(sensor)
+        self._objects = int(owner.max()) + 1 if len(inserted) else 0
+        index = _ray_index(array, owner, inserted, self._radii, *tables.geometry)
+        if index[0] >= 0:
+            raise DataError(f"points hold NaN/inf coordinates (first: row {index[0]})")
+        self._index = index[1:]
+        self.removed = self._decide(np.ones(self._objects, dtype=bool), None)
+        self.removed.setflags(write=False)
+
+    def without(self, objects: np.ndarray) -> np.ndarray:
+        """``bool (N,)``: what :func:`ray_occlusion` removes of the points without those of
+        ``objects`` (object numbers, or ``bool`` per object), as if those had never been
+        inserted; their own points are ``True`` (removed with them).
+
+        Taking objects out only takes surfaces away, so a point kept with them is kept
+        without them: only the points :attr:`removed` are decided again."""
+        alive = np.ones(self._objects, dtype=bool)
+        gone = np.asarray(objects)
+        if gone.dtype == bool:
+            if gone.shape != (self._objects,):
+                raise DataError(
+                    f"objects mask must have shape ({self._objects},), got {gone.shape}"
+                )
+            alive &= ~gone
+        else:
+            gone = gone.astype(np.int64, copy=False).reshape(-1)
+            if gone.size and (gone.min() < 0 or gone.max() >= self._objects):
+                raise DataError(f"objects must be numbers in [0, {self._objects}), got {gone}")
+            alive[gone] = False
+        if alive.all():
+            return self.removed.copy()
+        return self._decide(alive, self.removed)
+
+    def _decide(self, alive: np.ndarray, pending: np.ndarray | None) -> np.ndarray:
+        """The verdict with the objects ``alive`` only, deciding the points of ``pending``
+        (``bool (N,)``; ``None``: all)."""
+        removed = np.zeros(len(self._owner), dtype=bool)
+        if pending is None:
+            pending = np.ones(len(self._owner), dtype=bool)
+        tables = self._tables.geometry
+        _ray_decide(
+            self._inserted,
+            self._radii,
+            *self._index,
+            alive,
+            pending,
+            self._tolerance,
+            removed,
+            tables[4],  # offsets
+            tables[1],  # edge_lut
+            tables[-1],  # constants
+        )
+        return removed
 
 
 def _frame_points(points: np.ndarray) -> np.ndarray:
@@ -453,13 +650,185 @@ def _visible_rays(
 
 
 @numba.njit(cache=True, nogil=True)
-def _ray_occlusion(
+def _admit(
+    boxes,
+    cos,
+    sin,
+    windows,
+    first,
+    every,
+    need,
+    left,
+    combined,
+    settings,
+    groups,
+    conflicts,
+    hidden,
+    taken,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first_column,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # PlacedView._admit: `boxes` are the accepted ones (rows < first; their need and left
+    # given), then the candidates, whose need, left (when accepted) and hidden[m] (row
+    # first + m) and taken[m] (accepted) it sets; `combined` (B, C): the frame's nearest return
+    # per cell with the accepted boxes' entries painted in. every: accept all the candidates,
+    # painted in first and counted after. A candidate whose group (groups[m]) had one taken,
+    # or that conflicts with one taken (conflicts[m, m']), is passed over.
+    tolerance, max_range = settings[0], settings[1]
+    min_rays, share = settings[2], settings[3]
+    columns = column_cos.shape[0]
+    total = boxes.shape[0]
+    # each box's azimuth span (centre, half angle) of its bounding circle seen from the mount
+    spans = np.empty((total, 2))
+    for m in range(total):
+        x, y = boxes[m, 0] - mount[0], boxes[m, 1] - mount[1]
+        reach = math.hypot(boxes[m, 3], boxes[m, 4]) / 2.0
+        distance = math.hypot(x, y)
+        spans[m, 0] = math.atan2(y, x)
+        half = math.asin(min(reach / max(distance, 1e-9), 1.0))
+        spans[m, 1] = half if distance > reach else np.pi
+    if every:
+        for g in range(first, total):
+            _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
+                   column_cos, column_sin)  # fmt: skip
+    accepted = np.empty(total, np.int64)
+    accepted[:first] = np.arange(first)
+    count = first
+    near = np.empty(total, np.int64)
+    lost = np.zeros(total, np.int64)
+    for g in range(first, total):
+        if not every:
+            done = False
+            for n in range(first, count):
+                done |= groups[accepted[n] - first] == groups[g - first]
+                done |= conflicts[g - first, accepted[n] - first]
+            if done:
+                continue
+        b0, b1, c0, width = windows[g, 0], windows[g, 1], windows[g, 2], windows[g, 3]
+        crossing, seen = 0, 0
+        for b in range(b0, b1 + 1):
+            ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+            c = c0
+            for _ in range(width):
+                dx, dy = beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c]
+                enter, leave = _slab(
+                    ox, oy, oz, dx, dy, beam_sin[b], boxes[g, 0], boxes[g, 1], boxes[g, 2],
+                    boxes[g, 3] / 2.0, boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
+                )  # fmt: skip
+                if enter <= leave and enter <= max_range:
+                    crossing += 1
+                    if combined[b, c] >= enter - tolerance:
+                        seen += 1
+                c = c + 1 if c + 1 < columns else 0
+        need[g] = max(min_rays, math.ceil((1.0 - share) * crossing))
+        if every:
+            left[g] = seen
+            taken[g - first] = True
+            continue
+        if seen < need[g]:
+            hidden[g - first] = True
+            continue
+        found = 0  # the accepted boxes whose spans overlap: the only ones it may hide
+        for n in range(count):
+            a = accepted[n]
+            gap = abs((spans[a, 0] - spans[g, 0] + np.pi) % (2.0 * np.pi) - np.pi)
+            if gap <= spans[a, 1] + spans[g, 1]:
+                near[found] = a
+                lost[found] = 0
+                found += 1
+        if found:
+            for b in range(b0, b1 + 1):
+                ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+                c = c0
+                for _ in range(width):
+                    dx, dy = beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c]
+                    dz = beam_sin[b]
+                    into, out = _slab(
+                        ox, oy, oz, dx, dy, dz, boxes[g, 0], boxes[g, 1], boxes[g, 2],
+                        boxes[g, 3] / 2.0, boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
+                    )  # fmt: skip
+                    if into <= out:  # the ray enters it: it hides what lies beyond
+                        for n in range(found):
+                            a = near[n]
+                            enter, leave = _slab(
+                                ox, oy, oz, dx, dy, dz, boxes[a, 0], boxes[a, 1], boxes[a, 2],
+                                boxes[a, 3] / 2.0, boxes[a, 4] / 2.0, boxes[a, 5] / 2.0, cos[a],
+                                sin[a],
+                            )  # fmt: skip
+                            if (
+                                enter <= leave
+                                and enter <= max_range
+                                and combined[b, c] >= enter - tolerance
+                                and into < enter - tolerance
+                            ):
+                                lost[n] += 1
+                    c = c + 1 if c + 1 < columns else 0
+            short = False
+            for n in range(found):
+                short |= left[near[n]] - lost[n] < need[near[n]]
+            if short:
+                hidden[g - first] = True
+                continue
+            for n in range(found):
+                left[near[n]] -= lost[n]
+        _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
+               column_cos, column_sin)  # fmt: skip
+        left[g] = seen
+        taken[g - first] = True
+        accepted[count] = g
+        count += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _paint(
+    g,
+    boxes,
+    cos,
+    sin,
+    windows,
+    combined,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+):  # pragma: no cover - numba
+    # Box g's entry distance into each cell of `combined` its rays cross, where nearer.
+    columns = column_cos.shape[0]
+    for b in range(windows[g, 0], windows[g, 1] + 1):
+        ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
+        c = windows[g, 2]
+        for _ in range(windows[g, 3]):
+            enter, leave = _slab(
+                ox, oy, oz, beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c],
+                beam_sin[b], boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] / 2.0,
+                boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
+            )  # fmt: skip
+            if enter <= leave and enter < combined[b, c]:
+                combined[b, c] = enter
+            c = c + 1 if c + 1 < columns else 0
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_index(
     points,
     owner,
     inserted,
     radii,
-    tolerance,
-    removed,
     edge_slopes,
     edge_lut,
     beam_slopes,
@@ -476,7 +845,10 @@ def _ray_occlusion(
     bound_sin,
     constants,
 ):  # pragma: no cover - numba
-    # Sets `removed`; returns the first row with a non-finite coordinate, or -1.
+    # The work of ray_occlusion that does not depend on which objects are kept: the inserted
+    # points' cells and their elements' windows of cells, the original points that may matter
+    # and the frame's nearest return per cell (see _ray_decide). First: the first row with a
+    # non-finite coordinate, or -1 (then the rest is empty).
     beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
     step, phase, per_radian = constants[0], constants[1], constants[4]
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
@@ -502,7 +874,7 @@ def _ray_occlusion(
         constants,
     )
     if bad >= 0:
-        return bad
+        return _no_index(bad)
     # 2. Each element's window of cells: rows 0..B + 1 (above, in and below the beams) of the
     #    edges' tangents its cone spans, columns from one end of its azimuths to the other.
     #    Per column: the object whose windows reach it (-2: several, -1: none), whether it
@@ -575,22 +947,7 @@ def _ray_occlusion(
         if covered[c] != -1 or wanted[c]:
             slot[c] = used
             used += 1
-    # 3. Per cell of the used columns: the nearest inserted return, its object, and the
-    #    nearest of another object; the elements of each cell in one array, cell by cell.
-    nearest = np.full(rows * used, np.inf)
-    nearest_owner = np.full(rows * used, -1, np.int64)
-    other = np.full(rows * used, np.inf)
-    for j in range(m):
-        if own_beam[j] < 0:
-            continue
-        cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
-        distance, k = own_distance[j], element_owner[j]
-        if distance < nearest[cell]:
-            if nearest_owner[cell] != k:
-                other[cell] = nearest[cell]
-            nearest[cell], nearest_owner[cell] = distance, k
-        elif k != nearest_owner[cell] and distance < other[cell]:
-            other[cell] = distance
+    # 3. The elements of each cell of the used columns in one array, cell by cell.
     start = np.zeros(rows * used + 1, np.int64)
     for j in range(m):
         for r in range(window[j, 0] - top, window[j, 1] + 1 - top):
@@ -634,7 +991,7 @@ def _ray_occlusion(
         y = np.float64(points[i, 1]) - mount[1]
         z = np.float64(points[i, 2]) - mount[2]
         if not np.isfinite(x + y + z):
-            return i
+            return _no_index(i)
         if x == 0.0 and y == 0.0:
             continue
         k = _pseudo_bin(x, y, bins)
@@ -673,29 +1030,113 @@ def _ray_occlusion(
         if beam[q] >= 0 and wanted[column[q]] and top <= beam[q] + 1 <= bottom:
             cell = (beam[q] + 1 - top) * used + slot[column[q]]
             frame[cell] = min(frame[cell], distance[q])
-    hidden = _behind_elements(
-        near, beam, column, distance, np.full(found, -1, np.int64), covered, slot, used, top,
-        bottom, offsets, rel, radii, element_owner, entries, start, tolerance, edge_lut, constants,
+    return (
+        -1, own_beam, own_column, own_distance, rel, element_owner, covered, slot, used, top,
+        bottom, entries, start, candidates, beam, column, distance, near, frame,
     )  # fmt: skip
-    for q in range(found):
-        removed[candidates[q]] = hidden[q]
-    # 5. The inserted returns: behind the frame or another object in their cell, or behind
-    #    another object's elements along their ray.
+
+
+@numba.njit(cache=True, nogil=True)
+def _no_index(bad):  # pragma: no cover - numba
+    # _ray_index's answer for a non-finite row: the row, then empty arrays.
+    none, empty = np.zeros(0, np.int64), np.zeros(0)
+    return (
+        bad, none, none, empty, np.zeros((0, 3)), none, none, none, 0, 0, -1,
+        np.zeros(0, np.int32), none, none, none, none, empty, np.zeros((0, 3)), empty,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_decide(
+    inserted,
+    radii,
+    own_beam,
+    own_column,
+    own_distance,
+    rel,
+    element_owner,
+    covered,
+    slot,
+    used,
+    top,
+    bottom,
+    entries,
+    start,
+    candidates,
+    beam,
+    column,
+    distance,
+    near,
+    frame,
+    alive,
+    pending,
+    tolerance,
+    removed,
+    offsets,
+    edge_lut,
+    constants,
+):  # pragma: no cover - numba
+    # Sets `removed` of the points of `pending` from _ray_index's work, with the objects
+    # `alive` only (the points of the others are removed). The windows and original points
+    # that _ray_index kept for all the objects cover those of any of them: a column's
+    # `covered` may name several objects where one is left, which only costs a look.
+    m = inserted.shape[0]
+    rows = max(bottom - top + 1, 0)
+    # Per cell of the used columns: the nearest inserted return, its object, and the nearest
+    # of another object.
+    nearest = np.full(rows * used, np.inf)
+    nearest_owner = np.full(rows * used, -1, np.int64)
+    other = np.full(rows * used, np.inf)
     for j in range(m):
-        if own_beam[j] < 0:
+        if own_beam[j] < 0 or not alive[element_owner[j]]:
             continue
         cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
-        distance_j = own_distance[j]
-        rival = other[cell] if nearest_owner[cell] == element_owner[j] else nearest[cell]
-        if frame[cell] < distance_j - tolerance or rival < distance_j - tolerance:
-            removed[inserted[j]] = True
+        distance_j, k = own_distance[j], element_owner[j]
+        if distance_j < nearest[cell]:
+            if nearest_owner[cell] != k:
+                other[cell] = nearest[cell]
+            nearest[cell], nearest_owner[cell] = distance_j, k
+        elif k != nearest_owner[cell] and distance_j < other[cell]:
+            other[cell] = distance_j
+    # The original points: behind an element along their own ray.
+    found = candidates.shape[0]
+    ask = np.empty(found, np.bool_)
+    for q in range(found):
+        ask[q] = pending[candidates[q]]
     hidden = _behind_elements(
-        rel, own_beam, own_column, own_distance, element_owner, covered, slot, used, top,
-        bottom, offsets, rel, radii, element_owner, entries, start, tolerance, edge_lut, constants,
+        near, beam, column, distance, np.full(found, -1, np.int64), ask, alive, covered, slot,
+        used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
+        edge_lut, constants,
+    )  # fmt: skip
+    for q in range(found):
+        if ask[q]:
+            removed[candidates[q]] = hidden[q]
+    # The inserted returns: behind the frame or another object in their cell, or else behind
+    # another object's elements along their ray.
+    ask = np.zeros(m, np.bool_)
+    for j in range(m):
+        i = inserted[j]
+        if not alive[element_owner[j]]:
+            removed[i] = True
+            continue
+        if not pending[i]:
+            continue
+        if own_beam[j] >= 0:
+            cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
+            distance_j = own_distance[j]
+            rival = other[cell] if nearest_owner[cell] == element_owner[j] else nearest[cell]
+            if frame[cell] < distance_j - tolerance or rival < distance_j - tolerance:
+                removed[i] = True
+                continue
+        ask[j] = True
+    hidden = _behind_elements(
+        rel, own_beam, own_column, own_distance, element_owner, ask, alive, covered, slot,
+        used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
+        edge_lut, constants,
     )  # fmt: skip
     for j in range(m):
-        removed[inserted[j]] |= hidden[j]
-    return -1
+        if ask[j]:
+            removed[inserted[j]] = hidden[j]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -705,6 +1146,8 @@ def _behind_elements(
     column,
     distance,
     skip,
+    ask,
+    alive,
     covered,
     slot,
     used,
@@ -726,13 +1169,14 @@ def _behind_elements(
     # whether an element not of object skip[q] lies within its radius of the ray from that
     # origin (the mount outside every beam) through the point, more than `tolerance` nearer
     # along it. The elements looked at are those of the cell of the ray's direction (its row
-    # among the beam edges, seen from that origin).
+    # among the beam edges, seen from that origin). Only the queries `ask`ed, against the
+    # elements of the objects `alive`.
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
     beams = offsets.shape[0]
     hidden = np.zeros(queries.shape[0], np.bool_)
     for q in range(queries.shape[0]):
         c = column[q]
-        if c < 0 or covered[c] == -1 or covered[c] == skip[q]:
+        if not ask[q] or c < 0 or covered[c] == -1 or covered[c] == skip[q]:
             continue  # no element, or only the query's own object's
         lift = offsets[beam[q]] if beam[q] >= 0 else 0.0
         x, y, dz = queries[q, 0], queries[q, 1], queries[q, 2] - lift
@@ -752,7 +1196,7 @@ def _behind_elements(
         ux, uy, uz = x * inverse, y * inverse, dz * inverse
         for e in range(start[cell], start[cell + 1]):
             j = entries[e]
-            if element_owner[j] == skip[q]:
+            if element_owner[j] == skip[q] or not alive[element_owner[j]]:
                 continue
             vx, vy, vz = rel[j, 0], rel[j, 1], rel[j, 2] - lift
             t = vx * ux + vy * uy + vz * uz

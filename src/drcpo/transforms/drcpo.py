@@ -419,7 +419,9 @@ class DRCPO(Transform):
             while (drawn := rounds.next_round()) is not None:
                 hidden = None
                 if len(drawn.boxes):
-                    hidden = seen.hidden(drawn.boxes, drawn.placed, minimum, share)
+                    hidden = seen.hidden(
+                        drawn.boxes, drawn.placed, minimum, share, drawn.objects, drawn.conflicts
+                    )
                 rounds.settle(hidden)
             return (*self._placement_result(rounds, rows, stats), None)
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts

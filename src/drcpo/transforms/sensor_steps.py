@@ -8,7 +8,7 @@
   (:meth:`~drcpo.occlusion.rays.RangeImage.visible_rays`);
 * s-HPR mode ``sensor``: each object rendered through the sensor
   (:func:`~drcpo.occlusion.render.render_object`);
-* e-HPR mode ``sensor``: occlusion along the rays (:func:`~drcpo.occlusion.rays.ray_occlusion`),
+* e-HPR mode ``sensor``: occlusion along the rays (:class:`~drcpo.occlusion.rays.RayOcclusion`),
   with the added boxes of earlier stages as inserted objects too.
 
 Each function returns data; :mod:`drcpo.transforms.drcpo` orders the steps.
@@ -27,7 +27,7 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.ground import GroundModel
-from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion
 from drcpo.occlusion.render import render_object
 from drcpo.placement import frame_ground
 from drcpo.sensor import Sensor
@@ -59,7 +59,7 @@ class SensorFrame:
     frame: Frame
     config: SensorConfig
     fallback: str = field(default="", init=False)
-    _crossing: dict[bytes, int] = field(default_factory=dict, init=False, repr=False)
+    _view: tuple[tuple[int, float], PlacedView] | None = field(default=None, init=False, repr=False)
 
     @cached_property
     def added(self) -> np.ndarray:
@@ -125,80 +125,34 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
 
-    def _crossing_of(self, boxes: np.ndarray) -> np.ndarray:
-        """``int64 (B,)``: the rays crossing each of ``boxes`` (counted in an earlier round when
-        it was drawn, else now)."""
-        known = [self._crossing.get(bytes(box)) for box in boxes]
-        if all(k is not None for k in known):
-            return np.array(known, dtype=np.int64)
-        return self.empty_image.visible_rays(boxes)
-
-    @cached_property
-    def empty_image(self) -> RangeImage:
-        """A range image without returns: what the sensor's rays would cross alone."""
-        sensor = self.sensor
-        return RangeImage(sensor, np.full((sensor.num_beams, sensor.num_columns), np.inf))
-
     def hidden(
-        self, boxes: np.ndarray, placed: np.ndarray, min_rays: int, max_hidden: float = 1.0
+        self,
+        boxes: np.ndarray,
+        placed: np.ndarray,
+        min_rays: int,
+        max_hidden: float = 1.0,
+        objects: np.ndarray | None = None,
+        conflicts: np.ndarray | None = None,
     ) -> np.ndarray:
         """``bool (B,)``: the round's ``boxes`` to reject, first come first served: a box that
         fewer than ``min_rays`` rays would reach, or only ``1 - max_hidden`` of the rays that
         cross it (in front of the frame's returns and of the boxes accepted before it,
         ``placed`` and this round's), or that would leave one of those so (objects in a row
         along a street would hide each other). A box's share counts: the rays left reaching a
-        mostly hidden box pass its corners, where the object leaves the box empty."""
-        image = self.range_image
-        accepted = np.asarray(placed, dtype=np.float64).reshape(-1, 7)
+        mostly hidden box pass its corners, where the object leaves the box empty.
 
-        def needed(crossing: np.ndarray) -> np.ndarray:
-            return np.maximum(min_rays, np.ceil((1.0 - max_hidden) * crossing)).astype(np.int64)
+        ``objects``: the object of each box (a round may hold several poses of one, tried in
+        turn: once one is accepted, its later ones are passed over, ``False``); ``conflicts``:
+        see :class:`~drcpo.placement.Round` (a box conflicting with one accepted before is
+        passed over; placement rejects it).
 
-        crossing = self.empty_image.visible_rays(boxes)
-        # the boxes placed before were this call's boxes of an earlier round: counted then
-        need, accepted_need = needed(crossing), needed(self._crossing_of(accepted))
-        self._crossing.update(zip(map(bytes, boxes), crossing.tolist(), strict=True))
-        # Boxes hidden already by the frame and the earlier rounds' boxes, all in one call;
-        # the others one by one against the boxes of this round accepted before them.
-        hidden = image.visible_rays(boxes, occluders=accepted if len(accepted) else None) < need
-        spans = _azimuth_spans(accepted)
-        first = len(accepted)
-        for i in np.flatnonzero(~hidden):
-            box = boxes[i : i + 1]
-            span = _azimuth_spans(box)
-            near = np.flatnonzero(_overlapping(spans, span[0]))  # in front or behind
-            if (near >= first).any():  # this round's boxes may hide it too
-                if image.visible_rays(box, occluders=accepted[near])[0] < need[i]:
-                    hidden[i] = True
-                    continue
-            if len(near):
-                occluders = np.concatenate([accepted, box])
-                left = image.visible_rays(accepted[near], occluders=occluders)
-                if (left < accepted_need[near]).any():
-                    hidden[i] = True
-                    continue
-            accepted = np.concatenate([accepted, box])
-            accepted_need = np.append(accepted_need, need[i])
-            spans = np.concatenate([spans, span])
-        return hidden
-
-
-def _azimuth_spans(boxes: np.ndarray) -> np.ndarray:
-    """``float64 (B, 2)``: each box's azimuth interval seen from the origin (centre azimuth
-    +- the half angle its bounding circle covers; the whole circle when it holds the origin)."""
-    centre = np.arctan2(boxes[:, 1], boxes[:, 0])
-    reach = np.hypot(boxes[:, 3], boxes[:, 4]) / 2.0
-    distance = np.hypot(boxes[:, 0], boxes[:, 1])
-    half = np.where(
-        distance > reach, np.arcsin(np.minimum(reach / np.maximum(distance, 1e-9), 1.0)), np.pi
-    )
-    return np.column_stack([centre, half])
-
-
-def _overlapping(spans: np.ndarray, span: np.ndarray) -> np.ndarray:
-    """``bool (B,)``: ``spans`` (centre, half angle) that overlap ``span``."""
-    gap = np.abs((spans[:, 0] - span[0] + np.pi) % (2.0 * np.pi) - np.pi)
-    return gap <= spans[:, 1] + span[1]
+        The rounds of a call share one :class:`~drcpo.occlusion.rays.PlacedView` (the boxes
+        accepted in earlier rounds are the ``placed`` ones), so each box is counted once."""
+        view = self._view
+        key = (int(min_rays), float(max_hidden))
+        if view is None or view[0] != key or not view[1].holds(placed):
+            view = self._view = (key, PlacedView(self.range_image, *key, placed=placed))
+        return view[1].admit(boxes, objects, conflicts)
 
 
 def render(points: np.ndarray, sensor: Sensor, seed: int) -> np.ndarray:
@@ -235,29 +189,21 @@ def sensor_occlusion(
             its points (its label then goes with the frame's sparse boxes).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
-    without them, decides every point, so a dropped object hides nothing.
+    without them, decides every point, so a dropped object hides nothing (the work of the
+    first kept: :meth:`~drcpo.occlusion.rays.RayOcclusion.without`).
     """
     first = len(added_owner)
     num_drcpo = int(owner.max()) + 1 if len(owner) > first else 0
     combined = owner.copy()
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
-    removed = ray_occlusion(points, combined, sensor)
+    rays = RayOcclusion(points, combined, sensor)
+    removed = rays.removed
     dropped = count_kept(~removed[first:])
-    gone = np.zeros(len(points), dtype=bool)
-    gone[first:] = (owner[first:] >= 0) & np.append(dropped, False)[owner[first:]]
+    gone = np.zeros(int(combined.max(initial=-1)) + 1, dtype=bool)  # per object
+    gone[:num_drcpo] = dropped
     if added_owner.max(initial=-1) >= 0:
         sparse = count_added(~removed[:first]) < min_points
-        gone[:first] = (added_owner >= 0) & sparse[np.maximum(added_owner, 0)]
+        gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
-        removed = np.ones(len(points), dtype=bool)
-        live = ~gone
-        removed[live] = ray_occlusion(take_rows(points, live), _renumbered(combined[live]), sensor)
+        removed = rays.without(gone)
     return ~removed, dropped
-
-
-def _renumbered(owner: np.ndarray) -> np.ndarray:
-    """``owner`` with its objects numbered 0, 1, ... in order (-1 stays)."""
-    objects = owner >= 0
-    out = owner.copy()
-    out[objects] = np.unique(owner[objects], return_inverse=True)[1]
-    return out
