@@ -31,7 +31,9 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.render`: objects rendered through a :class:`~drcpo.sensor.Sensor`
   (``self_occlusion.mode: sensor``): :func:`render_object`, :func:`surfel_radii`.
 * :mod:`~drcpo.occlusion.rays`: occlusion along the sensor's rays (``external_occlusion.mode:
-  sensor``): :func:`ray_occlusion`, and :class:`RangeImage`, placement's visible-ray count.
+  sensor``): :func:`ray_occlusion` (:class:`RayOcclusion`: the verdict again without some
+  objects, reusing the first pass), :class:`RangeImage` and :class:`PlacedView` (placement's
+  visible-ray verdicts of a round's boxes, the accepted ones painted in).
 
 Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
 pool outlives a call, and numba kernels are compiled without a threading layer.
@@ -57,7 +59,7 @@ from drcpo.occlusion.hpr import (
     hidden_point_removal,
 )
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
-from drcpo.occlusion.rays import RangeImage, ray_occlusion
+from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.occlusion.scopes import self_occlusion, self_occlusion_many
 from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
@@ -74,7 +76,9 @@ __all__ = [
     "HPRPreset",
     "InsertedScope",
     "OcclusionMap",
+    "PlacedView",
     "RangeImage",
+    "RayOcclusion",
     "azimuth_focus",
     "external_occlusion",
     "hidden_by_insertion",
