@@ -19,7 +19,7 @@ from drcpo.datasets.kitti import KittiDataset
 from drcpo.distributed.cluster import (
     LOCAL,
     Cluster,
-    connect,
+    connected,
     kill_actors,
     peak_rss_mb,
     require_ray,
@@ -104,7 +104,6 @@ def augment_kitti_cluster(
     args = (str(Path(root).resolve()), split, transform.to_config(), database, index)
     report: dict[str, Any] = {}
     start = time.perf_counter()
-    connection = connect(cluster, workers)
 
     def map_frames(staging: Path, numbers: list[int]) -> Iterator[int]:
         if not numbers:
@@ -130,7 +129,7 @@ def augment_kitti_cluster(
         finally:
             kill_actors(actors)
 
-    try:
+    with connected(cluster, workers) as connection:
         summary = augment_kitti(
             root,
             split,
@@ -144,9 +143,6 @@ def augment_kitti_cluster(
             inputs,
             map_frames=map_frames,
         )
-    finally:
-        if connection is not cluster:
-            connection.close()
     summary["cluster"] = {"address": connection.address, **report}
     return summary
 

@@ -18,7 +18,7 @@ from drcpo.database.build import (
 from drcpo.distributed.cluster import (
     LOCAL,
     Cluster,
-    connect,
+    connected,
     in_order,
     kill_actors,
     require_ray,
@@ -89,8 +89,7 @@ def build_database_cluster(
     """:func:`~drcpo.database.build.build_database` with the frames read by ``workers`` actors
     of ``cluster`` (:func:`~drcpo.distributed.cluster.connect`); the same database. A cluster
     this call started is shut down at its end."""
-    connection = connect(cluster, workers)
-    try:
+    with connected(cluster, workers) as connection:
         return build_database(
             root,
             split,
@@ -101,9 +100,6 @@ def build_database_cluster(
             progress=progress,
             map_frames=cluster_frames(connection, workers),
         )
-    finally:
-        if connection is not cluster:
-            connection.close()
 
 
 def build_dataset_cluster(
@@ -119,8 +115,7 @@ def build_dataset_cluster(
     """:func:`~drcpo.database.build.build_database_from` (any data set of frames, e.g. a
     nuScenes-style one) with the frames read by ``workers`` actors of ``cluster``; the same
     database. The data set object goes to each actor, so it must pickle (the readers do)."""
-    connection = connect(cluster, workers)
-    try:
+    with connected(cluster, workers) as connection:
         return build_database_from(
             dataset,
             out,
@@ -131,6 +126,3 @@ def build_dataset_cluster(
             parameters=parameters,
             map_frames=cluster_frames(connection, workers),
         )
-    finally:
-        if connection is not cluster:
-            connection.close()

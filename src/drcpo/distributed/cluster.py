@@ -11,6 +11,7 @@ import resource
 import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any
@@ -23,6 +24,7 @@ __all__ = [
     "Cluster",
     "WorkerLost",
     "connect",
+    "connected",
     "in_order",
     "kill_actors",
     "peak_rss_mb",
@@ -110,6 +112,18 @@ def connect(
     except (ConnectionError, RuntimeError, ValueError) as exc:
         raise ConfigError(f"cannot connect to the Ray cluster {address!r}: {exc}") from exc
     return Cluster(address, workers, time.perf_counter() - start, owned=True)
+
+
+@contextmanager
+def connected(cluster: str | Cluster | None = LOCAL, workers: int = 2) -> Iterator[Cluster]:
+    """:func:`connect` for a ``with`` block: a cluster started here is shut down at its end, one
+    given (a :class:`Cluster`) is left as it was."""
+    connection = connect(cluster, workers)
+    try:
+        yield connection
+    finally:
+        if connection is not cluster:
+            connection.close()
 
 
 def peak_rss_mb() -> float:

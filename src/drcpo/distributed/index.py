@@ -12,7 +12,7 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.distributed.cluster import (
     LOCAL,
     Cluster,
-    connect,
+    connected,
     in_order,
     kill_actors,
     require_ray,
@@ -84,11 +84,9 @@ def build_index_cluster(
     """:func:`~drcpo.index.build_index` with each class's blocks ranked by ``workers`` actors of
     ``cluster`` (:func:`~drcpo.distributed.cluster.connect`); the same index. A cluster this
     call started is shut down at its end."""
-    connection = connect(cluster, workers)
-    blocks = _ClusterBlocks(workers)
-    try:
-        return build_index(database, config, progress, map_blocks=blocks)
-    finally:
-        blocks.close()
-        if connection is not cluster:
-            connection.close()
+    with connected(cluster, workers):
+        blocks = _ClusterBlocks(workers)
+        try:
+            return build_index(database, config, progress, map_blocks=blocks)
+        finally:
+            blocks.close()
