@@ -13,6 +13,7 @@ Coordinate conventions (used everywhere in drcpo)
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -26,6 +27,7 @@ __all__ = [
     "MAX_COORDINATE",
     "VELOCITY",
     "Frame",
+    "FrameSequence",
     "rotate_velocities",
     "validate_frame",
 ]
@@ -119,6 +121,25 @@ class Frame:
             boxes = boxes[:, :7]
         names = data.get("gt_names", np.zeros(len(boxes), dtype="<U1"))
         return cls(points=data["points"], boxes=boxes, names=np.asarray(names), metadata=metadata)
+
+
+class FrameSequence:
+    """A data set as a sequence of frames: ``len``, indexing and iteration over ``frame_ids``
+    through ``frame(frame_id)`` (the data sets' protocol; the readers mix this in)."""
+
+    frame_ids: list[str]
+
+    def frame(self, frame_id: str) -> Frame:  # pragma: no cover - each reader defines it
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __getitem__(self, index: int) -> Frame:
+        return self.frame(self.frame_ids[index])
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self.frame(frame_id) for frame_id in self.frame_ids)
 
 
 #: Largest coordinate (and box size) accepted, metres. LiDAR ranges stay below a few hundred

@@ -22,7 +22,7 @@ import math
 import os
 import re
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -30,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 from drcpo.errors import DataError
-from drcpo.frame import Frame
+from drcpo.frame import Frame, FrameSequence
 
 __all__ = [
     "DEFAULT_IMAGE_SHAPE",
@@ -488,7 +488,7 @@ def fov_mask(
 
 
 # Whole frames -------------------------------------------------------------------------------
-class KittiDataset:
+class KittiDataset(FrameSequence):
     """Frames of one KITTI split: ``len(ds)``, ``ds[i]``, ``ds.frame(frame_id)``, iteration.
 
     Each :class:`Frame` holds the full point cloud (not field-of-view filtered), the LiDAR boxes
@@ -506,15 +506,6 @@ class KittiDataset:
         if not self.directory.is_dir():
             raise DataError(f"{self.directory}: KITTI directory missing (split {split!r})")
         self.frame_ids = read_split(self.root, split)
-
-    def __len__(self) -> int:
-        return len(self.frame_ids)
-
-    def __getitem__(self, index: int) -> Frame:
-        return self.frame(self.frame_ids[index])
-
-    def __iter__(self) -> Iterator[Frame]:
-        return (self.frame(frame_id) for frame_id in self.frame_ids)
 
     def path(self, kind: str, frame_id: str) -> Path:
         """Path of one file: ``kind`` is velodyne, label_2, calib, planes or image_2."""

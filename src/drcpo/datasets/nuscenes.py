@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drcpo.errors import DataError
-from drcpo.frame import Frame
+from drcpo.frame import Frame, FrameSequence
 
 __all__ = [
     "CATEGORY_TO_CLASS",
@@ -359,7 +359,7 @@ class _Boxes:
     instances: list[str]
 
 
-class NuScenesDataset:
+class NuScenesDataset(FrameSequence):
     """LIDAR_TOP frames of a nuScenes-layout data set (the datasets protocol: ``frame_ids``,
     ``frame(frame_id)``).
 
@@ -413,15 +413,6 @@ class NuScenesDataset:
             for token in self._samples_of(scene):
                 self.frame_ids.append(token)
                 self.scene_of[token] = scene
-
-    def __len__(self) -> int:
-        return len(self.frame_ids)
-
-    def __getitem__(self, index: int) -> Frame:
-        return self.frame(self.frame_ids[index])
-
-    def __iter__(self) -> Iterator[Frame]:
-        return (self.frame(token) for token in self.frame_ids)
 
     def _select_scenes(self, scenes: Sequence[str] | None) -> list[str]:
         t = self.tables

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -46,12 +46,12 @@ from drcpo.datasets.nuscenes import (
     read_pcd_bin,
 )
 from drcpo.errors import DataError
-from drcpo.frame import Frame
+from drcpo.frame import Frame, FrameSequence
 
 __all__ = ["MMDet3DNuScenesInfos", "NuScenesInfos", "OpenPCDetNuScenesInfos"]
 
 
-class NuScenesInfos:
+class NuScenesInfos(FrameSequence):
     """Frames from a list of per-sample infos; the two subclasses read the two formats.
 
     Args:
@@ -96,15 +96,6 @@ class NuScenesInfos:
 
     def _where(self, number: int) -> str:
         return f"{self.path}: sample {number}"
-
-    def __len__(self) -> int:
-        return len(self.frame_ids)
-
-    def __getitem__(self, index: int) -> Frame:
-        return self.frame(self.frame_ids[index])
-
-    def __iter__(self) -> Iterator[Frame]:
-        return (self.frame(token) for token in self.frame_ids)
 
     def info(self, frame_id: str) -> dict[str, Any]:
         if frame_id not in self._index:
