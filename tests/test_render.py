@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drcpo.errors import DataError
-from drcpo.occlusion.render import render_object, surfel_radii
+from drcpo.occlusion.render import RADIUS_RANGE, radius_cap, render_object, surfel_radii
 from drcpo.sensor import Sensor, sensor_preset
 
 EXACT = dataclasses.replace(sensor_preset("hdl64e"), range_noise=0.0, dropout=0.0)
@@ -328,6 +328,41 @@ def test_reference_radii() -> None:
     np.testing.assert_allclose(surfel_radii(points), expected)
 
 
+def test_max_radius_clips_the_radii() -> None:
+    """The upper clip against the plain radii clipped again by hand."""
+    rng = np.random.default_rng(9)
+    points = box_surface(rng, 1000, (4.0, 1.0, 0.0), (0.8, 0.6, 1.7), 0.2)
+    plain = surfel_radii(points)
+    assert plain.max() > 0.07 > plain.min()  # the clip bites on some, not all
+    np.testing.assert_array_equal(surfel_radii(points, 0.07), np.minimum(plain, 0.07))
+    np.testing.assert_array_equal(surfel_radii(points, 1.0), plain)
+    np.testing.assert_array_equal(surfel_radii(points, 0.005), np.full(len(points), 0.005))
+
+
+def test_radius_cap_is_a_share_of_the_narrower_side() -> None:
+    assert radius_cap(np.array([0.8, 0.6, 1.7]), None) is None
+    for dims, share in [((0.8, 0.6, 1.7), 0.12), ((1.76, 0.5, 1.7), 0.2), ((0.4, 0.9, 1.0), 0.1)]:
+        expected = min(share * min(dims[0], dims[1]), RADIUS_RANGE[1])
+        assert radius_cap(np.array(dims), share) == pytest.approx(expected)
+    assert radius_cap(np.array([3.9, 1.6, 1.56]), 0.12) == RADIUS_RANGE[1]  # a car: unclipped
+    with pytest.raises(DataError, match="dims"):
+        radius_cap(np.array([0.8, 0.0, 1.7]), 0.12)
+    with pytest.raises(DataError, match="dims"):
+        radius_cap(np.array([0.8, 0.6]), 0.12)
+
+
+def test_render_with_max_radius_is_render_with_those_radii() -> None:
+    points = box_surface(np.random.default_rng(10), 600, (8.0, 2.0, -0.8), (0.8, 0.6, 1.7), 0.4)
+    capped, source = render_object(points, EXACT, np.random.default_rng(3), max_radius=0.06)
+    given, given_source = render_object(
+        points, EXACT, np.random.default_rng(3), surfel_radii(points, 0.06)
+    )
+    np.testing.assert_array_equal(capped, given)
+    np.testing.assert_array_equal(source, given_source)
+    wide, _ = render_object(points, EXACT, np.random.default_rng(3))
+    assert 0 < len(capped) < len(wide)  # smaller elements: fewer rays hit a thin object
+
+
 # ----------------------------------------------------------------------------------------------
 # Bad input
 # ----------------------------------------------------------------------------------------------
@@ -346,5 +381,8 @@ def test_bad_input_is_a_data_error() -> None:
         render_object(points, EXACT, rng, np.full(len(points), -1.0))
     with pytest.raises(DataError, match="shape"):
         surfel_radii(np.zeros(5))
+    for bad_cap in (0.0, -0.1, float("nan"), float("inf")):
+        with pytest.raises(DataError, match="max_radius"):
+            surfel_radii(points, bad_cap)
     empty, source = render_object(np.zeros((0, 5), np.float32), EXACT, rng)
     assert empty.shape == (0, 5) and source.shape == (0,)

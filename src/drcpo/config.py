@@ -246,6 +246,18 @@ class SelfOcclusionConfig(Checked):
     min_points: int = field(
         default=5, metadata=spec("int", "fewest points an object keeps", low=0, high=1_000_000)
     )
+    radius_share: float | None = field(
+        default=None,
+        metadata=spec(
+            "float",
+            "mode sensor: surface elements at most this share of the box's narrower horizontal "
+            "side (null: up to 15 cm)",
+            low=0.0,
+            low_open=True,
+            high=1.0,
+            optional=True,
+        ),
+    )
 
 
 @dataclass(frozen=True, eq=False)

@@ -28,6 +28,7 @@ __all__ = [
     "RADIUS_FACTOR",
     "RADIUS_RANGE",
     "VOXEL",
+    "radius_cap",
     "render_object",
     "surfel_radii",
 ]
@@ -40,7 +41,7 @@ RADIUS_FACTOR = 0.9
 RADIUS_RANGE = (0.01, 0.15)
 
 
-def surfel_radii(points: np.ndarray) -> np.ndarray:
+def surfel_radii(points: np.ndarray, max_radius: float | None = None) -> np.ndarray:
     """``float64 (n,)``: each point's surface-element radius, metres.
 
     The local spacing of the points on a surface is ``3 VOXEL / sqrt(k)``, ``k`` the points in
@@ -51,12 +52,45 @@ def surfel_radii(points: np.ndarray) -> np.ndarray:
 
     Args:
         points: ``(n, 3+)`` an object's points, metres (any frame).
+        max_radius: the upper clip, metres (``RADIUS_RANGE[1]`` when None; see
+            :func:`radius_cap`); a clip below ``RADIUS_RANGE[0]`` gives every point that.
     """
     xyz = _check_points(points)
+    high = RADIUS_RANGE[1] if max_radius is None else _check_cap(max_radius)
+    low = min(RADIUS_RANGE[0], high)
     radii = np.empty(len(xyz))
     starts = np.array([0, len(xyz)], dtype=np.int64)
-    _voxel_radii(xyz, starts, VOXEL, RADIUS_FACTOR, *RADIUS_RANGE, radii)
+    _voxel_radii(xyz, starts, VOXEL, RADIUS_FACTOR, low, high, radii)
     return radii
+
+
+def radius_cap(dims: np.ndarray, share: float | None) -> float | None:
+    """The upper clip of an object's surface-element radii (``self_occlusion.radius_share``):
+    ``share`` times the narrower horizontal side of its box, at most ``RADIUS_RANGE[1]``;
+    ``None`` (the plain clip) when ``share`` is None.
+
+    A thin object (a person: legs and arms a few centimetres across, boxes about 0.6 m
+    wide) is hit by a ray only where a limb is; elements as wide as a car's spacing would
+    widen each limb by their radius on both sides, so its elements are kept below a share
+    of its width.
+
+    Args:
+        dims: ``(3,)`` the box's size dx, dy, dz, metres.
+        share: the share of ``min(dx, dy)``, or None.
+    """
+    if share is None:
+        return None
+    size = np.asarray(dims, dtype=np.float64).reshape(-1)
+    if size.shape != (3,) or not (np.isfinite(size).all() and (size > 0).all()):
+        raise DataError(f"box dims must be 3 finite sizes > 0 metres, got {size.tolist()}")
+    return min(float(share) * float(min(size[0], size[1])), RADIUS_RANGE[1])
+
+
+def _check_cap(max_radius: float) -> float:
+    value = float(max_radius)
+    if not (math.isfinite(value) and value > 0):
+        raise DataError(f"max_radius must be a finite number > 0 metres, got {max_radius!r}")
+    return value
 
 
 def render_object(
@@ -64,6 +98,7 @@ def render_object(
     sensor: Sensor,
     rng: np.random.Generator,
     radii: np.ndarray | None = None,
+    max_radius: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """An object's points as ``sensor`` records them.
 
@@ -82,6 +117,8 @@ def render_object(
         rng: the only source of randomness.
         radii: ``float64 (n,)`` surface-element radii, metres (:func:`surfel_radii` when
             None).
+        max_radius: with ``radii`` None, the upper clip of :func:`surfel_radii` (metres;
+            e.g. :func:`radius_cap`).
 
     Returns:
         ``returns float32 (m, F)``, exactly on their rays (``sensor.cells(returns)`` gives
@@ -89,7 +126,7 @@ def render_object(
         (m,)``: the index of that point.
     """
     xyz = _check_points(points)
-    radii = surfel_radii(xyz) if radii is None else _check_radii(radii, len(xyz))
+    radii = surfel_radii(xyz, max_radius) if radii is None else _check_radii(radii, len(xyz))
     tables = sensor_tables(sensor)
     hits = _render(xyz, radii, *tables.geometry)
     noise = rng.normal(0.0, sensor.range_noise, len(hits[0]))

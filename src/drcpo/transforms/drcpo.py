@@ -19,6 +19,7 @@ from drcpo.errors import ConfigError
 from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
+from drcpo.occlusion.render import radius_cap
 from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
 from drcpo.transforms import sensor_steps, sweeps
@@ -552,7 +553,8 @@ class DRCPO(Transform):
         points = placed_object(canonical, box, dim)
         settings = self.config.self_occlusion
         if sensor is not None and len(points):
-            points = sensor_steps.render(points, sensor, seed)
+            cap = radius_cap(box[3:6], settings.radius_share)
+            points = sensor_steps.render(points, sensor, seed, cap)
         elif settings.enabled and len(points):
             visible = occlusion.self_occlusion(
                 points,

@@ -155,10 +155,14 @@ class SensorFrame:
         return view[1].admit(boxes, objects, conflicts)
 
 
-def render(points: np.ndarray, sensor: Sensor, seed: int) -> np.ndarray:
+def render(
+    points: np.ndarray, sensor: Sensor, seed: int, max_radius: float | None = None
+) -> np.ndarray:
     """An object's placed ``points`` as ``sensor`` records them (its own generator from
-    ``seed``, so the answer does not depend on which thread renders it)."""
-    returns, _ = render_object(points, sensor, np.random.default_rng(seed))
+    ``seed``, so the answer does not depend on which thread renders it); ``max_radius``: the
+    upper clip of its surface elements' radii (see :func:`~drcpo.occlusion.render.radius_cap`)."""
+    rng = np.random.default_rng(seed)
+    returns, _ = render_object(points, sensor, rng, max_radius=max_radius)
     return returns
 
 
