@@ -152,6 +152,60 @@ def test_hidden_ground_truth_sampled_objects_are_dropped(synthetic_world):  # no
     assert np.any(np.all(np.isclose(kept.boxes, car_box), axis=1))
 
 
+def _walled_car(frame: Frame) -> tuple[Frame, np.ndarray]:
+    """``frame`` with a wall of returns 10 m ahead and a ground-truth-sampled car right behind
+    it (20 m ahead), and the car's box."""
+    ys, zs = np.meshgrid(np.linspace(-3, 3, 300), np.linspace(-1.5, 1.0, 125))
+    wall = np.column_stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel(), np.zeros(ys.size)])
+    car_box = np.array([20.0, 0.0, -0.95, 4.0, 1.8, 1.5, 0.0])
+    xs, ys2 = np.meshgrid(np.linspace(18.0, 22.0, 30), np.linspace(-0.9, 0.9, 12))
+    car = np.column_stack([xs.ravel(), ys2.ravel(), np.full(xs.size, -0.3), np.zeros(xs.size)])
+    points = np.concatenate([frame.points, wall, car]).astype(np.float32)
+    sources = np.concatenate([np.full(len(frame.boxes), ""), ["gt_sampling"]]).astype("<U11")
+    made = Frame(
+        points,
+        np.concatenate([frame.boxes, car_box[None]]),
+        np.concatenate([frame.names, ["Car"]]),
+        {**frame.metadata, BOX_SOURCE: sources},
+    )
+    return made, car_box
+
+
+def test_hidden_added_objects_go_before_placement(synthetic_world):  # noqa: F811
+    """``placement.drop_hidden_added``: an added object the frame's rays leave with too few
+    points is dropped, box and points, before DR.CPO places (against a naive reference: the
+    plain ray-occlusion call and a per-box count); the rest of the frame stays as it was."""
+    from drcpo.occlusion.rays import ray_occlusion
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.sensor_steps import SensorFrame
+
+    db, index, frames = synthetic_world
+    made, car_box = _walled_car(frames[0])
+    seen = SensorFrame(made, SensorConfig(model="hdl64e"))
+    # reference: every added box (the car only here) decided along the rays, counted in its box
+    owner = np.where(points_in_boxes(made.points, car_box[None], margin=0.2)[:, 0], 0, -1)
+    removed = ray_occlusion(made.points, owner, seen.sensor)
+    kept_in_box = points_in_boxes(made.points[~removed], car_box[None]).sum()
+    assert kept_in_box < 5
+    assert seen.hidden_added(5).tolist() == [True]
+    pruned, gone = seen.without_hidden_added(5)
+    assert gone.tolist() == ["Car"]
+    assert np.array_equal(pruned.frame.boxes, frames[0].boxes)
+    assert np.array_equal(pruned.frame.points, made.points[owner < 0])
+    assert pruned.sensor is seen.sensor and pruned.ground is seen.ground
+    # nothing hidden: the same SensorFrame back
+    assert seen.without_hidden_added(0)[0] is seen
+    # in the transform: the car's label counted as dropped, its box and points gone
+    drop = _realistic(db, index, **{"sensor.model": "hdl64e", "placement.drop_hidden_added": True})
+    out = drop(made, np.random.default_rng(0))
+    assert out.metadata["augment_stats"]["labels_dropped"].get("Car", 0) >= 1
+    assert not np.any(np.all(np.isclose(out.boxes, car_box), axis=1))
+    assert (
+        points_in_boxes(out.points, car_box[None]).sum() == 0
+        or np.isin(np.asarray(out.metadata[BOX_SOURCE]), ["drcpo"]).any()
+    )
+
+
 def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811
     db, index, frames = synthetic_world
     one = _realistic(db, index)

@@ -60,7 +60,7 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members, heading_terms, in_box
 from drcpo.ground import GroundModel
-from drcpo.poses import CentreCells, check_dims, draw_poses, observed_cells
+from drcpo.poses import CentreCells, check_dims, draw_poses, observed_cells, source_heights
 
 __all__ = [
     "CAMERA_FOV_MODES",
@@ -88,7 +88,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first twelve fields.
+    section ``drcpo.placement``, whose keys are the first thirteen fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -112,6 +112,9 @@ class PlacementConfig(Checked):
             its sensor-facing surface; ``None``: no test).
         camera_fov: when the caller sets ``fov_only``: ``"auto"`` (when the frame is cut to the
             camera's view), ``"always"`` or ``"never"``.
+        drop_hidden_added: for the caller (DR.CPO with e-HPR mode ``sensor``): before placing,
+            drop the objects earlier stages added that the frame's rays leave with too few
+            points (the last occlusion step would drop them anyway), so that they hold no room.
 
     Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
@@ -213,6 +216,14 @@ class PlacementConfig(Checked):
             "choice",
             "place inside the camera view: auto = when the frame is cut to it",
             choices=CAMERA_FOV_MODES,
+        ),
+    )
+    drop_hidden_added: bool = field(
+        default=False,
+        metadata=spec(
+            "bool",
+            "e-HPR mode sensor: before placing, drop the objects earlier stages added that "
+            "the frame hides (too few points left along the rays), freeing their room",
         ),
     )
     fov_only: bool = field(
@@ -358,7 +369,7 @@ class PlacementRounds:
         self._config = config = config or PlacementConfig()
         frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
         self._dims = dims = check_dims(dims)
-        self._source_z = _source_heights(source_boxes, len(dims), config)
+        self._source_z = source_heights(source_boxes, len(dims), config.height)
         self._rng = rng
         if ground is None:
             ground = frame_ground(frame)
@@ -754,21 +765,6 @@ def _first_come(boxes, cos, sin, objects, kept):  # pragma: no cover - numba
             ):  # fmt: skip
                 kept[i] = False
                 break
-
-
-def _source_heights(
-    source_boxes: np.ndarray | None, count: int, config: PlacementConfig
-) -> np.ndarray | None:
-    if config.height != "source":
-        return None
-    if source_boxes is None:
-        raise DataError('height "source" needs the source boxes (source_boxes is None)')
-    source_boxes = np.asarray(source_boxes, dtype=np.float64).reshape(-1, 7)
-    if len(source_boxes) != count:
-        raise DataError(f"source_boxes has {len(source_boxes)} rows; dims has {count}")
-    if not np.isfinite(source_boxes[:, 2]).all():
-        raise DataError("source_boxes hold a non-finite z")
-    return source_boxes[:, 2]
 
 
 def frame_ground(frame: Frame, exclude: np.ndarray | None = None) -> GroundModel:

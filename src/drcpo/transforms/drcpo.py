@@ -157,10 +157,8 @@ class DRCPO(Transform):
     def _sensor_true(self) -> bool:
         """Whether a step uses the sensor model or the ground before earlier stages (see
         :mod:`drcpo.transforms.sensor_steps`)."""
-        c = self.config
-        return (
-            self._render_objects or self._occlusion_along_rays or c.placement.height == "observed"
-        )
+        observed = self.config.placement.height == "observed"
+        return self._render_objects or self._occlusion_along_rays or observed
 
     @property
     def _render_objects(self) -> bool:
@@ -173,8 +171,8 @@ class DRCPO(Transform):
         return e.enabled and e.mode == "sensor"
 
     def _render_seeds(self, count: int, rng: np.random.Generator) -> np.ndarray | None:
-        """One seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in
-        object order whatever thread renders it; ``None`` (and no draw) in the other modes."""
+        """A seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in object
+        order whatever thread renders it; ``None`` (no draw) in the other modes."""
         if not self._render_objects:
             return None
         return rng.integers(0, 2**63 - 1, size=count, dtype=np.int64)
@@ -261,6 +259,12 @@ class DRCPO(Transform):
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
         seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
+        if self._occlusion_along_rays and self.config.placement.drop_hidden_added:
+            with stats.stage("drcpo.placement", len(frame)):
+                seen, gone = seen.without_hidden_added(self.config.min_points_after)
+            frame = seen.frame
+            for name in gone:  # (the last step would drop them: they hold no room meanwhile)
+                stats.label_dropped(str(name))
         objects: list[Any] = []
         placed: Future | None = None  # of a Placed
         with ThreadPoolExecutor(max_workers=1) as pool:

@@ -9,7 +9,10 @@
 * s-HPR mode ``sensor``: each object rendered through the sensor
   (:func:`~drcpo.occlusion.render.render_object`);
 * e-HPR mode ``sensor``: occlusion along the rays (:class:`~drcpo.occlusion.rays.RayOcclusion`),
-  with the added boxes of earlier stages as inserted objects too.
+  with the added boxes of earlier stages as inserted objects too;
+* with ``placement.drop_hidden_added``: before placing, the added objects of earlier stages that
+  the frame's rays leave with too few points dropped with their points
+  (:meth:`SensorFrame.without_hidden_added`), so that they hold no room the last step frees.
 
 Each function returns data; :mod:`drcpo.transforms.drcpo` orders the steps.
 """
@@ -32,7 +35,7 @@ from drcpo.occlusion.render import render_object
 from drcpo.placement import frame_ground
 from drcpo.sensor import Sensor
 from drcpo.sensor_config import SensorConfig
-from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows
+from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows, update_box_metadata
 
 __all__ = ["SensorFrame", "added_boxes", "render", "sensor_occlusion"]
 
@@ -124,6 +127,43 @@ class SensorFrame:
     def range_image(self) -> RangeImage:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
+
+    def hidden_added(self, min_points: int) -> np.ndarray:
+        """``bool (K,)``: of the ``K`` added boxes, those left with fewer than ``min_points``
+        of their points in their box once the frame's rays decide them (:func:`ray_occlusion
+        <drcpo.occlusion.rays.ray_occlusion>` among the frame's own returns and the added
+        objects), the rule of :func:`sensor_occlusion` for them without DR.CPO's objects."""
+        count = int(np.count_nonzero(self.added))
+        if count == 0:
+            return np.zeros(0, dtype=bool)
+        removed = RayOcclusion(self.frame.points, self.added_owner, self.sensor).removed
+        return self.added_counts(self.frame.points, ~removed) < min_points
+
+    def without_hidden_added(self, min_points: int) -> tuple[SensorFrame, np.ndarray]:
+        """This frame without the added objects of :meth:`hidden_added` (their boxes, and
+        their points: those :attr:`added_owner` gives them, as :func:`sensor_occlusion` takes
+        them out) and the names of those dropped. The frame's own points stay as they are, so
+        the sensor and the ground are this one's (shared, not estimated again)."""
+        hidden = self.hidden_added(min_points)
+        if not hidden.any():
+            return self, np.zeros(0, dtype=str)
+        frame = self.frame
+        boxes = np.flatnonzero(self.added)
+        drop = np.zeros(len(frame.boxes), dtype=bool)
+        drop[boxes[hidden]] = True
+        points = ~np.append(hidden, False)[self.added_owner]  # (index -1: the frame's own)
+        keep = np.flatnonzero(~drop)
+        pruned = frame.replace(
+            points=take_rows(frame.points, points),
+            boxes=frame.boxes[keep],
+            names=frame.names[keep],
+            metadata=update_box_metadata(frame.metadata, len(frame.boxes), keep=keep),
+        )
+        out = SensorFrame(pruned, self.config)
+        out.fallback = self.fallback
+        out.__dict__["sensor"] = self.sensor  # (cached_property keeps its value there)
+        out.__dict__["ground"] = self.ground
+        return out, frame.names[drop]
 
     def hidden(
         self,
