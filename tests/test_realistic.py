@@ -206,6 +206,50 @@ def test_hidden_added_objects_go_before_placement(synthetic_world):  # noqa: F81
     )
 
 
+def test_unplaced_objects_displace_added_ones(synthetic_world):  # noqa: F811
+    """``placement.displace_added``: objects the first pass left unplaced get a second pass
+    through ground-truth sampling's objects; those whose box meets a box placed there go
+    (box and points; against a naive reference: every pair's exact overlap area), the
+    others and the frame's own boxes are never overlapped."""
+    from drcpo.geometry import bev_overlap_area
+    from drcpo.placement import REASONS, PlacementResult
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.sensor_steps import SensorFrame, displace_added
+
+    db, index, frames = synthetic_world
+    gt = build_pipeline("realistic", db, index=index, kind="drcpo").transforms[0]
+    sampled = gt(frames[0], np.random.default_rng(5))
+    seen = SensorFrame(sampled, SensorConfig(model="hdl64e"))
+    added = sampled.boxes[seen.added]
+    assert len(added) > 0
+    dims = np.tile([[4.2, 1.8, 1.6]], (12, 1))
+    first = PlacementResult(  # a first pass that placed nothing
+        boxes=np.zeros((0, 7)),
+        accepted=np.zeros(0, dtype=np.int64),
+        rejected=dict.fromkeys(REASONS, 0),
+        reasons=np.full(len(dims), "collision").astype(str),
+        attempts=0,
+    )
+    config = _realistic(db, index)._placement[True]
+    source = np.zeros((len(dims), 7))
+    merged, gone = displace_added(
+        seen, first, dims, source, np.random.default_rng(1), config, 12, 0.7
+    )
+    assert len(merged.accepted) > 0 and (merged.reasons[merged.accepted] == "").all()
+    grown = merged.boxes.copy()
+    grown[:, 3:5] += 2.0 * config.clearance
+    # naive reference: an added box goes iff it overlaps a placed one by a positive area
+    expected = (bev_overlap_area(added, grown) > 0).any(axis=1)
+    after = seen.after_placing.frame
+    assert 0 < len(gone) == int(expected.sum()) == len(sampled.boxes) - len(after.boxes)
+    assert not (bev_overlap_area(grown, after.boxes) > 1e-9).any()
+    assert not (bev_overlap_area(grown, frames[0].boxes) > 1e-9).any()
+    kept = np.flatnonzero(seen.added)[~expected]
+    assert np.array_equal(after.boxes[len(frames[0].boxes) :], sampled.boxes[kept])
+    gone_points = points_in_boxes(sampled.points, added[expected]).any(axis=1)
+    assert len(after.points) <= len(sampled.points) - int(gone_points.sum())
+
+
 def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811
     db, index, frames = synthetic_world
     one = _realistic(db, index)

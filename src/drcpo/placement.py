@@ -60,7 +60,14 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members, heading_terms, in_box
 from drcpo.ground import GroundModel
-from drcpo.poses import CentreCells, check_dims, draw_poses, observed_cells, source_heights
+from drcpo.poses import (
+    CentreCells,
+    check_dims,
+    draw_poses,
+    footprint_ground,
+    observed_cells,
+    source_heights,
+)
 
 __all__ = [
     "CAMERA_FOV_MODES",
@@ -88,7 +95,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first thirteen fields.
+    section ``drcpo.placement``, whose keys are the first fourteen fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -115,6 +122,8 @@ class PlacementConfig(Checked):
         drop_hidden_added: for the caller (DR.CPO with e-HPR mode ``sensor``): before placing,
             drop the objects earlier stages added that the frame's rays leave with too few
             points (the last occlusion step would drop them anyway), so that they hold no room.
+        displace_added: for the caller (likewise): objects left unplaced get a second try
+            through earlier stages' objects, which make way (are dropped) where one is placed.
 
     Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
@@ -225,6 +234,10 @@ class PlacementConfig(Checked):
             "e-HPR mode sensor: before placing, drop the objects earlier stages added that "
             "the frame hides (too few points left along the rays), freeing their room",
         ),
+    )
+    displace_added: bool = field(
+        default=False,
+        metadata=spec("bool", "e-HPR mode sensor: objects left unplaced displace added ones"),
     )
     fov_only: bool = field(
         default=False,
@@ -565,21 +578,10 @@ def _on_observed_ground(
     boxes: np.ndarray, ground: GroundModel, config: PlacementConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each box's centre z standing on the observed ground (``float64 (L,)``, NaN where it
-    cannot) and its verdict (``int64 (L,)``: 0, ``_NO_GROUND`` or ``_SLOPE``), from the
-    ground under the four corners and the centre of the ``(L, 7)`` footprints."""
-    cos, sin = heading_terms(boxes)
-    along = _CORNERS[:, 0] * boxes[:, 3:4]  # (L, 4) corner offsets in the box frame
-    across = _CORNERS[:, 1] * boxes[:, 4:5]
-    samples = np.empty((len(boxes), 5, 2))
-    samples[:, :4, 0] = boxes[:, 0:1] + (cos[:, None] * along - sin[:, None] * across)
-    samples[:, :4, 1] = boxes[:, 1:2] + (sin[:, None] * along + cos[:, None] * across)
-    samples[:, 4] = boxes[:, :2]
-    heights, seen = ground.observed_height_at(samples.reshape(-1, 2), config.ground_gap)
-    heights = np.sort(heights.reshape(-1, 5), axis=1)  # NaN last
-    seen = seen.reshape(-1, 5).all(axis=1)
-    steep = heights[:, 4] - heights[:, 0] > config.max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
+    cannot) and its verdict (``int64 (L,)``: 0, ``_NO_GROUND`` or ``_SLOPE``); see
+    :func:`drcpo.poses.footprint_ground`."""
+    z, seen, steep = footprint_ground(boxes, ground, config.max_slope, config.ground_gap)
     verdict = np.where(seen, np.where(steep, _SLOPE, 0), _NO_GROUND).astype(np.int64)
-    z = heights[:, 2] + boxes[:, 5] / 2.0  # the median
     z[verdict != 0] = np.nan
     return z, verdict
 
@@ -626,7 +628,6 @@ class _Obstacles:
         return _indexed_members(*self._index, boxes, *heading_terms(boxes))
 
 
-_CORNERS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # as bev_corners
 _INDEX_AFTER = 3  # the round from which the frame's points are indexed
 _INDEX_CELLS = 512  # most index cells along x or y (1 m cells, larger for a huge frame)
 

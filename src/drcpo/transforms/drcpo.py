@@ -301,6 +301,9 @@ class DRCPO(Transform):
                     placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
                 seeds = self._render_seeds(len(boxes), rng)
                 self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], seen, seeds, 0, objects)
+            if seen is not None and seen.after_placing is not None:  # (displace_added)
+                seen = seen.after_placing
+                frame = seen.frame
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 done = s_hpr.results()
@@ -420,14 +423,14 @@ class DRCPO(Transform):
         if self._occlusion_along_rays:
             minimum = self.config.external_occlusion.min_visible_rays
             share = 1.0 if limit is None else limit
-            while (drawn := rounds.next_round()) is not None:
-                hidden = None
-                if len(drawn.boxes):
-                    hidden = seen.hidden(
-                        drawn.boxes, drawn.placed, minimum, share, drawn.objects, drawn.conflicts
-                    )
-                rounds.settle(hidden)
-            return (*self._placement_result(rounds, rows, stats), None)
+            result = sensor_steps.place_along_rays(rounds, seen, minimum, share)
+            if self.config.placement.displace_added:
+                result, gone = sensor_steps.displace_added(
+                    seen, result, dims, source, rng, self._placement[fov], minimum, share
+                )
+                for name in gone:
+                    stats.label_dropped(str(name))
+            return (*self._placement_result(result, rows, stats), None)
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
         while (drawn := rounds.next_round()) is not None:
             hidden = None
@@ -439,7 +442,7 @@ class DRCPO(Transform):
                 )
                 last = (len(drawn.placed), owners, hidden)
             rounds.settle(hidden)
-        boxes, accepted = self._placement_result(rounds, rows, stats)
+        boxes, accepted = self._placement_result(rounds.result(), rows, stats)
         if last is None or not len(boxes):
             return boxes, accepted, None
         before, owners, hidden = last
@@ -450,10 +453,9 @@ class DRCPO(Transform):
         return boxes, accepted, renumber[owners]
 
     def _placement_result(
-        self, rounds: placement.PlacementRounds, rows: np.ndarray, stats: Stats
+        self, result: placement.PlacementResult, rows: np.ndarray, stats: Stats
     ) -> tuple[np.ndarray, np.ndarray]:
         """The placed boxes and the indices of their objects; the others' reasons recorded."""
-        result = rounds.result()
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
