@@ -207,7 +207,7 @@ def test_hidden_added_objects_go_before_placement(synthetic_world):  # noqa: F81
 
 
 def test_unplaced_objects_displace_added_ones(synthetic_world):  # noqa: F811
-    """``placement.displace_added``: objects the first pass left unplaced get a second pass
+    """``placement.displace_attempts``: objects the first pass left unplaced get a second pass
     through ground-truth sampling's objects; those whose box meets a box placed there go
     (box and points; against a naive reference: every pair's exact overlap area), the
     others and the frame's own boxes are never overlapped."""

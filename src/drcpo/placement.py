@@ -122,8 +122,9 @@ class PlacementConfig(Checked):
         drop_hidden_added: for the caller (DR.CPO with e-HPR mode ``sensor``): before placing,
             drop the objects earlier stages added that the frame's rays leave with too few
             points (the last occlusion step would drop them anyway), so that they hold no room.
-        displace_added: for the caller (likewise): objects left unplaced get a second try
-            through earlier stages' objects, which make way (are dropped) where one is placed.
+        displace_attempts: for the caller (likewise): poses of a second pass for the objects
+            left unplaced, through earlier stages' objects, which make way (are dropped) where
+            one is placed (0: no second pass).
 
     Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
@@ -235,9 +236,11 @@ class PlacementConfig(Checked):
             "the frame hides (too few points left along the rays), freeing their room",
         ),
     )
-    displace_added: bool = field(
-        default=False,
-        metadata=spec("bool", "e-HPR mode sensor: objects left unplaced displace added ones"),
+    displace_attempts: int = field(
+        default=0,
+        metadata=spec(
+            "int", "poses per unplaced object that displace added ones", low=0, high=1000
+        ),
     )
     fov_only: bool = field(
         default=False,

@@ -301,7 +301,7 @@ class DRCPO(Transform):
                     placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
                 seeds = self._render_seeds(len(boxes), rng)
                 self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], seen, seeds, 0, objects)
-            if seen is not None and seen.after_placing is not None:  # (displace_added)
+            if seen is not None and seen.after_placing is not None:  # (displace_attempts)
                 seen = seen.after_placing
                 frame = seen.frame
             points_in = sum(len(o.points) for o in objects)
@@ -424,7 +424,7 @@ class DRCPO(Transform):
             minimum = self.config.external_occlusion.min_visible_rays
             share = 1.0 if limit is None else limit
             result = sensor_steps.place_along_rays(rounds, seen, minimum, share)
-            if self.config.placement.displace_added:
+            if self.config.placement.displace_attempts:
                 result, gone = sensor_steps.displace_added(
                     seen, result, dims, source, rng, self._placement[fov], minimum, share
                 )

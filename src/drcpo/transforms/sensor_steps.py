@@ -251,7 +251,8 @@ def displace_added(
     earlier stages added (augmentation too, so they make way when no free spot is left).
 
     The pass places (``dims``, ``source``: ``(K, 3)``, ``(K, 7)`` of ``first``'s objects, with
-    ``config`` and the poses of ``max_attempts_per_frame`` that ``first`` left) on the frame
+    ``config``, ``displace_attempts`` poses per object within the poses of
+    ``max_attempts_per_frame`` that ``first`` left) on the frame
     without any added object (their points are no obstacle, their returns hide nothing, their
     boxes no collision), with ``first``'s boxes (grown by ``config.clearance``) as boxes to
     avoid and as placed before. The added objects whose box meets a box placed there (with
@@ -273,7 +274,9 @@ def displace_added(
     if cap is not None and cap <= first.attempts:
         return first, np.zeros(0, dtype=str)
     budget = None if cap is None else cap - first.attempts
-    config = dataclasses.replace(config, max_attempts_per_frame=budget)
+    config = dataclasses.replace(
+        config, attempts=config.displace_attempts, max_attempts_per_frame=budget
+    )
     rounds = PlacementRounds(frame, dims[failed], source[failed], rng, config, seen.ground)
     second = place_along_rays(rounds, bare, min_rays, max_hidden, first.boxes)
     grown = second.boxes.copy()
