@@ -152,10 +152,10 @@ def test_hidden_ground_truth_sampled_objects_are_dropped(synthetic_world):  # no
     assert np.any(np.all(np.isclose(kept.boxes, car_box), axis=1))
 
 
-def _walled_car(frame: Frame) -> tuple[Frame, np.ndarray]:
-    """``frame`` with a wall of returns 10 m ahead and a ground-truth-sampled car right behind
-    it (20 m ahead), and the car's box."""
-    ys, zs = np.meshgrid(np.linspace(-3, 3, 300), np.linspace(-1.5, 1.0, 125))
+def _walled_car(frame: Frame, wall_height: float = 2.5) -> tuple[Frame, np.ndarray]:
+    """``frame`` with a wall of returns 10 m ahead (``wall_height`` metres from z = -1.5) and
+    a ground-truth-sampled car right behind it (20 m ahead), and the car's box."""
+    ys, zs = np.meshgrid(np.linspace(-3, 3, 300), np.linspace(-1.5, -1.5 + wall_height, 125))
     wall = np.column_stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel(), np.zeros(ys.size)])
     car_box = np.array([20.0, 0.0, -0.95, 4.0, 1.8, 1.5, 0.0])
     xs, ys2 = np.meshgrid(np.linspace(18.0, 22.0, 30), np.linspace(-0.9, 0.9, 12))
@@ -171,23 +171,42 @@ def _walled_car(frame: Frame) -> tuple[Frame, np.ndarray]:
     return made, car_box
 
 
+def _cell_rule_kept(made: Frame, car_box: np.ndarray, sensor) -> int:
+    """Naive reference of the cell rule: per point of the added car (within 0.2 m of its
+    box), the nearest return of another owner in its ray cell (a dict of cells); the car's
+    points left in its box."""
+    owner = np.where(points_in_boxes(made.points, car_box[None], margin=0.2)[:, 0], 0, -1)
+    beam, column, _ = sensor.cells(made.points)
+    cells: dict = {}
+    for i in np.flatnonzero(beam >= 0):
+        d = np.asarray(made.points[i, :3], np.float64) - sensor.mount
+        d[2] -= sensor.offsets[beam[i]]
+        cells.setdefault((beam[i], column[i]), []).append((float(np.sqrt(d @ d)), owner[i], i))
+    removed = np.zeros(len(made.points), dtype=bool)
+    for entries in cells.values():
+        for dist, own, i in entries:
+            if own >= 0:
+                removed[i] = any(o != own and r < dist - 0.1 for r, o, _ in entries)
+    return int(points_in_boxes(made.points[~removed], car_box[None]).sum())
+
+
 def test_hidden_added_objects_go_before_placement(synthetic_world):  # noqa: F811
-    """``placement.drop_hidden_added``: an added object the frame's rays leave with too few
-    points is dropped, box and points, before DR.CPO places (against a naive reference: the
-    plain ray-occlusion call and a per-box count); the rest of the frame stays as it was."""
-    from drcpo.occlusion.rays import ray_occlusion
+    """``placement.drop_hidden_added``: an added object the frame's returns leave with too few
+    points is dropped, box and points, before DR.CPO places (against a naive reference of the
+    cell rule and a per-box count); the rest of the frame stays as it was."""
     from drcpo.sensor_config import SensorConfig
     from drcpo.transforms.sensor_steps import SensorFrame
 
     db, index, frames = synthetic_world
+    for wall_height, hidden in ((2.5, True), (0.3, False)):  # (a low wall hides nothing)
+        made, car_box = _walled_car(frames[0], wall_height)
+        seen = SensorFrame(made, SensorConfig(model="hdl64e"))
+        kept = _cell_rule_kept(made, car_box, seen.sensor)
+        assert (kept < 5) == hidden
+        assert seen.hidden_added(5).tolist() == [hidden]
     made, car_box = _walled_car(frames[0])
     seen = SensorFrame(made, SensorConfig(model="hdl64e"))
-    # reference: every added box (the car only here) decided along the rays, counted in its box
     owner = np.where(points_in_boxes(made.points, car_box[None], margin=0.2)[:, 0], 0, -1)
-    removed = ray_occlusion(made.points, owner, seen.sensor)
-    kept_in_box = points_in_boxes(made.points[~removed], car_box[None]).sum()
-    assert kept_in_box < 5
-    assert seen.hidden_added(5).tolist() == [True]
     pruned, gone = seen.without_hidden_added(5)
     assert gone.tolist() == ["Car"]
     assert np.array_equal(pruned.frame.boxes, frames[0].boxes)

@@ -144,16 +144,37 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
 
-    def hidden_added(self, min_points: int) -> np.ndarray:
+    def hidden_added(self, min_points: int, tolerance: float = 0.1) -> np.ndarray:
         """``bool (K,)``: of the ``K`` added boxes, those left with fewer than ``min_points``
-        of their points in their box once the frame's rays decide them (:func:`ray_occlusion
-        <drcpo.occlusion.rays.ray_occlusion>` among the frame's own returns and the added
-        objects), the rule of :func:`sensor_occlusion` for them without DR.CPO's objects."""
-        count = int(np.count_nonzero(self.added))
-        if count == 0:
+        of their points in their box once the frame's returns hide theirs: a point of one is
+        hidden when its ray cell (:meth:`~drcpo.sensor.Sensor.cells`) holds a return of the
+        frame's own or of another added object nearer than it by more than ``tolerance``
+        metres (ranges from the beam's origin). The cell rule of :func:`sensor_occlusion`
+        for them (the added objects' surfaces crossing other cells are left to it)."""
+        if not self.added.any():
             return np.zeros(0, dtype=bool)
-        removed = RayOcclusion(self.frame.points, self.added_owner, self.sensor).removed
-        return self.added_counts(self.frame.points, ~removed) < min_points
+        points, sensor = self.frame.points, self.sensor
+        beam, column, _ = sensor.cells(points)
+        rows = np.flatnonzero(beam >= 0)  # (points outside every beam: no cell, never hidden)
+        relative = points[rows, :3].astype(np.float64) - sensor.mount
+        relative[:, 2] -= sensor.offsets[beam[rows]]
+        distance = np.sqrt((relative * relative).sum(axis=1))
+        cell = beam[rows] * sensor.num_columns + column[rows]
+        order = np.lexsort((distance, cell))  # by cell, nearest first
+        rows, distance, cell = rows[order], distance[order], cell[order]
+        owner = self.added_owner[rows]
+        starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+        group = np.cumsum(np.r_[True, cell[1:] != cell[:-1]]) - 1
+        nearest_owner = owner[starts][group]
+        # per cell, the nearest return of another owner than the nearest's
+        second = np.full(len(starts), np.inf)
+        other = owner != nearest_owner
+        np.minimum.at(second, group[other], distance[other])
+        nearest_other = np.where(other, distance[starts][group], second[group])
+        hidden = (owner >= 0) & (nearest_other < distance - tolerance)
+        keep = np.ones(len(points), dtype=bool)
+        keep[rows[hidden]] = False
+        return self.added_counts(points, keep) < min_points
 
     def without_hidden_added(self, min_points: int) -> tuple[SensorFrame, np.ndarray]:
         """This frame without the added objects of :meth:`hidden_added` (see
