@@ -152,6 +152,123 @@ def test_hidden_ground_truth_sampled_objects_are_dropped(synthetic_world):  # no
     assert np.any(np.all(np.isclose(kept.boxes, car_box), axis=1))
 
 
+def _walled_car(frame: Frame, wall_height: float = 2.5) -> tuple[Frame, np.ndarray]:
+    """``frame`` with a wall of returns 10 m ahead (``wall_height`` metres from z = -1.5) and
+    a ground-truth-sampled car right behind it (20 m ahead), and the car's box."""
+    ys, zs = np.meshgrid(np.linspace(-3, 3, 300), np.linspace(-1.5, -1.5 + wall_height, 125))
+    wall = np.column_stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel(), np.zeros(ys.size)])
+    car_box = np.array([20.0, 0.0, -0.95, 4.0, 1.8, 1.5, 0.0])
+    xs, ys2 = np.meshgrid(np.linspace(18.0, 22.0, 30), np.linspace(-0.9, 0.9, 12))
+    car = np.column_stack([xs.ravel(), ys2.ravel(), np.full(xs.size, -0.3), np.zeros(xs.size)])
+    points = np.concatenate([frame.points, wall, car]).astype(np.float32)
+    sources = np.concatenate([np.full(len(frame.boxes), ""), ["gt_sampling"]]).astype("<U11")
+    made = Frame(
+        points,
+        np.concatenate([frame.boxes, car_box[None]]),
+        np.concatenate([frame.names, ["Car"]]),
+        {**frame.metadata, BOX_SOURCE: sources},
+    )
+    return made, car_box
+
+
+def _cell_rule_kept(made: Frame, car_box: np.ndarray, sensor) -> int:
+    """Naive reference of the cell rule: per point of the added car (within 0.2 m of its
+    box), the nearest return of another owner in its ray cell (a dict of cells); the car's
+    points left in its box."""
+    owner = np.where(points_in_boxes(made.points, car_box[None], margin=0.2)[:, 0], 0, -1)
+    beam, column, _ = sensor.cells(made.points)
+    cells: dict = {}
+    for i in np.flatnonzero(beam >= 0):
+        d = np.asarray(made.points[i, :3], np.float64) - sensor.mount
+        d[2] -= sensor.offsets[beam[i]]
+        cells.setdefault((beam[i], column[i]), []).append((float(np.sqrt(d @ d)), owner[i], i))
+    removed = np.zeros(len(made.points), dtype=bool)
+    for entries in cells.values():
+        for dist, own, i in entries:
+            if own >= 0:
+                removed[i] = any(o != own and r < dist - 0.1 for r, o, _ in entries)
+    return int(points_in_boxes(made.points[~removed], car_box[None]).sum())
+
+
+def test_hidden_added_objects_go_before_placement(synthetic_world):  # noqa: F811
+    """``placement.drop_hidden_added``: an added object the frame's returns leave with too few
+    points is dropped, box and points, before DR.CPO places (against a naive reference of the
+    cell rule and a per-box count); the rest of the frame stays as it was."""
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.sensor_steps import SensorFrame
+
+    db, index, frames = synthetic_world
+    for wall_height, hidden in ((2.5, True), (0.3, False)):  # (a low wall hides nothing)
+        made, car_box = _walled_car(frames[0], wall_height)
+        seen = SensorFrame(made, SensorConfig(model="hdl64e"))
+        kept = _cell_rule_kept(made, car_box, seen.sensor)
+        assert (kept < 5) == hidden
+        assert seen.hidden_added(5).tolist() == [hidden]
+    made, car_box = _walled_car(frames[0])
+    seen = SensorFrame(made, SensorConfig(model="hdl64e"))
+    owner = np.where(points_in_boxes(made.points, car_box[None], margin=0.2)[:, 0], 0, -1)
+    pruned, gone = seen.without_hidden_added(5)
+    assert gone.tolist() == ["Car"]
+    assert np.array_equal(pruned.frame.boxes, frames[0].boxes)
+    assert np.array_equal(pruned.frame.points, made.points[owner < 0])
+    assert pruned.sensor is seen.sensor and pruned.ground is seen.ground
+    # nothing hidden: the same SensorFrame back
+    assert seen.without_hidden_added(0)[0] is seen
+    # in the transform: the car's label counted as dropped, its box and points gone
+    drop = _realistic(db, index, **{"sensor.model": "hdl64e", "placement.drop_hidden_added": True})
+    out = drop(made, np.random.default_rng(0))
+    assert out.metadata["augment_stats"]["labels_dropped"].get("Car", 0) >= 1
+    assert not np.any(np.all(np.isclose(out.boxes, car_box), axis=1))
+    assert (
+        points_in_boxes(out.points, car_box[None]).sum() == 0
+        or np.isin(np.asarray(out.metadata[BOX_SOURCE]), ["drcpo"]).any()
+    )
+
+
+def test_unplaced_objects_displace_added_ones(synthetic_world):  # noqa: F811
+    """``placement.displace_attempts``: objects the first pass left unplaced get a second pass
+    through ground-truth sampling's objects; those whose box meets a box placed there go
+    (box and points; against a naive reference: every pair's exact overlap area), the
+    others and the frame's own boxes are never overlapped."""
+    from drcpo.geometry import bev_overlap_area
+    from drcpo.placement import REASONS, PlacementResult
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.sensor_steps import SensorFrame, displace_added
+
+    db, index, frames = synthetic_world
+    gt = build_pipeline("realistic", db, index=index, kind="drcpo").transforms[0]
+    sampled = gt(frames[0], np.random.default_rng(5))
+    seen = SensorFrame(sampled, SensorConfig(model="hdl64e"))
+    added = sampled.boxes[seen.added]
+    assert len(added) > 0
+    dims = np.tile([[4.2, 1.8, 1.6]], (12, 1))
+    first = PlacementResult(  # a first pass that placed nothing
+        boxes=np.zeros((0, 7)),
+        accepted=np.zeros(0, dtype=np.int64),
+        rejected=dict.fromkeys(REASONS, 0),
+        reasons=np.full(len(dims), "collision").astype(str),
+        attempts=0,
+    )
+    config = _realistic(db, index)._placement[True]
+    source = np.zeros((len(dims), 7))
+    merged, gone = displace_added(
+        seen, first, dims, source, np.random.default_rng(1), config, 12, 0.7
+    )
+    assert len(merged.accepted) > 0 and (merged.reasons[merged.accepted] == "").all()
+    grown = merged.boxes.copy()
+    grown[:, 3:5] += 2.0 * config.clearance
+    # naive reference: an added box goes iff it overlaps a placed one by a positive area
+    expected = (bev_overlap_area(added, grown) > 0).any(axis=1)
+    after = seen.after_placing.frame
+    assert 0 < len(gone) == int(expected.sum()) == len(sampled.boxes) - len(after.boxes)
+    assert not (bev_overlap_area(grown, after.boxes) > 1e-9).any()
+    assert not (bev_overlap_area(grown, frames[0].boxes) > 1e-9).any()
+    kept = np.flatnonzero(seen.added)[~expected]
+    assert np.array_equal(after.boxes[len(frames[0].boxes) :], sampled.boxes[kept])
+    gone_points = points_in_boxes(sampled.points, added[expected]).any(axis=1)
+    assert len(after.points) <= len(sampled.points) - int(gone_points.sum())
+
+
 def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811
     db, index, frames = synthetic_world
     one = _realistic(db, index)

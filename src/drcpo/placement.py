@@ -60,7 +60,14 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members, heading_terms, in_box
 from drcpo.ground import GroundModel
-from drcpo.poses import CentreCells, check_dims, draw_poses, observed_cells
+from drcpo.poses import (
+    CentreCells,
+    check_dims,
+    draw_poses,
+    footprint_ground,
+    observed_cells,
+    source_heights,
+)
 
 __all__ = [
     "CAMERA_FOV_MODES",
@@ -88,7 +95,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first twelve fields.
+    section ``drcpo.placement``, whose keys are the first fourteen fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -112,6 +119,12 @@ class PlacementConfig(Checked):
             its sensor-facing surface; ``None``: no test).
         camera_fov: when the caller sets ``fov_only``: ``"auto"`` (when the frame is cut to the
             camera's view), ``"always"`` or ``"never"``.
+        drop_hidden_added: for the caller (DR.CPO with e-HPR mode ``sensor``): before placing,
+            drop the objects earlier stages added that the frame's rays leave with too few
+            points (the last occlusion step would drop them anyway), so that they hold no room.
+        displace_attempts: for the caller (likewise): poses of a second pass for the objects
+            left unplaced, through earlier stages' objects, which make way (are dropped) where
+            one is placed (0: no second pass).
 
     Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
@@ -213,6 +226,20 @@ class PlacementConfig(Checked):
             "choice",
             "place inside the camera view: auto = when the frame is cut to it",
             choices=CAMERA_FOV_MODES,
+        ),
+    )
+    drop_hidden_added: bool = field(
+        default=False,
+        metadata=spec(
+            "bool",
+            "e-HPR mode sensor: before placing, drop the objects earlier stages added that "
+            "the frame hides (too few points left along the rays), freeing their room",
+        ),
+    )
+    displace_attempts: int = field(
+        default=0,
+        metadata=spec(
+            "int", "poses per unplaced object that displace added ones", low=0, high=1000
         ),
     )
     fov_only: bool = field(
@@ -358,7 +385,7 @@ class PlacementRounds:
         self._config = config = config or PlacementConfig()
         frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
         self._dims = dims = check_dims(dims)
-        self._source_z = _source_heights(source_boxes, len(dims), config)
+        self._source_z = source_heights(source_boxes, len(dims), config.height)
         self._rng = rng
         if ground is None:
             ground = frame_ground(frame)
@@ -554,21 +581,10 @@ def _on_observed_ground(
     boxes: np.ndarray, ground: GroundModel, config: PlacementConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each box's centre z standing on the observed ground (``float64 (L,)``, NaN where it
-    cannot) and its verdict (``int64 (L,)``: 0, ``_NO_GROUND`` or ``_SLOPE``), from the
-    ground under the four corners and the centre of the ``(L, 7)`` footprints."""
-    cos, sin = heading_terms(boxes)
-    along = _CORNERS[:, 0] * boxes[:, 3:4]  # (L, 4) corner offsets in the box frame
-    across = _CORNERS[:, 1] * boxes[:, 4:5]
-    samples = np.empty((len(boxes), 5, 2))
-    samples[:, :4, 0] = boxes[:, 0:1] + (cos[:, None] * along - sin[:, None] * across)
-    samples[:, :4, 1] = boxes[:, 1:2] + (sin[:, None] * along + cos[:, None] * across)
-    samples[:, 4] = boxes[:, :2]
-    heights, seen = ground.observed_height_at(samples.reshape(-1, 2), config.ground_gap)
-    heights = np.sort(heights.reshape(-1, 5), axis=1)  # NaN last
-    seen = seen.reshape(-1, 5).all(axis=1)
-    steep = heights[:, 4] - heights[:, 0] > config.max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
+    cannot) and its verdict (``int64 (L,)``: 0, ``_NO_GROUND`` or ``_SLOPE``); see
+    :func:`drcpo.poses.footprint_ground`."""
+    z, seen, steep = footprint_ground(boxes, ground, config.max_slope, config.ground_gap)
     verdict = np.where(seen, np.where(steep, _SLOPE, 0), _NO_GROUND).astype(np.int64)
-    z = heights[:, 2] + boxes[:, 5] / 2.0  # the median
     z[verdict != 0] = np.nan
     return z, verdict
 
@@ -615,7 +631,6 @@ class _Obstacles:
         return _indexed_members(*self._index, boxes, *heading_terms(boxes))
 
 
-_CORNERS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # as bev_corners
 _INDEX_AFTER = 3  # the round from which the frame's points are indexed
 _INDEX_CELLS = 512  # most index cells along x or y (1 m cells, larger for a huge frame)
 
@@ -754,21 +769,6 @@ def _first_come(boxes, cos, sin, objects, kept):  # pragma: no cover - numba
             ):  # fmt: skip
                 kept[i] = False
                 break
-
-
-def _source_heights(
-    source_boxes: np.ndarray | None, count: int, config: PlacementConfig
-) -> np.ndarray | None:
-    if config.height != "source":
-        return None
-    if source_boxes is None:
-        raise DataError('height "source" needs the source boxes (source_boxes is None)')
-    source_boxes = np.asarray(source_boxes, dtype=np.float64).reshape(-1, 7)
-    if len(source_boxes) != count:
-        raise DataError(f"source_boxes has {len(source_boxes)} rows; dims has {count}")
-    if not np.isfinite(source_boxes[:, 2]).all():
-        raise DataError("source_boxes hold a non-finite z")
-    return source_boxes[:, 2]
 
 
 def frame_ground(frame: Frame, exclude: np.ndarray | None = None) -> GroundModel:

@@ -32,7 +32,16 @@ from drcpo.errors import DataError
 from drcpo.geometry import heading_terms
 from drcpo.ground import GroundModel
 
-__all__ = ["FOV_ROUNDS", "CentreCells", "check_dims", "draw_poses", "in_fov", "observed_cells"]
+__all__ = [
+    "FOV_ROUNDS",
+    "CentreCells",
+    "check_dims",
+    "draw_poses",
+    "footprint_ground",
+    "in_fov",
+    "observed_cells",
+    "source_heights",
+]
 
 FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view (or the area)
 
@@ -138,6 +147,47 @@ def check_dims(dims: np.ndarray) -> np.ndarray:
         bad = int(np.flatnonzero(~(np.isfinite(dims) & (dims > 0)).all(axis=1))[0])
         raise DataError(f"dims[{bad}] = {dims[bad].tolist()} is not a positive finite size")
     return dims
+
+
+def footprint_ground(
+    boxes: np.ndarray, ground: GroundModel, max_slope: float, max_gap: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where ``(L, 7)`` footprints would stand on the observed ground: from the ground under
+    their four corners and centre (:meth:`GroundModel.observed_height_at` with ``max_gap``),
+    each box's centre z on the median of the five heights (``float64 (L,)``), whether all five
+    are observed (``bool (L,)``) and whether they spread by more than ``max_slope`` times the
+    footprint's diagonal (``bool (L,)``)."""
+    cos, sin = heading_terms(boxes)
+    along = _CORNERS[:, 0] * boxes[:, 3:4]  # (L, 4) corner offsets in the box frame
+    across = _CORNERS[:, 1] * boxes[:, 4:5]
+    samples = np.empty((len(boxes), 5, 2))
+    samples[:, :4, 0] = boxes[:, 0:1] + (cos[:, None] * along - sin[:, None] * across)
+    samples[:, :4, 1] = boxes[:, 1:2] + (sin[:, None] * along + cos[:, None] * across)
+    samples[:, 4] = boxes[:, :2]
+    heights, seen = ground.observed_height_at(samples.reshape(-1, 2), max_gap)
+    heights = np.sort(heights.reshape(-1, 5), axis=1)  # NaN last
+    seen = seen.reshape(-1, 5).all(axis=1)
+    steep = heights[:, 4] - heights[:, 0] > max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
+    return heights[:, 2] + boxes[:, 5] / 2.0, seen, steep  # (the median)
+
+
+_CORNERS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # as bev_corners
+
+
+def source_heights(source_boxes: np.ndarray | None, count: int, height: str) -> np.ndarray | None:
+    """The centre z ``float64 (count,)`` of the ``source_boxes`` ``(count, 7)`` with placement's
+    ``height="source"`` (the boxes keep their source height); ``None`` with another ``height``.
+    DataError when they are missing, of another count or not finite."""
+    if height != "source":
+        return None
+    if source_boxes is None:
+        raise DataError('height "source" needs the source boxes (source_boxes is None)')
+    source_boxes = np.asarray(source_boxes, dtype=np.float64).reshape(-1, 7)
+    if len(source_boxes) != count:
+        raise DataError(f"source_boxes has {len(source_boxes)} rows; dims has {count}")
+    if not np.isfinite(source_boxes[:, 2]).all():
+        raise DataError("source_boxes hold a non-finite z")
+    return source_boxes[:, 2]
 
 
 def _draw_round(

@@ -158,10 +158,8 @@ class DRCPO(Transform):
     def _sensor_true(self) -> bool:
         """Whether a step uses the sensor model or the ground before earlier stages (see
         :mod:`drcpo.transforms.sensor_steps`)."""
-        c = self.config
-        return (
-            self._render_objects or self._occlusion_along_rays or c.placement.height == "observed"
-        )
+        observed = self.config.placement.height == "observed"
+        return self._render_objects or self._occlusion_along_rays or observed
 
     @property
     def _render_objects(self) -> bool:
@@ -174,8 +172,8 @@ class DRCPO(Transform):
         return e.enabled and e.mode == "sensor"
 
     def _render_seeds(self, count: int, rng: np.random.Generator) -> np.ndarray | None:
-        """One seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in
-        object order whatever thread renders it; ``None`` (and no draw) in the other modes."""
+        """A seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in object
+        order whatever thread renders it; ``None`` (no draw) in the other modes."""
         if not self._render_objects:
             return None
         return rng.integers(0, 2**63 - 1, size=count, dtype=np.int64)
@@ -262,6 +260,12 @@ class DRCPO(Transform):
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
         seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
+        if self._occlusion_along_rays and self.config.placement.drop_hidden_added:
+            with stats.stage("drcpo.placement", len(frame)):
+                seen, gone = seen.without_hidden_added(self.config.min_points_after)
+            frame = seen.frame
+            for name in gone:  # (the last step would drop them: they hold no room meanwhile)
+                stats.label_dropped(str(name))
         objects: list[Any] = []
         placed: Future | None = None  # of a Placed
         with ThreadPoolExecutor(max_workers=1) as pool:
@@ -298,6 +302,8 @@ class DRCPO(Transform):
                     placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
                 seeds = self._render_seeds(len(boxes), rng)
                 self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], seen, seeds, 0, objects)
+            if seen is not None and seen.after_placing is not None:  # (displace_attempts)
+                seen, frame = seen.after_placing, seen.after_placing.frame
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 done = s_hpr.results()
@@ -417,14 +423,14 @@ class DRCPO(Transform):
         if self._occlusion_along_rays:
             minimum = self.config.external_occlusion.min_visible_rays
             share = 1.0 if limit is None else limit
-            while (drawn := rounds.next_round()) is not None:
-                hidden = None
-                if len(drawn.boxes):
-                    hidden = seen.hidden(
-                        drawn.boxes, drawn.placed, minimum, share, drawn.objects, drawn.conflicts
-                    )
-                rounds.settle(hidden)
-            return (*self._placement_result(rounds, rows, stats), None)
+            result = sensor_steps.place_along_rays(rounds, seen, minimum, share)
+            if self.config.placement.displace_attempts:
+                result, gone = sensor_steps.displace_added(
+                    seen, result, dims, source, rng, self._placement[fov], minimum, share
+                )
+                for name in gone:
+                    stats.label_dropped(str(name))
+            return (*self._placement_result(result, rows, stats), None)
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
         while (drawn := rounds.next_round()) is not None:
             hidden = None
@@ -436,7 +442,7 @@ class DRCPO(Transform):
                 )
                 last = (len(drawn.placed), owners, hidden)
             rounds.settle(hidden)
-        boxes, accepted = self._placement_result(rounds, rows, stats)
+        boxes, accepted = self._placement_result(rounds.result(), rows, stats)
         if last is None or not len(boxes):
             return boxes, accepted, None
         before, owners, hidden = last
@@ -447,10 +453,9 @@ class DRCPO(Transform):
         return boxes, accepted, renumber[owners]
 
     def _placement_result(
-        self, rounds: placement.PlacementRounds, rows: np.ndarray, stats: Stats
+        self, result: placement.PlacementResult, rows: np.ndarray, stats: Stats
     ) -> tuple[np.ndarray, np.ndarray]:
         """The placed boxes and the indices of their objects; the others' reasons recorded."""
-        result = rounds.result()
         names = self.database.names[rows]
         for i in np.flatnonzero(result.reasons != ""):
             stats.rejected(self.name, names[i], str(result.reasons[i]))
@@ -544,12 +549,11 @@ class DRCPO(Transform):
         sensor: Any = None,
         seed: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull:
-        the certified hull of drcpo.occlusion.hull, Qhull where it gives up; much faster than the
-        per-point method for objects), and its label: ``box`` with the faces that points lie beyond
-        (construction keeps points up to its margin outside; s-HPR keeps the outermost ones)
-        moved out to hold them, so that the label holds every point the object brings. With a
-        ``sensor`` (mode ``sensor``), the object is rendered through it instead of s-HPR."""
+        """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull: the
+        certified hull of drcpo.occlusion.hull, Qhull where it gives up; much faster than the
+        per-point method), and its label: ``box`` with the faces points lie beyond (construction
+        keeps points up to its margin outside) moved out to hold every point the object brings.
+        With a ``sensor`` (mode ``sensor``), the object is rendered through it instead."""
         points = placed_object(canonical, box, dim)
         settings = self.config.self_occlusion
         if sensor is not None and len(points):

@@ -9,13 +9,17 @@
 * s-HPR mode ``sensor``: each object rendered through the sensor
   (:func:`~drcpo.occlusion.render.render_object`);
 * e-HPR mode ``sensor``: occlusion along the rays (:class:`~drcpo.occlusion.rays.RayOcclusion`),
-  with the added boxes of earlier stages as inserted objects too.
+  with the added boxes of earlier stages as inserted objects too;
+* with ``placement.drop_hidden_added``: before placing, the added objects of earlier stages that
+  the frame's rays leave with too few points dropped with their points
+  (:meth:`SensorFrame.without_hidden_added`), so that they hold no room the last step frees.
 
 Each function returns data; :mod:`drcpo.transforms.drcpo` orders the steps.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,12 +33,25 @@ from drcpo.frame import Frame
 from drcpo.ground import GroundModel
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion
 from drcpo.occlusion.render import render_object
-from drcpo.placement import frame_ground
+from drcpo.placement import (
+    PlacementConfig,
+    PlacementResult,
+    PlacementRounds,
+    bev_collisions,
+    frame_ground,
+)
 from drcpo.sensor import Sensor
 from drcpo.sensor_config import SensorConfig
-from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows
+from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows, update_box_metadata
 
-__all__ = ["SensorFrame", "added_boxes", "render", "sensor_occlusion"]
+__all__ = [
+    "SensorFrame",
+    "added_boxes",
+    "displace_added",
+    "place_along_rays",
+    "render",
+    "sensor_occlusion",
+]
 
 _ADDED_MARGIN = 0.2  # metres around an added box whose points count as the added object's
 
@@ -59,6 +76,8 @@ class SensorFrame:
     frame: Frame
     config: SensorConfig
     fallback: str = field(default="", init=False)
+    #: the frame placement left (:func:`displace_added`: without the objects displaced)
+    after_placing: SensorFrame | None = field(default=None, init=False, repr=False)
     _view: tuple[tuple[int, float], PlacedView] | None = field(default=None, init=False, repr=False)
 
     @cached_property
@@ -125,6 +144,69 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.build(self.frame.points, self.sensor)
 
+    def hidden_added(self, min_points: int, tolerance: float = 0.1) -> np.ndarray:
+        """``bool (K,)``: of the ``K`` added boxes, those left with fewer than ``min_points``
+        of their points in their box once the frame's returns hide theirs: a point of one is
+        hidden when its ray cell (:meth:`~drcpo.sensor.Sensor.cells`) holds a return of the
+        frame's own or of another added object nearer than it by more than ``tolerance``
+        metres (ranges from the beam's origin). The cell rule of :func:`sensor_occlusion`
+        for them (the added objects' surfaces crossing other cells are left to it)."""
+        if not self.added.any():
+            return np.zeros(0, dtype=bool)
+        points, sensor = self.frame.points, self.sensor
+        beam, column, _ = sensor.cells(points)
+        rows = np.flatnonzero(beam >= 0)  # (points outside every beam: no cell, never hidden)
+        relative = points[rows, :3].astype(np.float64) - sensor.mount
+        relative[:, 2] -= sensor.offsets[beam[rows]]
+        distance = np.sqrt((relative * relative).sum(axis=1))
+        cell = beam[rows] * sensor.num_columns + column[rows]
+        order = np.lexsort((distance, cell))  # by cell, nearest first
+        rows, distance, cell = rows[order], distance[order], cell[order]
+        owner = self.added_owner[rows]
+        starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+        group = np.cumsum(np.r_[True, cell[1:] != cell[:-1]]) - 1
+        nearest_owner = owner[starts][group]
+        # per cell, the nearest return of another owner than the nearest's
+        second = np.full(len(starts), np.inf)
+        other = owner != nearest_owner
+        np.minimum.at(second, group[other], distance[other])
+        nearest_other = np.where(other, distance[starts][group], second[group])
+        hidden = (owner >= 0) & (nearest_other < distance - tolerance)
+        keep = np.ones(len(points), dtype=bool)
+        keep[rows[hidden]] = False
+        return self.added_counts(points, keep) < min_points
+
+    def without_hidden_added(self, min_points: int) -> tuple[SensorFrame, np.ndarray]:
+        """This frame without the added objects of :meth:`hidden_added` (see
+        :meth:`without_added`) and the names of those dropped."""
+        return self.without_added(self.hidden_added(min_points))
+
+    def without_added(self, drop: np.ndarray) -> tuple[SensorFrame, np.ndarray]:
+        """This frame without the added objects ``drop`` (``bool (K,)`` over the added boxes):
+        their boxes, and their points (those :attr:`added_owner` gives them, as
+        :func:`sensor_occlusion` takes them out), and the names of those dropped. The frame's
+        own points stay as they are, so the sensor and the ground are this one's (shared, not
+        estimated again); ``self`` when nothing is dropped."""
+        drop = np.asarray(drop, dtype=bool)
+        if not drop.any():
+            return self, np.zeros(0, dtype=str)
+        frame = self.frame
+        boxes = np.zeros(len(frame.boxes), dtype=bool)
+        boxes[np.flatnonzero(self.added)[drop]] = True
+        points = ~np.append(drop, False)[self.added_owner]  # (index -1: the frame's own)
+        keep = np.flatnonzero(~boxes)
+        pruned = frame.replace(
+            points=take_rows(frame.points, points),
+            boxes=frame.boxes[keep],
+            names=frame.names[keep],
+            metadata=update_box_metadata(frame.metadata, len(frame.boxes), keep=keep),
+        )
+        out = SensorFrame(pruned, self.config)
+        out.fallback = self.fallback
+        out.__dict__["sensor"] = self.sensor  # (cached_property keeps its value there)
+        out.__dict__["ground"] = self.ground
+        return out, frame.names[boxes]
+
     def hidden(
         self,
         boxes: np.ndarray,
@@ -153,6 +235,88 @@ class SensorFrame:
         if view is None or view[0] != key or not view[1].holds(placed):
             view = self._view = (key, PlacedView(self.range_image, *key, placed=placed))
         return view[1].admit(boxes, objects, conflicts)
+
+
+def place_along_rays(
+    rounds: PlacementRounds,
+    seen: SensorFrame,
+    min_rays: int,
+    max_hidden: float,
+    before: np.ndarray | None = None,
+) -> PlacementResult:
+    """Run ``rounds`` to the end, each round's boxes judged by :meth:`SensorFrame.hidden` (the
+    boxes ``before`` ``(P, 7)``, placed by an earlier pass, count as placed before)."""
+    before = np.zeros((0, 7)) if before is None else before
+    while (drawn := rounds.next_round()) is not None:
+        hidden = None
+        if len(drawn.boxes):
+            placed = np.concatenate([before, drawn.placed])
+            hidden = seen.hidden(
+                drawn.boxes, placed, min_rays, max_hidden, drawn.objects, drawn.conflicts
+            )
+        rounds.settle(hidden)
+    return rounds.result()
+
+
+def displace_added(
+    seen: SensorFrame,
+    first: PlacementResult,
+    dims: np.ndarray,
+    source: np.ndarray,
+    rng: np.random.Generator,
+    config: PlacementConfig,
+    min_rays: int,
+    max_hidden: float,
+) -> tuple[PlacementResult, np.ndarray]:
+    """A second placement pass for the objects ``first`` left unplaced, through the objects
+    earlier stages added (augmentation too, so they make way when no free spot is left).
+
+    The pass places (``dims``, ``source``: ``(K, 3)``, ``(K, 7)`` of ``first``'s objects, with
+    ``config``, ``displace_attempts`` poses per object within the poses of
+    ``max_attempts_per_frame`` that ``first`` left) on the frame
+    without any added object (their points are no obstacle, their returns hide nothing, their
+    boxes no collision), with ``first``'s boxes (grown by ``config.clearance``) as boxes to
+    avoid and as placed before. The added objects whose box meets a box placed there (with
+    the clearance) are dropped: :attr:`SensorFrame.after_placing` is the frame without them
+    (``seen`` when none). Returns the merged result (the second pass's verdicts for its
+    objects) and the names of the objects displaced."""
+    seen.after_placing = seen
+    failed = np.flatnonzero(first.reasons != "")
+    if len(failed) == 0 or not seen.added.any():
+        return first, np.zeros(0, dtype=str)
+    bare, _ = seen.without_added(np.ones(int(np.count_nonzero(seen.added)), dtype=bool))
+    room = first.boxes.copy()
+    room[:, 3:5] += 2.0 * config.clearance
+    frame = bare.frame.replace(
+        boxes=np.concatenate([bare.frame.boxes, room]),
+        names=np.concatenate([bare.frame.names, np.full(len(room), "DontCare")]),
+    )
+    cap = config.max_attempts_per_frame
+    if cap is not None and cap <= first.attempts:
+        return first, np.zeros(0, dtype=str)
+    budget = None if cap is None else cap - first.attempts
+    config = dataclasses.replace(
+        config, attempts=config.displace_attempts, max_attempts_per_frame=budget
+    )
+    rounds = PlacementRounds(frame, dims[failed], source[failed], rng, config, seen.ground)
+    second = place_along_rays(rounds, bare, min_rays, max_hidden, first.boxes)
+    grown = second.boxes.copy()
+    grown[:, 3:5] += 2.0 * config.clearance
+    added = seen.frame.boxes[seen.added]
+    displaced = bev_collisions(added, grown).any(axis=1)
+    seen.after_placing, names = seen.without_added(displaced)
+    accepted = np.concatenate([first.accepted, failed[second.accepted]])
+    order = np.argsort(accepted, kind="stable")
+    reasons = first.reasons.copy()
+    reasons[failed] = second.reasons
+    merged = PlacementResult(
+        boxes=np.concatenate([first.boxes, second.boxes])[order],
+        accepted=accepted[order],
+        rejected={k: first.rejected[k] + second.rejected[k] for k in first.rejected},
+        reasons=reasons,
+        attempts=first.attempts + second.attempts,
+    )
+    return merged, names
 
 
 def render(
