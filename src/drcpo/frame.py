@@ -13,6 +13,7 @@ Coordinate conventions (used everywhere in drcpo)
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -123,14 +124,15 @@ class Frame:
         return cls(points=data["points"], boxes=boxes, names=np.asarray(names), metadata=metadata)
 
 
-class FrameSequence:
+class FrameSequence(ABC):
     """A data set as a sequence of frames: ``len``, indexing and iteration over ``frame_ids``
-    through ``frame(frame_id)`` (the data sets' protocol; the readers mix this in)."""
+    through ``frame(frame_id)`` (the data sets' protocol; the readers derive from it)."""
 
     frame_ids: list[str]
 
-    def frame(self, frame_id: str) -> Frame:  # pragma: no cover - each reader defines it
-        raise NotImplementedError
+    @abstractmethod
+    def frame(self, frame_id: str) -> Frame:
+        """The frame ``frame_id`` (one of :attr:`frame_ids`)."""
 
     def __len__(self) -> int:
         return len(self.frame_ids)
