@@ -19,7 +19,6 @@ import json
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -33,19 +32,12 @@ from bench_augment import (
 )
 
 from drcpo.pipeline import build_pipeline
-
-
-def _without_timings(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k != "ms"}
-    if isinstance(value, list):
-        return [_without_timings(v) for v in value]
-    return value
+from drcpo.transforms.base import without_timings
 
 
 def fingerprint(frame) -> bytes:
     """The bytes that define one augmented frame: points, boxes, names and its statistics."""
-    stats = _without_timings(frame.metadata.get("augment_stats", {}))
+    stats = without_timings(frame.metadata.get("augment_stats", {}))
     parts = [
         np.ascontiguousarray(frame.points).tobytes(),
         np.ascontiguousarray(frame.boxes).tobytes(),

@@ -130,19 +130,7 @@ def test_hidden_ground_truth_sampled_objects_are_dropped(synthetic_world):  # no
     paper = build_pipeline("paper", db, index=index, kind="drcpo").transforms[1]
     # a wall of returns 10 m ahead (dense enough to return on every ray), and an "added" car
     # 20 m ahead right behind it
-    ys, zs = np.meshgrid(np.linspace(-3, 3, 300), np.linspace(-1.5, 1.0, 125))
-    wall = np.column_stack([np.full(ys.size, 10.0), ys.ravel(), zs.ravel(), np.zeros(ys.size)])
-    car_box = np.array([20.0, 0.0, -0.95, 4.0, 1.8, 1.5, 0.0])
-    xs, ys2 = np.meshgrid(np.linspace(18.0, 22.0, 30), np.linspace(-0.9, 0.9, 12))
-    car = np.column_stack([xs.ravel(), ys2.ravel(), np.full(xs.size, -0.3), np.zeros(xs.size)])
-    points = np.concatenate([frame.points, wall, car]).astype(np.float32)
-    sources = np.concatenate([np.full(len(frame.boxes), ""), ["gt_sampling"]]).astype("<U11")
-    made = Frame(
-        points,
-        np.concatenate([frame.boxes, car_box[None]]),
-        np.concatenate([frame.names, ["Car"]]),
-        {**frame.metadata, BOX_SOURCE: sources},
-    )
+    made, car_box = _walled_car(frame)
     # (the frame's sensor by name: the wall and car appended out of scan order are no sweep)
     out = _realistic(db, index, **{"sensor.model": "hdl64e"})(made, np.random.default_rng(0))
     assert not np.any(np.all(np.isclose(out.boxes, car_box), axis=1))

@@ -180,6 +180,22 @@ def _not_owned(path: Path, kind: OutputKind) -> str | None:
 
 
 # Writing a directory --------------------------------------------------------------------------
+@contextmanager
+def _claimed(
+    shown: Path, kind: OutputKind, overwrite: bool, inputs: Iterable[str | os.PathLike]
+) -> Iterator[Path]:
+    """The checked target of output ``shown``, held under its lock (SIGTERM unwinding, system
+    errors named) for the ``with`` block: what every writer of a directory output runs in."""
+    inputs = list(inputs)
+    with _os_errors(shown):
+        target = check_output(shown, kind, overwrite, inputs)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with _locked(target, shown), _sigterm_unwinds():
+            _remove_stale(target)
+            check_output(shown, kind, overwrite, inputs)  # a run may have finished meanwhile
+            yield target
+
+
 def write_directory(
     path: str | os.PathLike,
     write: Callable[[Path], None],
@@ -196,16 +212,10 @@ def write_directory(
     temporary is removed and ``path`` is as it was.
     """
     shown = Path(path)
-    inputs = list(inputs)
     committed = [False]
     try:
-        with _os_errors(shown):
-            target = check_output(path, kind, overwrite, inputs)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            with _locked(target, shown), _sigterm_unwinds():
-                _remove_stale(target)
-                check_output(path, kind, overwrite, inputs)  # a run may have finished meanwhile
-                _write_and_commit(target, write, kind, overwrite, shown, committed)
+        with _claimed(shown, kind, overwrite, inputs) as target:
+            _write_and_commit(target, write, kind, overwrite, shown, committed)
     except KeyboardInterrupt as exc:
         raise Interrupted(shown, getattr(exc, "signum", signal.SIGINT), committed[0]) from exc
     return shown
@@ -310,36 +320,30 @@ def write_staged(
     Raises as :func:`write_directory` does.
     """
     shown = Path(path)
-    inputs = list(inputs)
     run = json.loads(json.dumps(run))  # as read back from staging.json
     committed = [False]
     try:
-        with _os_errors(shown):
-            target = check_output(path, kind, overwrite, inputs)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            with _locked(target, shown), _sigterm_unwinds():
-                _remove_stale(target)
-                check_output(path, kind, overwrite, inputs)
-                staging = _open_staging(target, run, overwrite, shown)
-                _remove_temporary_files(staging)
-                write(staging)
-                _remove_temporary_files(staging)
-                output = staging / _STAGED_OUTPUT
-                if _not_owned(output, kind) is not None:
-                    raise RuntimeError(f"drcpo bug: a {kind.description} was staged unfinished")
-                with _signals_deferred():
-                    _check_replaceable(target, kind, overwrite, shown)
-                    # Under a temporary's name: a replaced output lands there, or beside it.
-                    tmp = _make_temporary(target)
-                    os.replace(output, tmp)
-                    try:
-                        _commit(tmp, target, kind, overwrite, shown)
-                    except BaseException:
-                        os.replace(tmp, output)  # kept for the next run
-                        raise
-                    committed[0] = True
-                _remove(tmp)
-                _remove(staging)
+        with _claimed(shown, kind, overwrite, inputs) as target:
+            staging = _open_staging(target, run, overwrite, shown)
+            _remove_temporary_files(staging)
+            write(staging)
+            _remove_temporary_files(staging)
+            output = staging / _STAGED_OUTPUT
+            if _not_owned(output, kind) is not None:
+                raise RuntimeError(f"drcpo bug: a {kind.description} was staged unfinished")
+            with _signals_deferred():
+                _check_replaceable(target, kind, overwrite, shown)
+                # Under a temporary's name: a replaced output lands there, or beside it.
+                tmp = _make_temporary(target)
+                os.replace(output, tmp)
+                try:
+                    _commit(tmp, target, kind, overwrite, shown)
+                except BaseException:
+                    os.replace(tmp, output)  # kept for the next run
+                    raise
+                committed[0] = True
+            _remove(tmp)
+            _remove(staging)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         kept = staging_path(shown) if os.path.lexists(staging_path(shown)) else None

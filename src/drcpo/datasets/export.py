@@ -25,7 +25,7 @@ from drcpo.datasets import kitti_writer
 from drcpo.datasets.kitti import KittiDataset, fov_mask
 from drcpo.frame import Frame
 from drcpo.outputs import OutputKind, atomic_write_bytes, write_staged
-from drcpo.transforms.base import STATS_KEY, Transform
+from drcpo.transforms.base import STATS_KEY, Transform, without_timings
 
 __all__ = [
     "AUGMENT_OUTPUT",
@@ -107,7 +107,7 @@ def augment_frame(
         "points_in": len(frame),
         "points": len(result),
         "boxes": {str(n): int(c) for n, c in zip(names, counts, strict=True)},
-        **_without_timings(stats),
+        **without_timings(stats),
     }
     timing = {"frame_id": frame_id, "ms": elapsed, "stages": _stage_ms(stats)}
     payload = json.dumps({"stats": record, "timing": timing}).encode()
@@ -116,15 +116,6 @@ def augment_frame(
 
 def _record_path(staging: Path, number: int) -> Path:
     return staging / _FRAMES / f"{number:08d}.json"
-
-
-def _without_timings(value: Any) -> Any:
-    """``value`` with every ``"ms"`` key left out (timings differ from run to run)."""
-    if isinstance(value, dict):
-        return {k: _without_timings(v) for k, v in value.items() if k != "ms"}
-    if isinstance(value, list):
-        return [_without_timings(v) for v in value]
-    return value
 
 
 def _stage_ms(stats: dict[str, Any]) -> dict[str, float]:

@@ -45,6 +45,7 @@ __all__ = [
     "config_body",
     "register",
     "transform_from_config",
+    "without_timings",
 ]
 
 FrameLike = Frame | dict[str, Any]
@@ -298,3 +299,13 @@ def transform_from_config(
             f"transform type {kind!r} is unknown; allowed: {', '.join(sorted(TRANSFORMS))}"
         )
     return TRANSFORMS[kind].from_config(data, database=database, index=index)
+
+
+def without_timings(stats: Any) -> Any:
+    """Statistics (:class:`Stats`' dict form, or any part of it) with every ``"ms"`` key left
+    out: what the same seed reproduces, timings differing from run to run."""
+    if isinstance(stats, dict):
+        return {k: without_timings(v) for k, v in stats.items() if k != "ms"}
+    if isinstance(stats, list):
+        return [without_timings(v) for v in stats]
+    return stats
