@@ -305,6 +305,14 @@ class ExternalOcclusionConfig(Checked):
             high=1_000_000,
         ),
     )
+    fill_rows: bool = field(
+        default=False,
+        metadata=spec(
+            "bool",
+            "mode sensor: the rays between an inserted object's outermost returns of a beam "
+            "that return none of it are blocked by it too (a solid object has no holes)",
+        ),
+    )
 
     @property
     def setting(self) -> EHPRSetting:

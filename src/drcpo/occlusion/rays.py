@@ -44,7 +44,7 @@ from drcpo.occlusion.render import (
 )
 from drcpo.sensor import Sensor
 
-__all__ = ["PlacedView", "RangeImage", "RayOcclusion", "ray_occlusion"]
+__all__ = ["PlacedView", "RangeImage", "RayOcclusion", "element_radii", "ray_occlusion"]
 
 
 class RangeImage:
@@ -348,6 +348,15 @@ class RayOcclusion:
             tables[-1],  # constants
         )
         return removed
+
+
+def element_radii(points: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """``float64``: the surface-element radii :func:`ray_occlusion` gives the inserted points
+    by default (:func:`~drcpo.occlusion.render.surfel_radii` of each object's points), one per
+    inserted point (``owner >= 0``) in order; metres."""
+    array = _frame_points(points)
+    owner = _check_owner(owner, len(array))
+    return _inserted_radii(array, owner, np.flatnonzero(owner >= 0), None)
 
 
 def _frame_points(points: np.ndarray) -> np.ndarray:

@@ -645,8 +645,7 @@ class DRCPO(Transform):
         view windows (the directions they cover), those hidden with the objects but visible
         without them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
         ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again;
-        ``pool`` may lend a thread; ``placed``: see :meth:`_placed_task`.
-        """
+        ``pool`` may lend a thread; ``placed``: see :meth:`_placed_task`."""
         settings = self.config.external_occlusion
         if self._occlusion_along_rays and len(points):
             first = int(np.count_nonzero(owner < 0))
@@ -659,6 +658,7 @@ class DRCPO(Transform):
                 count,
                 partial(seen.added_counts, points[:first]),
                 self.config.min_points_after,
+                settings.fill_rows,
             )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()

@@ -31,8 +31,9 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.ground import GroundModel
-from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion
+from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, element_radii
 from drcpo.occlusion.render import render_object
+from drcpo.occlusion.silhouettes import row_gaps
 from drcpo.placement import (
     PlacementConfig,
     PlacementResult,
@@ -338,6 +339,7 @@ def sensor_occlusion(
     count_kept: Callable[[np.ndarray], np.ndarray],
     count_added: Callable[[np.ndarray], np.ndarray],
     min_points: int,
+    fill_rows: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -355,6 +357,8 @@ def sensor_occlusion(
             earlier-added object keeps in its box.
         min_points: an earlier-added object left with fewer points there goes too, all of
             its points (its label then goes with the frame's sparse boxes).
+        fill_rows: the gaps in each inserted object's rows of returns hide what lies behind
+            them too (``external_occlusion.fill_rows``; :func:`with_row_gaps`).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -364,8 +368,11 @@ def sensor_occlusion(
     num_drcpo = int(owner.max()) + 1 if len(owner) > first else 0
     combined = owner.copy()
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
-    rays = RayOcclusion(points, combined, sensor)
-    removed = rays.removed
+    count, radii = len(points), None
+    if fill_rows:
+        points, combined, radii = with_row_gaps(points, combined, sensor)
+    rays = RayOcclusion(points, combined, sensor, radii)
+    removed = rays.removed[:count]
     dropped = count_kept(~removed[first:])
     gone = np.zeros(int(combined.max(initial=-1)) + 1, dtype=bool)  # per object
     gone[:num_drcpo] = dropped
@@ -373,5 +380,22 @@ def sensor_occlusion(
         sparse = count_added(~removed[:first]) < min_points
         gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
-        removed = rays.without(gone)
+        removed = rays.without(gone)[:count]
     return ~removed, dropped
+
+
+def with_row_gaps(
+    points: np.ndarray, owner: np.ndarray, sensor: Sensor
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``points`` ``(N, F)`` and ``owner`` ``(N,)`` with the gaps of each inserted object's
+    rows of returns (:func:`~drcpo.occlusion.silhouettes.row_gaps`) appended as points of that
+    object (features 0), and the surface-element radii of every inserted point in order: the
+    default ones (:func:`~drcpo.occlusion.rays.element_radii`) for the points given, half an
+    azimuth step across at its distance for a gap, so that a gap hides the rays of its own
+    cell and not its neighbours'. The rows after the first ``N`` are never returns."""
+    gaps, gap_owner = row_gaps(points, owner, sensor)
+    extra = np.zeros((len(gaps), points.shape[1]), dtype=points.dtype)
+    extra[:, :3] = gaps
+    reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
+    radii = np.concatenate([element_radii(points, owner), reach * (sensor.azimuth_step / 2.0)])
+    return np.concatenate([points, extra]), np.concatenate([owner, gap_owner]), radii

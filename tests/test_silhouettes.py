@@ -1,0 +1,138 @@
+"""drcpo.occlusion.silhouettes: the gaps in inserted objects' rows of returns, against a plain
+loop over objects, beams and columns; and ``external_occlusion.fill_rows`` in the occlusion
+along rays (a point behind a hole of a solid object goes; the outline does not grow)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from drcpo.occlusion.silhouettes import row_gaps
+from drcpo.sensor import Sensor
+from drcpo.transforms.sensor_steps import sensor_occlusion, with_row_gaps
+
+
+def small_sensor(phase_deg: float = 0.3) -> Sensor:
+    """8 beams 2 degrees apart, 1 degree columns, beam origins a few cm apart."""
+    return Sensor(
+        elevations=np.radians(np.linspace(4.0, -10.0, 8)),
+        offsets=np.linspace(0.03, -0.03, 8),
+        azimuth_step=math.radians(1.0),
+        phase=math.radians(phase_deg),
+        mount=(0.2, -0.1, 0.5),
+        range_noise=0.0,
+        dropout=0.0,
+    )
+
+
+def on_ray(sensor: Sensor, beam: int, column: int, distance: float) -> np.ndarray:
+    """The point of cell (beam, column) at ``distance`` from the beam's origin."""
+    b, c = np.array([beam]), np.array([column])
+    return (sensor.ray_origins(b) + distance * sensor.ray_directions(b, c))[0]
+
+
+def reference_gaps(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> set:
+    """(object, beam, column, rounded x, y, z) of every gap, by a loop over objects and beams."""
+    beam, column, _ = sensor.cells(points)
+    columns = sensor.num_columns
+    found = set()
+    for k in np.unique(owner[owner >= 0]):
+        for b in np.unique(beam[(owner == k) & (beam >= 0)]):
+            mine = (owner == k) & (beam == b)
+            held = set(column[mine].tolist())
+            origin = sensor.ray_origins(np.array([b]))[0]
+            mean = np.mean(np.linalg.norm(points[mine, :3].astype(np.float64) - origin, axis=1))
+            # the shortest arc holding every column: the complement of the widest empty arc
+            ordered = sorted(held)
+            gaps = [(ordered[(i + 1) % len(ordered)] - c) % columns for i, c in enumerate(ordered)]
+            if len(ordered) == 1:
+                span = ordered
+            else:
+                widest = int(np.argmax(gaps))
+                start = ordered[(widest + 1) % len(ordered)]
+                length = (ordered[widest] - start) % columns + 1
+                span = [(start + s) % columns for s in range(length)]
+            for c in span:
+                if c not in held:
+                    xyz = on_ray(sensor, int(b), c, mean)
+                    found.add((int(k), int(b), c, *np.round(xyz, 6).tolist()))
+    return found
+
+
+def as_set(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> set:
+    beam, column, _ = sensor.cells(points)
+    return {
+        (int(k), int(b), int(c), *np.round(p, 6).tolist())
+        for k, b, c, p in zip(owner, beam, column, points, strict=True)
+    }
+
+
+def test_row_gaps_match_a_loop_over_objects_beams_and_columns() -> None:
+    sensor = small_sensor()
+    rng = np.random.default_rng(3)
+    points, owner = [], []
+    for k, (centre, spread) in enumerate([(20, 6), (-60, 5), (0, 4)]):  # the last across column 0
+        for _ in range(40):
+            b, c = int(rng.integers(0, 8)), int(centre + rng.integers(-spread, spread + 1))
+            points.append(on_ray(sensor, b, c % sensor.num_columns, rng.uniform(8.0, 12.0)))
+            owner.append(k)
+    frame = np.column_stack([rng.uniform(-30, 30, (50, 2)), np.full(50, -1.2)])
+    points = np.concatenate([frame, np.array(points)])
+    owner = np.concatenate([np.full(50, -1), owner])
+    gaps, gap_owner = row_gaps(points, owner, sensor)
+    expected = reference_gaps(points, owner, sensor)
+    assert len(gaps) == len(expected) > 10
+    assert as_set(gaps, gap_owner, sensor) == expected
+
+
+def test_no_inserted_points_no_gaps() -> None:
+    gaps, gap_owner = row_gaps(np.zeros((5, 4)) + 3.0, np.full(5, -1), small_sensor())
+    assert gaps.shape == (0, 3) and gap_owner.shape == (0,)
+
+
+def holed_wall(sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
+    """A frame point at 20 m on cell (3, 40) and another on (3, 50); an inserted wall at 10 m
+    on beams 2-4, columns 36-44, without a return in cell (3, 40): a hole."""
+    wall = [
+        on_ray(sensor, b, c, 10.0) for b in (2, 3, 4) for c in range(36, 45) if (b, c) != (3, 40)
+    ]
+    frame = [on_ray(sensor, 3, 40, 20.0), on_ray(sensor, 3, 50, 20.0)]
+    points = np.column_stack([np.array(frame + wall), np.zeros(len(frame) + len(wall))])
+    owner = np.concatenate([np.full(2, -1), np.zeros(len(wall), dtype=np.int64)])
+    return points.astype(np.float32), owner
+
+
+@pytest.mark.parametrize("fill", [False, True])
+def test_fill_rows_hides_the_point_behind_a_hole_and_nothing_beside(fill: bool) -> None:
+    sensor = small_sensor()
+    points, owner = holed_wall(sensor)
+    keep, dropped = sensor_occlusion(
+        points,
+        owner,
+        np.full(2, -1),
+        sensor,
+        lambda kept: np.zeros(1, dtype=bool),
+        lambda kept: np.zeros(0, dtype=np.int64),
+        1,
+        fill_rows=fill,
+    )
+    assert keep.shape == (len(points),) and not dropped.any()
+    assert keep[0] == (not fill)  # behind the hole: seen through it only without the fill
+    assert keep[1]  # beside the wall: never hidden
+    assert keep[2:].all()  # the wall's own returns
+
+
+def test_with_row_gaps_appends_gaps_that_are_never_returns() -> None:
+    sensor = small_sensor()
+    points, owner = holed_wall(sensor)
+    filled, filled_owner, radii = with_row_gaps(points, owner, sensor)
+    assert len(filled) == len(points) + 1 and filled.dtype == points.dtype
+    np.testing.assert_array_equal(filled[: len(points)], points)
+    np.testing.assert_allclose(filled[-1, :3], on_ray(sensor, 3, 40, 10.0), atol=1e-5)
+    assert filled_owner[-1] == 0 and filled[-1, 3] == 0.0
+    # the gap's element: half an azimuth step across at its distance
+    reach = np.linalg.norm(filled[-1, :3] - np.asarray(sensor.mount))
+    assert radii[-1] == pytest.approx(reach * sensor.azimuth_step / 2, rel=1e-5)
+    assert len(radii) == int((filled_owner >= 0).sum())
