@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from drcpo.errors import DataError
-from drcpo.occlusion.render import RADIUS_RANGE, radius_cap, render_object, surfel_radii
+from drcpo.occlusion.render import (
+    RADIUS_RANGE,
+    point_cells,
+    radius_cap,
+    render_object,
+    surfel_radii,
+)
 from drcpo.sensor import Sensor, sensor_preset
 
 EXACT = dataclasses.replace(sensor_preset("hdl64e"), range_noise=0.0, dropout=0.0)
@@ -386,3 +392,33 @@ def test_bad_input_is_a_data_error() -> None:
             surfel_radii(points, bad_cap)
     empty, source = render_object(np.zeros((0, 5), np.float32), EXACT, rng)
     assert empty.shape == (0, 5) and source.shape == (0,)
+
+
+@pytest.mark.parametrize("name", ["hdl64e", "hdl32e", "small"])
+def test_point_cells_are_the_sensors_cells(name: str) -> None:
+    sensor = small_sensor() if name == "small" else sensor_preset(name)
+    rng = np.random.default_rng(11)
+    radius = rng.uniform(1.0, 80.0, 5000)
+    angle = rng.uniform(-math.pi, math.pi, 5000)
+    points = np.column_stack(
+        [radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-4.0, 3.0, 5000)]
+    ).astype(np.float32)
+    beam, column, distance = point_cells(points, sensor)
+    want_beam, want_column, _ = sensor.cells(points)
+    np.testing.assert_array_equal(beam, want_beam)
+    inside = beam >= 0
+    assert inside.mean() > 0.2
+    np.testing.assert_array_equal(column[inside], want_column[inside])
+    origin = sensor.ray_origins(beam[inside])
+    np.testing.assert_allclose(
+        distance[inside], np.linalg.norm(points[inside].astype(np.float64) - origin, axis=1)
+    )
+
+
+def test_point_cells_name_the_bad_row() -> None:
+    points = np.ones((4, 3), dtype=np.float32)
+    points[2, 1] = np.nan
+    with pytest.raises(DataError, match="row 2"):
+        point_cells(points, small_sensor())
+    with pytest.raises(DataError, match="shape"):
+        point_cells(np.ones(3), small_sensor())

@@ -28,6 +28,7 @@ __all__ = [
     "RADIUS_FACTOR",
     "RADIUS_RANGE",
     "VOXEL",
+    "point_cells",
     "radius_cap",
     "render_object",
     "surfel_radii",
@@ -134,6 +135,25 @@ def render_object(
     features = np.asarray(points, dtype=np.float32)
     limits = np.array([sensor.min_range, sensor.max_range])
     return _returns(*hits, noise, lost, features, limits, *tables.geometry)
+
+
+def point_cells(points: np.ndarray, sensor: Sensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`Sensor.cells` of ``points`` ``(N, 3+)`` (metres) by the kernels' rule (the same
+    cells, without trigonometry): ``beam int64 (N,)`` (-1 outside every beam), ``column int64
+    (N,)`` (-1 straight above or below the mount) and ``distance float64 (N,)`` from the beam's
+    own origin (the mount's outside every beam), metres.
+
+    Raises:
+        DataError: a point holds NaN or inf.
+    """
+    xyz = np.asarray(points)
+    if xyz.ndim != 2 or xyz.shape[1] < 3:
+        raise DataError(f"points must have shape (N, 3 + C), got {xyz.shape}")
+    rows = np.arange(len(xyz), dtype=np.int64)
+    beam, column, distance, _, bad = _point_cells(xyz, rows, *sensor_tables(sensor).geometry)
+    if bad >= 0:
+        raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
+    return beam, column, distance
 
 
 def _check_radii(radii: np.ndarray, count: int) -> np.ndarray:

@@ -7,13 +7,15 @@ not have been seen. :func:`row_gaps` gives, per object and beam, the ray cells b
 outermost returns of that beam that hold none of its returns, as points on those rays at the
 mean distance of the row's returns; occlusion along the rays (:mod:`~drcpo.occlusion.rays`)
 takes them as surfaces that hide and are never returned. The outline is unchanged: nothing
-is added beyond a row's first and last return. Imports :mod:`drcpo.sensor` only.
+is added beyond a row's first and last return. Imports :mod:`drcpo.sensor` and
+:mod:`drcpo.occlusion.render` only.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from drcpo.occlusion.render import point_cells
 from drcpo.sensor import Sensor
 
 __all__ = ["row_gaps"]
@@ -41,13 +43,11 @@ def row_gaps(
     """
     owner = np.asarray(owner)
     inserted = np.flatnonzero(owner >= 0)
-    beam, column, _ = sensor.cells(np.asarray(points)[inserted])
-    seen = beam >= 0
-    inserted, beam, column = inserted[seen], beam[seen], column[seen]
+    beam, column, distance = point_cells(np.asarray(points)[inserted], sensor)
+    seen = (beam >= 0) & (column >= 0)
+    inserted, beam, column, distance = inserted[seen], beam[seen], column[seen], distance[seen]
     if len(inserted) == 0:
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-    xyz = np.asarray(points)[inserted, :3].astype(np.float64)
-    distance = np.linalg.norm(xyz - sensor.ray_origins(beam), axis=1)
     columns = sensor.num_columns
     rows, row = np.unique(owner[inserted] * sensor.num_beams + beam, return_inverse=True)
     # A row across the turn's seam spans less once the columns are turned half a turn.

@@ -32,7 +32,7 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.ground import GroundModel
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, element_radii
-from drcpo.occlusion.render import render_object
+from drcpo.occlusion.render import point_cells, render_object
 from drcpo.occlusion.silhouettes import row_gaps
 from drcpo.placement import (
     PlacementConfig,
@@ -155,11 +155,9 @@ class SensorFrame:
         if not self.added.any():
             return np.zeros(0, dtype=bool)
         points, sensor = self.frame.points, self.sensor
-        beam, column, _ = sensor.cells(points)
+        beam, column, distance = point_cells(points, sensor)
         rows = np.flatnonzero(beam >= 0)  # (points outside every beam: no cell, never hidden)
-        relative = points[rows, :3].astype(np.float64) - sensor.mount
-        relative[:, 2] -= sensor.offsets[beam[rows]]
-        distance = np.sqrt((relative * relative).sum(axis=1))
+        distance = distance[rows]
         cell = beam[rows] * sensor.num_columns + column[rows]
         order = np.lexsort((distance, cell))  # by cell, nearest first
         rows, distance, cell = rows[order], distance[order], cell[order]
