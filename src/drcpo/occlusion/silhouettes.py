@@ -27,10 +27,11 @@ def row_gaps(
     """The empty ray cells inside each inserted object's rows of returns.
 
     For each object ``k`` (``owner == k >= 0``) and beam ``b`` holding some of its returns
-    (cells by :meth:`Sensor.cells`), the columns from its first to its last return of that
-    beam (the shorter way round the turn) that hold none: one point per such cell, on the
-    cell's ray (from ``sensor.ray_origins(b)`` along ``sensor.ray_directions(b, c)``) at the
-    mean distance from that origin of the object's returns of beam ``b``.
+    (cells by :meth:`Sensor.cells`), the columns of the shortest arc of the turn that holds
+    all of them (every empty arc between two of its columns but the widest, which is the
+    outside) that hold none: one point per such cell, on the cell's ray (from
+    ``sensor.ray_origins(b)`` along ``sensor.ray_directions(b, c)``) at the mean distance from
+    that origin of the object's returns of beam ``b``.
 
     Args:
         points: ``(N, 3+)`` the frame after insertion, metres, LiDAR frame.
@@ -39,43 +40,41 @@ def row_gaps(
 
     Returns:
         ``gaps float64 (G, 3)`` and ``gap_owner int64 (G,)``: the points and their objects,
-        by object, then beam, then column from the row's first return.
+        by object, then beam, then column.
     """
     owner = np.asarray(owner)
     inserted = np.flatnonzero(owner >= 0)
     beam, column, distance = point_cells(np.asarray(points)[inserted], sensor)
     seen = (beam >= 0) & (column >= 0)
-    inserted, beam, column, distance = inserted[seen], beam[seen], column[seen], distance[seen]
-    if len(inserted) == 0:
+    if not seen.any():
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
     columns = sensor.num_columns
-    rows, row = np.unique(owner[inserted] * sensor.num_beams + beam, return_inverse=True)
-    # A row across the turn's seam spans less once the columns are turned half a turn.
-    half = columns // 2
-    first, last = _spans(row, column, len(rows))
-    turned_first, turned_last = _spans(row, (column + half) % columns, len(rows))
-    seam = turned_last - turned_first < last - first
-    first = np.where(seam, turned_first, first)
-    shift = np.where(seam, half, 0)
-    mean = np.bincount(row, distance, len(rows)) / np.bincount(row, minlength=len(rows))
-    widths = np.where(seam, turned_last, last) - first + 1
-    cell_row = np.repeat(np.arange(len(rows)), widths)
-    step = np.arange(len(cell_row)) - np.repeat(np.cumsum(widths) - widths, widths)
-    cell_column = (first[cell_row] + step - shift[cell_row]) % columns
-    held = np.unique(rows[row] * columns + column)
-    empty = ~np.isin(rows[cell_row] * columns + cell_column, held, assume_unique=False)
-    cell_row, cell_column = cell_row[empty], cell_column[empty]
-    cell_beam = rows[cell_row] % sensor.num_beams
-    gaps = sensor.ray_origins(cell_beam) + mean[cell_row, None] * sensor.ray_directions(
-        cell_beam, cell_column
+    code = (owner[inserted[seen]] * sensor.num_beams + beam[seen]) * columns + column[seen]
+    order = np.argsort(code, kind="stable")
+    code, distance = code[order], distance[seen][order]
+    row_code = code // columns
+    row = np.cumsum(np.r_[True, row_code[1:] != row_code[:-1]]) - 1
+    mean = np.bincount(row, distance) / np.bincount(row)
+    # the cells holding returns, by row then column; the empty arc before each
+    new_cell = np.r_[True, code[1:] != code[:-1]]
+    held_row, held_column = row[new_cell], code[new_cell] % columns
+    row_first = np.flatnonzero(np.r_[True, held_row[1:] != held_row[:-1]])
+    row_last = np.r_[row_first[1:] - 1, len(held_row) - 1]
+    empty_before = np.empty(len(held_row), dtype=np.int64)
+    empty_before[1:] = held_column[1:] - held_column[:-1] - 1
+    empty_before[row_first] = held_column[row_first] + columns - held_column[row_last] - 1
+    # the widest empty arc of each row (its first, on a tie) lies outside the object
+    widest = np.maximum.reduceat(empty_before, row_first)
+    candidates = np.flatnonzero(empty_before == widest[held_row])
+    outside = candidates[np.r_[True, held_row[candidates][1:] != held_row[candidates][:-1]]]
+    empty_before[outside] = 0
+    cell_of = np.repeat(np.arange(len(held_row)), empty_before)
+    step = np.arange(len(cell_of)) - np.repeat(np.cumsum(empty_before) - empty_before, empty_before)
+    gap_column = (held_column[cell_of] - empty_before[cell_of] + step) % columns
+    gap_row = held_row[cell_of]
+    gap_row_code = row_code[new_cell][cell_of]
+    gap_beam = gap_row_code % sensor.num_beams
+    gaps = sensor.ray_origins(gap_beam) + mean[gap_row, None] * sensor.ray_directions(
+        gap_beam, gap_column
     )
-    return gaps, (rows[cell_row] // sensor.num_beams).astype(np.int64)
-
-
-def _spans(row: np.ndarray, column: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per row ``0..count-1``, the least and greatest column of its cells."""
-    first = np.full(count, np.iinfo(np.int64).max, dtype=np.int64)
-    last = np.full(count, -1, dtype=np.int64)
-    np.minimum.at(first, row, column)
-    np.maximum.at(last, row, column)
-    return first, last
+    return gaps, (gap_row_code // sensor.num_beams).astype(np.int64)
