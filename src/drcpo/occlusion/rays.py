@@ -77,6 +77,22 @@ class RangeImage:
             raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
         return cls(sensor, ranges)
 
+    @classmethod
+    def from_cells(
+        cls, sensor: Sensor, beam: np.ndarray, column: np.ndarray, distance: np.ndarray
+    ) -> RangeImage:
+        """The range image of points whose cells are known (:func:`~drcpo.occlusion.render.
+        point_cells`: ``beam``, ``column`` ``int64 (N,)``, -1 for none; ``distance`` from the
+        beam's origin, metres): :meth:`build` of those points, without finding the cells again."""
+        ranges = np.full((sensor.num_beams, sensor.num_columns), np.inf)
+        _nearest_per_cell(
+            np.asarray(beam, dtype=np.int64),
+            np.asarray(column, dtype=np.int64),
+            np.asarray(distance, dtype=np.float64),
+            ranges,
+        )
+        return cls(sensor, ranges)
+
     def visible_rays(
         self,
         boxes: np.ndarray,
@@ -473,6 +489,15 @@ def _fill_range_image(
         if distance < ranges[b, c]:
             ranges[b, c] = distance
     return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_per_cell(beam, column, distance, ranges):  # pragma: no cover - numba
+    # ranges[b, c] = the least distance of the points of cell (b, c); -1: no cell
+    for i in range(beam.shape[0]):
+        b, c = beam[i], column[i]
+        if b >= 0 and c >= 0 and distance[i] < ranges[b, c]:
+            ranges[b, c] = distance[i]
 
 
 @numba.njit(cache=True, nogil=True)

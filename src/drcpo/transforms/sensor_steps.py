@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
 
+import numba
 import numpy as np
 
 from drcpo.errors import DataError
@@ -141,9 +142,15 @@ class SensorFrame:
         return frame_ground(frame)
 
     @cached_property
+    def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each frame point's ray cell and distance from its beam's origin
+        (:func:`~drcpo.occlusion.render.point_cells`), found once for the steps that need them."""
+        return point_cells(self.frame.points, self.sensor)
+
+    @cached_property
     def range_image(self) -> RangeImage:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
-        return RangeImage.build(self.frame.points, self.sensor)
+        return RangeImage.from_cells(self.sensor, *self.cells)
 
     def hidden_added(self, min_points: int, tolerance: float = 0.1) -> np.ndarray:
         """``bool (K,)``: of the ``K`` added boxes, those left with fewer than ``min_points``
@@ -154,26 +161,12 @@ class SensorFrame:
         for them (the added objects' surfaces crossing other cells are left to it)."""
         if not self.added.any():
             return np.zeros(0, dtype=bool)
-        points, sensor = self.frame.points, self.sensor
-        beam, column, distance = point_cells(points, sensor)
-        rows = np.flatnonzero(beam >= 0)  # (points outside every beam: no cell, never hidden)
-        distance = distance[rows]
-        cell = beam[rows] * sensor.num_columns + column[rows]
-        order = np.lexsort((distance, cell))  # by cell, nearest first
-        rows, distance, cell = rows[order], distance[order], cell[order]
-        owner = self.added_owner[rows]
-        starts = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
-        group = np.cumsum(np.r_[True, cell[1:] != cell[:-1]]) - 1
-        nearest_owner = owner[starts][group]
-        # per cell, the nearest return of another owner than the nearest's
-        second = np.full(len(starts), np.inf)
-        other = owner != nearest_owner
-        np.minimum.at(second, group[other], distance[other])
-        nearest_other = np.where(other, distance[starts][group], second[group])
-        hidden = (owner >= 0) & (nearest_other < distance - tolerance)
-        keep = np.ones(len(points), dtype=bool)
-        keep[rows[hidden]] = False
-        return self.added_counts(points, keep) < min_points
+        beam, column, distance = self.cells
+        sensor = self.sensor
+        cell = np.where(beam >= 0, beam * sensor.num_columns + column, -1)
+        cells = sensor.num_beams * sensor.num_columns
+        keep = ~_behind_other_owner(cell, distance, self.added_owner, float(tolerance), cells)
+        return self.added_counts(self.frame.points, keep) < min_points
 
     def without_hidden_added(self, min_points: int) -> tuple[SensorFrame, np.ndarray]:
         """This frame without the added objects of :meth:`hidden_added` (see
@@ -204,6 +197,8 @@ class SensorFrame:
         out.fallback = self.fallback
         out.__dict__["sensor"] = self.sensor  # (cached_property keeps its value there)
         out.__dict__["ground"] = self.ground
+        if "cells" in self.__dict__:
+            out.__dict__["cells"] = tuple(a[points] for a in self.cells)
         return out, frame.names[boxes]
 
     def hidden(
@@ -397,3 +392,32 @@ def with_row_gaps(
     reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
     radii = np.concatenate([element_radii(points, owner), reach * (sensor.azimuth_step / 2.0)])
     return np.concatenate([points, extra]), np.concatenate([owner, gap_owner]), radii
+
+
+@numba.njit(cache=True, nogil=True)
+def _behind_other_owner(cell, distance, owner, tolerance, cells):  # pragma: no cover - numba
+    # bool (N,): the points of an added object (owner >= 0) whose cell (in [0, cells); -1:
+    # none) holds a point of another owner (the frame's own: -1) nearer than it by more than
+    # tolerance. Per cell: the nearest point's distance and owner, and the nearest of another
+    # owner than that one.
+    best = np.full(cells, np.inf)
+    best_owner = np.full(cells, -2, np.int64)
+    second = np.full(cells, np.inf)
+    for i in range(cell.shape[0]):
+        k = cell[i]
+        if k < 0:
+            continue
+        if distance[i] < best[k]:
+            if best_owner[k] != owner[i]:
+                second[k] = best[k]
+            best[k], best_owner[k] = distance[i], owner[i]
+        elif owner[i] != best_owner[k] and distance[i] < second[k]:
+            second[k] = distance[i]
+    hidden = np.zeros(cell.shape[0], np.bool_)
+    for i in range(cell.shape[0]):
+        k = cell[i]
+        if k < 0 or owner[i] < 0:
+            continue
+        rival = second[k] if best_owner[k] == owner[i] else best[k]
+        hidden[i] = rival < distance[i] - tolerance
+    return hidden
