@@ -325,7 +325,7 @@ BAD_VALUES = {
     "drcpo.external_occlusion.radius": 1e300,
     "drcpo.external_occlusion.viewpoint_z": 1e3,
     "drcpo.external_occlusion.min_visible_rays": -1,
-    "drcpo.external_occlusion.fill_rows": "yes",
+    "drcpo.external_occlusion.fill_holes": "yes",
     "drcpo.sensor.model": "velodyne",
     "drcpo.sensor.elevations_deg": [2.0, 95.0],
     "drcpo.sensor.azimuth_step_deg": 0.0,

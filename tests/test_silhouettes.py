@@ -1,6 +1,7 @@
-"""drcpo.occlusion.silhouettes: the gaps in inserted objects' rows of returns, against a plain
-loop over objects, beams and columns; and ``external_occlusion.fill_rows`` in the occlusion
-along rays (a point behind a hole of a solid object goes; the outline does not grow)."""
+"""drcpo.occlusion.silhouettes: the holes in inserted objects' rows and columns of returns,
+against plain loops over objects, beams and columns; and ``external_occlusion.fill_holes`` in
+the occlusion along rays (a point behind a hole of a solid object goes; the outline does not
+grow)."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ import math
 import numpy as np
 import pytest
 
-from drcpo.occlusion.silhouettes import row_gaps
+from drcpo.occlusion.silhouettes import silhouette_gaps
 from drcpo.sensor import Sensor
-from drcpo.transforms.sensor_steps import sensor_occlusion, with_row_gaps
+from drcpo.transforms.sensor_steps import sensor_occlusion, with_silhouette_gaps
 
 
 def small_sensor(phase_deg: float = 0.3) -> Sensor:
@@ -33,17 +34,23 @@ def on_ray(sensor: Sensor, beam: int, column: int, distance: float) -> np.ndarra
     return (sensor.ray_origins(b) + distance * sensor.ray_directions(b, c))[0]
 
 
-def reference_gaps(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> set:
-    """(object, beam, column, rounded x, y, z) of every gap, by a loop over objects and beams."""
+def reference_gaps(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> dict:
+    """(object, beam, column) -> rounded x, y, z of every gap, by loops over objects, beams
+    and columns (a cell both a row's and a column's gap: the row's)."""
     beam, column, _ = sensor.cells(points)
     columns = sensor.num_columns
-    found = set()
+    found: dict = {}
+    distance = np.full(len(points), np.nan)
+    inside = beam >= 0
+    distance[inside] = np.linalg.norm(
+        points[inside, :3].astype(np.float64) - sensor.ray_origins(beam[inside]), axis=1
+    )
+    column_gaps = {}
     for k in np.unique(owner[owner >= 0]):
-        for b in np.unique(beam[(owner == k) & (beam >= 0)]):
+        for b in np.unique(beam[(owner == k) & inside]):
             mine = (owner == k) & (beam == b)
             held = set(column[mine].tolist())
-            origin = sensor.ray_origins(np.array([b]))[0]
-            mean = np.mean(np.linalg.norm(points[mine, :3].astype(np.float64) - origin, axis=1))
+            mean = distance[mine].mean()
             # the shortest arc holding every column: the complement of the widest empty arc
             ordered = sorted(held)
             gaps = [(ordered[(i + 1) % len(ordered)] - c) % columns for i, c in enumerate(ordered)]
@@ -56,20 +63,27 @@ def reference_gaps(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> set
                 span = [(start + s) % columns for s in range(length)]
             for c in span:
                 if c not in held:
-                    xyz = on_ray(sensor, int(b), c, mean)
-                    found.add((int(k), int(b), c, *np.round(xyz, 6).tolist()))
-    return found
+                    found[(int(k), int(b), c)] = np.round(on_ray(sensor, int(b), c, mean), 6)
+        for c in np.unique(column[(owner == k) & inside]):
+            mine = (owner == k) & (column == c) & inside
+            held = set(beam[mine].tolist())
+            mean = distance[mine].mean()
+            for b in range(min(held), max(held) + 1):
+                if b not in held:
+                    column_gaps[(int(k), b, int(c))] = np.round(on_ray(sensor, b, int(c), mean), 6)
+    for key, xyz in column_gaps.items():
+        found.setdefault(key, xyz)
+    return {key: tuple(xyz.tolist()) for key, xyz in found.items()}
 
 
-def as_set(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> set:
+def as_dict(points: np.ndarray, owner: np.ndarray, sensor: Sensor) -> dict:
     beam, column, _ = sensor.cells(points)
-    return {
-        (int(k), int(b), int(c), *np.round(p, 6).tolist())
-        for k, b, c, p in zip(owner, beam, column, points, strict=True)
-    }
+    keys = [(int(k), int(b), int(c)) for k, b, c in zip(owner, beam, column, strict=True)]
+    assert len(set(keys)) == len(keys)  # each cell once
+    return {key: tuple(np.round(p, 6).tolist()) for key, p in zip(keys, points, strict=True)}
 
 
-def test_row_gaps_match_a_loop_over_objects_beams_and_columns() -> None:
+def test_silhouette_gaps_match_a_loop_over_objects_beams_and_columns() -> None:
     sensor = small_sensor()
     rng = np.random.default_rng(3)
     points, owner = [], []
@@ -81,14 +95,17 @@ def test_row_gaps_match_a_loop_over_objects_beams_and_columns() -> None:
     frame = np.column_stack([rng.uniform(-30, 30, (50, 2)), np.full(50, -1.2)])
     points = np.concatenate([frame, np.array(points)])
     owner = np.concatenate([np.full(50, -1), owner])
-    gaps, gap_owner = row_gaps(points, owner, sensor)
+    gaps, gap_owner = silhouette_gaps(points, owner, sensor)
     expected = reference_gaps(points, owner, sensor)
     assert len(gaps) == len(expected) > 10
-    assert as_set(gaps, gap_owner, sensor) == expected
+    got = as_dict(gaps, gap_owner, sensor)
+    assert got.keys() == expected.keys()
+    for key, xyz in expected.items():
+        np.testing.assert_allclose(got[key], xyz, atol=2e-6)
 
 
 def test_no_inserted_points_no_gaps() -> None:
-    gaps, gap_owner = row_gaps(np.zeros((5, 4)) + 3.0, np.full(5, -1), small_sensor())
+    gaps, gap_owner = silhouette_gaps(np.zeros((5, 4)) + 3.0, np.full(5, -1), small_sensor())
     assert gaps.shape == (0, 3) and gap_owner.shape == (0,)
 
 
@@ -105,7 +122,7 @@ def holed_wall(sensor: Sensor) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("fill", [False, True])
-def test_fill_rows_hides_the_point_behind_a_hole_and_nothing_beside(fill: bool) -> None:
+def test_fill_holes_hides_the_point_behind_a_hole_and_nothing_beside(fill: bool) -> None:
     sensor = small_sensor()
     points, owner = holed_wall(sensor)
     keep, dropped = sensor_occlusion(
@@ -116,7 +133,7 @@ def test_fill_rows_hides_the_point_behind_a_hole_and_nothing_beside(fill: bool) 
         lambda kept: np.zeros(1, dtype=bool),
         lambda kept: np.zeros(0, dtype=np.int64),
         1,
-        fill_rows=fill,
+        fill_holes=fill,
     )
     assert keep.shape == (len(points),) and not dropped.any()
     assert keep[0] == (not fill)  # behind the hole: seen through it only without the fill
@@ -124,10 +141,10 @@ def test_fill_rows_hides_the_point_behind_a_hole_and_nothing_beside(fill: bool) 
     assert keep[2:].all()  # the wall's own returns
 
 
-def test_with_row_gaps_appends_gaps_that_are_never_returns() -> None:
+def test_with_silhouette_gaps_appends_gaps_that_are_never_returns() -> None:
     sensor = small_sensor()
     points, owner = holed_wall(sensor)
-    filled, filled_owner, radii = with_row_gaps(points, owner, sensor)
+    filled, filled_owner, radii = with_silhouette_gaps(points, owner, sensor)
     assert len(filled) == len(points) + 1 and filled.dtype == points.dtype
     np.testing.assert_array_equal(filled[: len(points)], points)
     np.testing.assert_allclose(filled[-1, :3], on_ray(sensor, 3, 40, 10.0), atol=1e-5)

@@ -305,12 +305,12 @@ class ExternalOcclusionConfig(Checked):
             high=1_000_000,
         ),
     )
-    fill_rows: bool = field(
+    fill_holes: bool = field(
         default=False,
         metadata=spec(
             "bool",
-            "mode sensor: the rays between an inserted object's outermost returns of a beam "
-            "that return none of it are blocked by it too (a solid object has no holes)",
+            "mode sensor: the rays between an inserted object's returns of a beam or of a "
+            "column that return none of it are blocked by it too (a solid object has no holes)",
         ),
     )
 

@@ -1,14 +1,14 @@
-"""The gaps in an inserted object's rows of returns (``external_occlusion.fill_rows``).
+"""The holes in an inserted object's returns (``external_occlusion.fill_holes``).
 
 An object's returns, rendered from a union of candidates' points or recorded in another frame,
 leave holes: rays that pass between its surface elements, or that the recording lost. A solid
 object blocks those rays all the same, so a point the frame recorded behind such a hole could
-not have been seen. :func:`row_gaps` gives, per object and beam, the ray cells between its
-outermost returns of that beam that hold none of its returns, as points on those rays at the
-mean distance of the row's returns; occlusion along the rays (:mod:`~drcpo.occlusion.rays`)
-takes them as surfaces that hide and are never returned. The outline is unchanged: nothing
-is added beyond a row's first and last return. Imports :mod:`drcpo.sensor` and
-:mod:`drcpo.occlusion.render` only.
+not have been seen. :func:`silhouette_gaps` gives, per object, the ray cells between its
+returns of one beam, or of one column, that hold none of its returns, as points on those rays
+at the mean distance of that beam's (column's) returns; occlusion along the rays
+(:mod:`~drcpo.occlusion.rays`) takes them as surfaces that hide and are never returned. The
+outline is unchanged: nothing is added beyond a row's or a column's outermost returns.
+Imports :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.render` only.
 """
 
 from __future__ import annotations
@@ -18,20 +18,22 @@ import numpy as np
 from drcpo.occlusion.render import point_cells
 from drcpo.sensor import Sensor
 
-__all__ = ["row_gaps"]
+__all__ = ["silhouette_gaps"]
 
 
-def row_gaps(
+def silhouette_gaps(
     points: np.ndarray, owner: np.ndarray, sensor: Sensor
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The empty ray cells inside each inserted object's rows of returns.
+    """The empty ray cells inside each inserted object's rows and columns of returns.
 
-    For each object ``k`` (``owner == k >= 0``) and beam ``b`` holding some of its returns
-    (cells by :meth:`Sensor.cells`), the columns of the shortest arc of the turn that holds
+    For each object ``k`` (``owner == k >= 0``; cells by :meth:`Sensor.cells`): in each beam
+    ``b`` holding some of its returns, the columns of the shortest arc of the turn that holds
     all of them (every empty arc between two of its columns but the widest, which is the
-    outside) that hold none: one point per such cell, on the cell's ray (from
-    ``sensor.ray_origins(b)`` along ``sensor.ray_directions(b, c)``) at the mean distance from
-    that origin of the object's returns of beam ``b``.
+    outside) that hold none; in each column holding some, the beams between its highest and
+    lowest that hold none. One point per such cell (once, when it is both), on the cell's ray
+    (from ``sensor.ray_origins(b)`` along ``sensor.ray_directions(b, c)``) at the mean
+    distance from the beam's origin of the object's returns of that beam (row gaps) or column
+    (column gaps).
 
     Args:
         points: ``(N, 3+)`` the frame after insertion, metres, LiDAR frame.
@@ -48,33 +50,51 @@ def row_gaps(
     seen = (beam >= 0) & (column >= 0)
     if not seen.any():
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-    columns = sensor.num_columns
-    code = (owner[inserted[seen]] * sensor.num_beams + beam[seen]) * columns + column[seen]
-    order = np.argsort(code, kind="stable")
-    code, distance = code[order], distance[seen][order]
-    row_code = code // columns
-    row = np.cumsum(np.r_[True, row_code[1:] != row_code[:-1]]) - 1
-    mean = np.bincount(row, distance) / np.bincount(row)
-    # the cells holding returns, by row then column; the empty arc before each
-    new_cell = np.r_[True, code[1:] != code[:-1]]
-    held_row, held_column = row[new_cell], code[new_cell] % columns
-    row_first = np.flatnonzero(np.r_[True, held_row[1:] != held_row[:-1]])
-    row_last = np.r_[row_first[1:] - 1, len(held_row) - 1]
-    empty_before = np.empty(len(held_row), dtype=np.int64)
-    empty_before[1:] = held_column[1:] - held_column[:-1] - 1
-    empty_before[row_first] = held_column[row_first] + columns - held_column[row_last] - 1
-    # the widest empty arc of each row (its first, on a tie) lies outside the object
-    widest = np.maximum.reduceat(empty_before, row_first)
-    candidates = np.flatnonzero(empty_before == widest[held_row])
-    outside = candidates[np.r_[True, held_row[candidates][1:] != held_row[candidates][:-1]]]
-    empty_before[outside] = 0
-    cell_of = np.repeat(np.arange(len(held_row)), empty_before)
-    step = np.arange(len(cell_of)) - np.repeat(np.cumsum(empty_before) - empty_before, empty_before)
-    gap_column = (held_column[cell_of] - empty_before[cell_of] + step) % columns
-    gap_row = held_row[cell_of]
-    gap_row_code = row_code[new_cell][cell_of]
-    gap_beam = gap_row_code % sensor.num_beams
-    gaps = sensor.ray_origins(gap_beam) + mean[gap_row, None] * sensor.ray_directions(
+    beams, columns = sensor.num_beams, sensor.num_columns
+    mine, beam, column, distance = owner[inserted[seen]], beam[seen], column[seen], distance[seen]
+    row, row_column, row_mean = _line_gaps(mine * beams + beam, column, columns, distance)
+    # columns are straight lines: a period of twice the beams makes the outside the widest
+    line, line_beam, line_mean = _line_gaps(mine * columns + column, beam, 2 * beams, distance)
+    gap_owner = np.concatenate([row // beams, line // columns])
+    gap_beam = np.concatenate([row % beams, line_beam])
+    gap_column = np.concatenate([row_column, line % columns])
+    _, first = np.unique((gap_owner * beams + gap_beam) * columns + gap_column, return_index=True)
+    gap_owner, gap_beam, gap_column = gap_owner[first], gap_beam[first], gap_column[first]
+    mean = np.concatenate([row_mean, line_mean])[first]
+    gaps = sensor.ray_origins(gap_beam) + mean[:, None] * sensor.ray_directions(
         gap_beam, gap_column
     )
-    return gaps, (gap_row_code // sensor.num_beams).astype(np.int64)
+    return gaps, gap_owner.astype(np.int64)
+
+
+def _line_gaps(
+    line: np.ndarray, position: np.ndarray, period: int, distance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The empty positions of each line of cells between its held ones: of the cells
+    ``(line, position)`` (positions on a circle of ``period``; a period over twice the
+    positions' range makes the lines straight), every empty arc between two held positions
+    of a line but the widest. Returns each gap's line, position and the mean ``distance``
+    of its line's cells."""
+    code = line * period + position
+    order = np.argsort(code, kind="stable")
+    code, distance = code[order], distance[order]
+    line = code // period
+    index = np.cumsum(np.r_[True, line[1:] != line[:-1]]) - 1
+    mean = np.bincount(index, distance) / np.bincount(index)
+    new_cell = np.r_[True, code[1:] != code[:-1]]
+    held_line, held = index[new_cell], code[new_cell] % period
+    first = np.flatnonzero(np.r_[True, held_line[1:] != held_line[:-1]])
+    last = np.r_[first[1:] - 1, len(held_line) - 1]
+    empty_before = np.empty(len(held_line), dtype=np.int64)
+    empty_before[1:] = held[1:] - held[:-1] - 1
+    empty_before[first] = held[first] + period - held[last] - 1
+    # the widest empty arc of each line (its first, on a tie) lies outside the object
+    widest = np.maximum.reduceat(empty_before, first)
+    candidates = np.flatnonzero(empty_before == widest[held_line])
+    outside = candidates[np.r_[True, held_line[candidates][1:] != held_line[candidates][:-1]]]
+    empty_before[outside] = 0
+    cell_of = np.repeat(np.arange(len(held_line)), empty_before)
+    step = np.arange(len(cell_of)) - np.repeat(np.cumsum(empty_before) - empty_before, empty_before)
+    gap_position = (held[cell_of] - empty_before[cell_of] + step) % period
+    gap_line = held_line[cell_of]
+    return line[new_cell][cell_of], gap_position, mean[gap_line]

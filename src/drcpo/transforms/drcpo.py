@@ -658,7 +658,7 @@ class DRCPO(Transform):
                 count,
                 partial(seen.added_counts, points[:first]),
                 self.config.min_points_after,
-                settings.fill_rows,
+                settings.fill_holes,
             )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()

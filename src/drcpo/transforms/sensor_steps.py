@@ -34,7 +34,7 @@ from drcpo.frame import Frame
 from drcpo.ground import GroundModel
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, element_radii
 from drcpo.occlusion.render import point_cells, render_object
-from drcpo.occlusion.silhouettes import row_gaps
+from drcpo.occlusion.silhouettes import silhouette_gaps
 from drcpo.placement import (
     PlacementConfig,
     PlacementResult,
@@ -332,7 +332,7 @@ def sensor_occlusion(
     count_kept: Callable[[np.ndarray], np.ndarray],
     count_added: Callable[[np.ndarray], np.ndarray],
     min_points: int,
-    fill_rows: bool = False,
+    fill_holes: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -350,8 +350,9 @@ def sensor_occlusion(
             earlier-added object keeps in its box.
         min_points: an earlier-added object left with fewer points there goes too, all of
             its points (its label then goes with the frame's sparse boxes).
-        fill_rows: the gaps in each inserted object's rows of returns hide what lies behind
-            them too (``external_occlusion.fill_rows``; :func:`with_row_gaps`).
+        fill_holes: the holes in each inserted object's rows and columns of returns hide
+            what lies behind them too (``external_occlusion.fill_holes``;
+            :func:`with_silhouette_gaps`).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -362,8 +363,8 @@ def sensor_occlusion(
     combined = owner.copy()
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
     count, radii = len(points), None
-    if fill_rows:
-        points, combined, radii = with_row_gaps(points, combined, sensor)
+    if fill_holes:
+        points, combined, radii = with_silhouette_gaps(points, combined, sensor)
     rays = RayOcclusion(points, combined, sensor, radii)
     removed = rays.removed[:count]
     dropped = count_kept(~removed[first:])
@@ -377,16 +378,16 @@ def sensor_occlusion(
     return ~removed, dropped
 
 
-def with_row_gaps(
+def with_silhouette_gaps(
     points: np.ndarray, owner: np.ndarray, sensor: Sensor
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``points`` ``(N, F)`` and ``owner`` ``(N,)`` with the gaps of each inserted object's
-    rows of returns (:func:`~drcpo.occlusion.silhouettes.row_gaps`) appended as points of that
+    """``points`` ``(N, F)`` and ``owner`` ``(N,)`` with the holes of each inserted object's
+    returns (:func:`~drcpo.occlusion.silhouettes.silhouette_gaps`) appended as points of that
     object (features 0), and the surface-element radii of every inserted point in order: the
     default ones (:func:`~drcpo.occlusion.rays.element_radii`) for the points given, half an
     azimuth step across at its distance for a gap, so that a gap hides the rays of its own
     cell and not its neighbours'. The rows after the first ``N`` are never returns."""
-    gaps, gap_owner = row_gaps(points, owner, sensor)
+    gaps, gap_owner = silhouette_gaps(points, owner, sensor)
     extra = np.zeros((len(gaps), points.shape[1]), dtype=points.dtype)
     extra[:, :3] = gaps
     reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
