@@ -335,11 +335,11 @@ def _line_fit(
     ``_HEIGHT_SPREAD``): ``(t, h, determined)``, ``determined`` where the returns alone fix
     ``h`` ten times better than the prior does.
 
-    The prior's weight is the ring's own residual variance (radians^2, of its unweighted
-    line; at least ``_MIN_SCATTER^2``) over ``_HEIGHT_SPREAD^2``; the returns' is their count
-    times the variance of their ``x``. A ring whose returns span a few distances but lie
-    tightly on their line (KITTI's: about 3e-5 radian) keeps its own height; one at a single
-    distance, or scattered, takes the others'.
+    The prior's weight is the variance of the ring's returns about their own line fitted
+    without it (radians^2, at least ``_MIN_SCATTER^2``) over ``_HEIGHT_SPREAD^2``; the
+    returns' is their count times the variance of their ``x``. A ring whose returns span a
+    few distances but lie tightly on their line (KITTI's: about 3e-5 radian) keeps its own
+    height; one at a single distance, or scattered, takes the others'.
     """
     w = np.where(weight, 1.0, 0.0)
     wx, wy = w * x, w * y
