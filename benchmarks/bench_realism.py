@@ -719,9 +719,13 @@ def run_synthetic(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     }
 
 
-def kitti_frame_figures(frame: Frame, stages: Sequence, seed: int, sensor) -> dict[str, Any]:
+def kitti_frame_figures(
+    frame: Frame, stages: Sequence, seed: int, sensor, view_sensor=None
+) -> dict[str, Any]:
     """The truth-free figures of one KITTI frame: ground gaps, on-beam share (when ``sensor``,
-    the frame's estimated :class:`drcpo.sensor.Sensor`, is given), counts."""
+    the :class:`drcpo.sensor.Sensor` estimated from the frame's whole sweep, is given; with
+    ``view_sensor``, the one estimated from the camera's view that ``sensor: auto`` renders
+    through, DR.CPO's and the frame's points on its beams too: ``*_view``), counts."""
     out, sources, _ = augment(stages, frame, np.random.default_rng(seed))
     inserted = sources != ORIGINAL
     boxes, kinds = out.boxes[inserted], sources[inserted]
@@ -735,6 +739,10 @@ def kitti_frame_figures(frame: Frame, stages: Sequence, seed: int, sensor) -> di
             mine = new_points[(owner >= 0) & (kinds[owner.clip(0)] == kind)]
             beam[kind] = _sensor_on_beam(sensor, mine)
         beam["frame"] = _sensor_on_beam(sensor, frame.points)
+    if view_sensor is not None:  # the render's own beams: where the misses are the estimate's
+        mine = new_points[(owner >= 0) & (kinds[owner.clip(0)] == DRCPO_SOURCE)]
+        beam[f"{DRCPO_SOURCE}_view"] = _sensor_on_beam(view_sensor, mine)
+        beam["frame_view"] = _sensor_on_beam(view_sensor, frame.points)
     stats = out.metadata.get("augment_stats", {}).get("objects", {})
     return {
         "gaps": ground_gaps(boxes, ground).tolist(),
@@ -778,24 +786,27 @@ def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     except ImportError:  # the sensor estimate lands with issue 14's sensor part
         estimate_sensor = None
     dataset = KittiDataset(root, "train")
-    frames, sensors = [], []
+    frames, sensors, view_sensors = [], [], []
     for frame_id in dataset.frame_ids:
         frame = dataset.frame(frame_id)
         # the estimate reads the rings from the whole sweep in the sensor's own point order
         sensors.append(None if estimate_sensor is None else estimate_sensor(frame.points))
         keep = fov_mask(frame.points, frame.metadata["calib"], dataset.image_shape(frame_id))
         frames.append(frame.replace(points=frame.points[keep]))
+        # what sensor: auto estimates from the frame it augments (before ground-truth sampling)
+        view = None if estimate_sensor is None else estimate_sensor(frames[-1].points)
+        view_sensors.append(view)
     results: dict[str, Any] = {}
     for preset in args.presets:
         stages = inserting_stages(build_pipeline(resolve_preset(preset), database, index))
         per_frame = [
-            kitti_frame_figures(f, stages, 7 * 100_003 + i, sensor)
-            for i, (f, sensor) in enumerate(zip(frames, sensors, strict=True))
+            kitti_frame_figures(f, stages, 7 * 100_003 + i, sensor, view)
+            for i, (f, sensor, view) in enumerate(zip(frames, sensors, view_sensors, strict=True))
         ]
         gaps = np.array([g for f in per_frame for g in f["gaps"]])
         sources = np.array([s for f in per_frame for s in f["sources"]])
         beam = {}
-        for kind in (GT_SAMPLING, DRCPO_SOURCE, "frame"):
+        for kind in (GT_SAMPLING, DRCPO_SOURCE, "frame", f"{DRCPO_SOURCE}_view", "frame_view"):
             pairs = [f["beam"][kind] for f in per_frame if kind in f["beam"]]
             beam[kind] = (
                 _share(sum(p[0] for p in pairs), sum(p[1] for p in pairs)) if pairs else None

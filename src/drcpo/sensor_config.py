@@ -30,7 +30,11 @@ _MIN_RING = 4  # a ring is at least this many sampled points (fewer: jitter at i
 _START_BINS = 360  # resolution of the sweep's start azimuth (1 degree)
 _ON_BEAM = math.radians(0.1)  # a return this near its ring's fitted line lies on the beam
 _PERFECT_FIT = 0.999  # share of the returns on their beams that needs no other ring cut tried
-_PRIOR = 1e-4  # 1/m^2 per point: pull of an ill-determined beam origin height to the others'
+# A beam's origin height is drawn to the other beams' as a Gaussian prior of this spread
+# (metres; KITTI's two laser blocks sit 0.20 and 0.12-0.13 m up), weighed against its
+# own returns' scatter about their line: it decides only where those leave it open.
+_HEIGHT_SPREAD = 0.05
+_MIN_SCATTER = 1e-5  # radians: the least scatter of a ring's returns about its line
 _MAX_STEP = math.radians(2.0)  # azimuth steps beyond this are gaps, not firings
 _SAME_FIT = 0.002  # share of returns on their beams that origin heights must add to be kept
 _MAX_BEAMS = 128  # more beams than any spinning LiDAR has: not a sweep
@@ -245,8 +249,8 @@ def _fit_rings(
     ``None`` when the fits say the rings are not beams.
 
     The fit is linear in ``z / d = tan(e) + h / d``, so each point counts by its angular
-    error; a weak pull draws ``h`` to the other rings' when the ring's returns span too few
-    distances to fix it (the bottom beams of KITTI see only the road a few metres away).
+    error; a prior draws ``h`` to the other rings' where the ring's returns span too few
+    distances to fix it (see :func:`_line_fit`).
     ``stride``: fit every stride-th point only.
     """
     ring = np.repeat(np.arange(len(starts) - 1), np.diff(starts))[::stride]
@@ -300,8 +304,7 @@ def _robust_lines(
             threshold = np.maximum(3.0 * scale, math.radians(0.03))[ring]
         inlier = miss < threshold
         if heights:
-            tan_e, height, spread = _line_fit(x, y, first, inlier, prior)
-            determined = spread > 10.0 * _PRIOR
+            tan_e, height, determined = _line_fit(x, y, first, inlier, prior)
             prior = float(np.median(height[determined])) if determined.any() else 0.0
         else:
             w = inlier.astype(np.float64)
@@ -327,18 +330,29 @@ def _ring_mode(y: np.ndarray, ring: np.ndarray, rings: int, far: np.ndarray) -> 
 def _line_fit(
     x: np.ndarray, y: np.ndarray, first: np.ndarray, weight: np.ndarray, prior: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per ring (points contiguous, ``first`` its first index), least squares
-    ``y = t + h x`` over the points of ``weight`` with a pull ``_PRIOR * n * (h - prior)^2``:
-    ``(t, h, spread)``, ``spread`` the variance of their ``x``."""
+    """Per ring (points contiguous, ``first`` its first index), ``y = t + h x`` over the points
+    of ``weight``, least squares with a Gaussian prior of ``h`` at ``prior`` (spread
+    ``_HEIGHT_SPREAD``): ``(t, h, determined)``, ``determined`` where the returns alone fix
+    ``h`` ten times better than the prior does.
+
+    The prior's weight is the variance of the ring's returns about their own line fitted
+    without it (radians^2, at least ``_MIN_SCATTER^2``) over ``_HEIGHT_SPREAD^2``; the
+    returns' is their count times the variance of their ``x``. A ring whose returns span a
+    few distances but lie tightly on their line (KITTI's: about 3e-5 radian) keeps its own
+    height; one at a single distance, or scattered, takes the others'.
+    """
     w = np.where(weight, 1.0, 0.0)
     wx, wy = w * x, w * y
-    sums = [np.add.reduceat(v, first) for v in (w, wx, wy, wx * x, wx * y)]
+    sums = [np.add.reduceat(v, first) for v in (w, wx, wy, wx * x, wx * y, wy * y)]
     n = np.maximum(sums[0], 1e-12)
     mean_x, mean_y = sums[1] / n, sums[2] / n
     spread = np.maximum(sums[3] / n - mean_x**2, 0.0)
     cross = sums[4] / n - mean_x * mean_y
-    height = (cross + _PRIOR * prior) / (spread + _PRIOR)
-    return mean_y - height * mean_x, height, spread
+    explained = np.divide(cross**2, spread, out=np.zeros_like(spread), where=spread > 0.0)
+    residual = np.maximum(sums[5] / n - mean_y**2 - explained, _MIN_SCATTER**2)
+    pull = residual / (n * _HEIGHT_SPREAD**2)  # the prior's weight per return
+    height = (cross + pull * prior) / (spread + pull)
+    return mean_y - height * mean_x, height, spread > 10.0 * pull
 
 
 def _scan_step(azimuth: np.ndarray) -> float:
