@@ -32,7 +32,6 @@ from drcpo.occlusion.render import (
     RADIUS_FACTOR,
     RADIUS_RANGE,
     VOXEL,
-    _beam_at,
     _check_radii,
     _column_at,
     _cone,
@@ -40,6 +39,7 @@ from drcpo.occlusion.render import (
     _point_cells,
     _pseudo_bin,
     _voxel_radii,
+    point_cells,
     sensor_tables,
 )
 from drcpo.sensor import Sensor
@@ -70,12 +70,7 @@ class RangeImage:
     def build(cls, points: np.ndarray, sensor: Sensor) -> RangeImage:
         """The range image of ``points`` ``(N, 3+)`` (metres, LiDAR frame): each point goes to
         its cell (:meth:`Sensor.cells`); points outside every beam are left out."""
-        array = _frame_points(points)
-        ranges = np.full((sensor.num_beams, sensor.num_columns), np.inf)
-        bad = _fill_range_image(array, ranges, *sensor_tables(sensor).geometry)
-        if bad >= 0:
-            raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
-        return cls(sensor, ranges)
+        return cls.from_cells(sensor, *point_cells(_frame_points(points), sensor))
 
     @classmethod
     def from_cells(
@@ -443,52 +438,6 @@ def _inserted_radii(
     radii = np.empty(len(inserted))
     radii[by_object] = sorted_radii
     return radii
-
-
-@numba.njit(cache=True, nogil=True)
-def _fill_range_image(
-    points,
-    ranges,
-    edge_slopes,
-    edge_lut,
-    beam_slopes,
-    beam_lut,
-    offsets,
-    mount,
-    beam_cos,
-    beam_sin,
-    column_cos,
-    column_sin,
-    first,
-    crosses,
-    bound_cos,
-    bound_sin,
-    constants,
-):  # pragma: no cover - numba
-    # The nearest distance per cell, cells as render._point_cells finds them (the same code:
-    # a call per point would reference-count the tables); the first non-finite row, or -1.
-    columns, bins = column_cos.shape[0], first.shape[0]
-    step, phase, low, high = constants[0], constants[1], constants[2], constants[3]
-    for i in range(points.shape[0]):
-        x = np.float64(points[i, 0]) - mount[0]
-        y = np.float64(points[i, 1]) - mount[1]
-        z = np.float64(points[i, 2]) - mount[2]
-        if not np.isfinite(x + y + z):
-            return i
-        h2 = x * x + y * y
-        if h2 <= 0.0:
-            continue
-        inverse = 1.0 / math.sqrt(h2)
-        b = _beam_at(z, inverse, edge_slopes, edge_lut, beam_slopes, offsets, low, high, constants)
-        if b < 0:
-            continue
-        k = _pseudo_bin(x, y, bins)
-        c = _column_at(x, y, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase)
-        dz = z - offsets[b]
-        distance = math.sqrt(h2 + dz * dz)
-        if distance < ranges[b, c]:
-            ranges[b, c] = distance
-    return -1
 
 
 @numba.njit(cache=True, nogil=True)
