@@ -504,3 +504,20 @@ def test_permission_denied_is_a_clear_cli_error(tmp_path, monkeypatch):
 def test_interrupted_knows_its_exit_status():
     assert Interrupted("x", signal.SIGTERM).exit_status == 143
     assert "after the output was complete" in str(Interrupted("x", signal.SIGINT, complete=True))
+
+
+def test_sigterm_whose_exception_is_swallowed_still_stops_the_write(tmp_path):
+    # numba's compiler calls back into Python through ctypes, which prints and drops an
+    # exception raised there: the SIGTERM must still stop the write before the move.
+    def write(tmp: Path) -> None:
+        (tmp / KIND.marker).write_text(json.dumps({"format": KIND.format}))
+        try:
+            signal.raise_signal(signal.SIGTERM)
+        except KeyboardInterrupt:
+            pass  # what a ctypes callback does with it
+        (tmp / "b.txt").write_text("more")
+
+    with pytest.raises(KeyboardInterrupt):
+        write_directory(tmp_path / "db", write, KIND)
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL

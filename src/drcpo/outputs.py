@@ -480,13 +480,27 @@ def _sigterm_unwinds() -> Iterator[None]:
 
     def handler(signum: int, frame: object) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second one must not stop the clean-up
+        _TERMINATED.set()
         raise _Terminated
 
+    _TERMINATED.clear()
     signal.signal(signal.SIGTERM, handler)
     try:
         yield
+        _raise_if_terminated()
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        _TERMINATED.clear()
+
+
+# Set by _sigterm_unwinds' handler: its exception is lost when the signal lands in a ctypes
+# callback (numba compiling), so the write checks it again before anything is moved into place.
+_TERMINATED = threading.Event()
+
+
+def _raise_if_terminated() -> None:
+    if _TERMINATED.is_set():
+        raise _Terminated
 
 
 @contextmanager
@@ -496,6 +510,7 @@ def _signals_deferred() -> Iterator[None]:
     Done with Python handlers rather than a signal mask: the kernel may hand a signal to any
     thread (a progress bar's, numba's), but Python runs handlers in the main thread only.
     """
+    _raise_if_terminated()
     if threading.current_thread() is not threading.main_thread():
         yield  # signals interrupt only the main thread, never this one
         return
