@@ -234,7 +234,7 @@ def test_unplaced_objects_displace_added_ones(synthetic_world):  # noqa: F811
         boxes=np.zeros((0, 7)),
         accepted=np.zeros(0, dtype=np.int64),
         rejected=dict.fromkeys(REASONS, 0),
-        reasons=np.full(len(dims), "collision").astype(str),
+        reasons=np.full(len(dims), "slope").astype(str),  # shorter than the others
         attempts=0,
     )
     config = _realistic(db, index)._placement[True]
@@ -243,6 +243,8 @@ def test_unplaced_objects_displace_added_ones(synthetic_world):  # noqa: F811
         seen, first, dims, source, np.random.default_rng(1), config, 12, 0.7
     )
     assert len(merged.accepted) > 0 and (merged.reasons[merged.accepted] == "").all()
+    unplaced = np.setdiff1d(np.arange(len(dims)), merged.accepted)
+    assert len(unplaced) > 0 and np.isin(merged.reasons[unplaced], REASONS).all()
     grown = merged.boxes.copy()
     grown[:, 3:5] += 2.0 * config.clearance
     # naive reference: an added box goes iff it overlaps a placed one by a positive area

@@ -301,7 +301,8 @@ def displace_added(
     seen.after_placing, names = seen.without_added(displaced)
     accepted = np.concatenate([first.accepted, failed[second.accepted]])
     order = np.argsort(accepted, kind="stable")
-    reasons = first.reasons.copy()
+    # one dtype wide enough for both passes' names (a copy of first's would cut them short)
+    reasons = first.reasons.astype(np.result_type(first.reasons, second.reasons))
     reasons[failed] = second.reasons
     merged = PlacementResult(
         boxes=np.concatenate([first.boxes, second.boxes])[order],
