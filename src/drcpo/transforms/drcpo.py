@@ -659,6 +659,7 @@ class DRCPO(Transform):
                 partial(seen.added_counts, points[:first]),
                 self.config.min_points_after,
                 settings.fill_holes,
+                seen.boxes_with([i.box for i in insertions]),
             )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()
@@ -707,8 +708,7 @@ class DRCPO(Transform):
         keep: np.ndarray,
     ) -> np.ndarray:
         """``bool (len(insertions),)``: objects with fewer than ``min_points_after`` of their
-        points that ``keep`` (``bool (N,)``) holds in their own box (construction may leave
-        some a few cm outside it)."""
+        points that ``keep`` (``bool (N,)``) holds in their own box (some may lie outside)."""
         if not insertions:
             return np.zeros(0, dtype=bool)
         survivors = BoxQuery(points).own_counts(owner, [i.box for i in insertions], keep)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Any
@@ -34,6 +34,7 @@ from drcpo.frame import Frame
 from drcpo.ground import GroundModel
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, element_radii
 from drcpo.occlusion.render import point_cells, render_object
+from drcpo.occlusion.sightlines import sight_lines_cross
 from drcpo.occlusion.silhouettes import silhouette_gaps
 from drcpo.placement import (
     PlacementConfig,
@@ -102,6 +103,11 @@ class SensorFrame:
         ``keep`` ones that lie in each added box."""
         boxes = self.frame.boxes[self.added]
         return BoxQuery(take_rows(points, keep)).counts(boxes)
+
+    def boxes_with(self, boxes: Sequence[np.ndarray]) -> np.ndarray:
+        """``float64 (K + A, 7)``: ``boxes`` (DR.CPO's objects, numbered first) then the
+        added ones, in the numbering of :func:`sensor_occlusion`."""
+        return np.concatenate([np.reshape(boxes, (-1, 7)), self.frame.boxes[self.added]])
 
     @cached_property
     def own_points(self) -> np.ndarray:
@@ -334,6 +340,7 @@ def sensor_occlusion(
     count_added: Callable[[np.ndarray], np.ndarray],
     min_points: int,
     fill_holes: bool = False,
+    boxes: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -354,6 +361,10 @@ def sensor_occlusion(
         fill_holes: the holes in each inserted object's rows and columns of returns hide
             what lies behind them too (``external_occlusion.fill_holes``;
             :func:`with_silhouette_gaps`).
+        boxes: ``(K, 7)`` the objects' boxes by number, DR.CPO's then the earlier-added ones
+            (:meth:`SensorFrame.boxes_with`): a frame point whose sight line enters none of
+            the kept ones (its own aside) is never hidden, though a surface element beside
+            a box reaches it (:func:`~drcpo.occlusion.sightlines.sight_lines_cross`).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -367,16 +378,43 @@ def sensor_occlusion(
     if fill_holes:
         points, combined, radii = with_silhouette_gaps(points, combined, sensor)
     rays = RayOcclusion(points, combined, sensor, radii)
-    removed = rays.removed[:count]
+    objects = int(combined.max(initial=-1)) + 1  # (those with points)
+    if boxes is not None and len(boxes) < objects:
+        raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
+    gone = np.zeros(objects if boxes is None else len(boxes), dtype=bool)  # per object
+    removed = _in_sight(rays.removed[:count], combined[:first], points, gone, boxes, sensor)
     dropped = count_kept(~removed[first:])
-    gone = np.zeros(int(combined.max(initial=-1)) + 1, dtype=bool)  # per object
     gone[:num_drcpo] = dropped
     if added_owner.max(initial=-1) >= 0:
         sparse = count_added(~removed[:first]) < min_points
         gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
-        removed = rays.without(gone)[:count]
+        removed = rays.without(np.flatnonzero(gone[:objects]))[:count]
+        removed = _in_sight(removed, combined[:first], points, gone, boxes, sensor)
     return ~removed, dropped
+
+
+def _in_sight(
+    removed: np.ndarray,
+    frame_owner: np.ndarray,
+    points: np.ndarray,
+    gone: np.ndarray,
+    boxes: np.ndarray | None,
+    sensor: Sensor,
+) -> np.ndarray:
+    """``removed`` with the frame's points (the first ``F``, object ``frame_owner``, -1:
+    none) restored whose sight line from the mount enters no box of an object not ``gone``
+    but their own; ``removed`` itself without ``boxes``."""
+    if boxes is None:
+        return removed
+    rows = np.flatnonzero(removed[: len(frame_owner)])
+    kept = np.flatnonzero(~gone)
+    number = np.full(len(gone) + 1, -1, dtype=np.int64)  # (index -1: none)
+    number[kept] = np.arange(len(kept))
+    crossed = sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[frame_owner[rows]])
+    removed = removed.copy()
+    removed[rows[~crossed]] = False
+    return removed
 
 
 def with_silhouette_gaps(
