@@ -271,7 +271,7 @@ def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F
 
 def test_radius_share_caps_the_rendered_elements(synthetic_world):  # noqa: F811
     """``self_occlusion.radius_share``: a person-sized object is rendered with its elements
-    clipped at the share of its box's width (the preset's 0.12 x 0.6 m), fewer rays hitting
+    clipped at the share of its box's width (the preset's 0.09 x 0.6 m), fewer rays hitting
     its thin silhouette than with the plain 15 cm clip."""
     from drcpo.occlusion.render import render_object
     from drcpo.transforms.insertion import placed_object
@@ -279,7 +279,7 @@ def test_radius_share_caps_the_rendered_elements(synthetic_world):  # noqa: F811
     db, index, _ = synthetic_world
     capped = _realistic(db, index)
     plain = _realistic(db, index, **{"self_occlusion.radius_share": None})
-    assert capped.config.self_occlusion.radius_share == 0.12
+    assert capped.config.self_occlusion.radius_share == 0.09
     rng = np.random.default_rng(5)
     canonical = np.column_stack(
         [rng.uniform(-0.5, 0.5, (150, 3)) * [0.8, 0.6, 1.7], rng.uniform(0, 1, 150)]
@@ -288,7 +288,7 @@ def test_radius_share_caps_the_rendered_elements(synthetic_world):  # noqa: F811
     sensor = sensor_preset("hdl64e")
     points, _ = capped._object_s_hpr(canonical, box, 4, sensor, 7)
     placed = placed_object(canonical, box, 4)
-    expected, _ = render_object(placed, sensor, np.random.default_rng(7), max_radius=0.072)
+    expected, _ = render_object(placed, sensor, np.random.default_rng(7), max_radius=0.054)
     np.testing.assert_array_equal(points, expected)
     wide, _ = plain._object_s_hpr(canonical, box, 4, sensor, 7)
     assert 0 < len(points) < len(wide)

@@ -100,44 +100,72 @@ def wide_sensor() -> Sensor:
     )
 
 
-def test_elements_past_the_box_hide_nothing_beside_it() -> None:
-    """A sparse inserted wall at 10 m (returns 3 columns apart: its elements, 15 cm across,
-    reach past its last column) in a box that ends 0.3 degree past it: a frame point at 20 m
-    0.7 degree beside the wall is hidden by an element without the boxes, kept with them; one
-    straight behind the wall goes either way."""
-    sensor = wide_sensor()
+def on_ray(sensor: Sensor, beam: int, column: int, distance: float) -> np.ndarray:
+    b, c = np.array([beam]), np.array([column])
+    return (sensor.ray_origins(b) + distance * sensor.ray_directions(b, c))[0]
 
-    def on_ray(beam: int, column: int, distance: float) -> np.ndarray:
-        b, c = np.array([beam]), np.array([column])
-        return (sensor.ray_origins(b) + distance * sensor.ray_directions(b, c))[0]
 
-    wall = [on_ray(b, c, 10.0) for b in (2, 3, 4) for c in (30, 33, 36, 39)]
+def box_on_arc(distance: float, first_deg: float, last_deg: float, depth: float) -> np.ndarray:
+    """A box at ``distance`` spanning the azimuths ``first_deg`` to ``last_deg``, facing the
+    origin, beam 3's height at 10 m in its middle, 1 m high."""
+    middle = math.radians((first_deg + last_deg) / 2.0)
+    half_width = distance * math.tan(math.radians((last_deg - first_deg) / 2.0))
+    x, y = distance * math.cos(middle), distance * math.sin(middle)
+    return np.array([x, y, -0.35 * distance / 10.0, depth, 2 * half_width, 1.0, middle])
+
+
+def sparse_wall(sensor: Sensor) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """A sparse wall at 10 m (returns 3 columns apart: its elements, 15 cm across, reach past
+    its last column), its box (ending 0.3 degree past it) and a point at 20 m 0.7 degree
+    beside it, in the reach of its last column's elements but not behind the box."""
+    wall = [on_ray(sensor, b, c, 10.0) for b in (2, 3, 4) for c in (30, 33, 36, 39)]
     turn = math.radians(0.7)  # column 39's ray turned about the z axis
-    cos, sin = math.cos(turn), math.sin(turn)
-    x, y, z = on_ray(3, 39, 20.0)
-    frame = [on_ray(3, 33, 20.0), np.array([x * cos - y * sin, x * sin + y * cos, z])]
-    points = np.column_stack([np.array(frame + wall), np.zeros(len(frame) + len(wall))])
-    owner = np.concatenate([np.full(2, -1), np.zeros(len(wall), dtype=np.int64)])
-    azimuth = math.radians(34.5)  # the wall's middle, 10 m away
-    half_width = 10.0 * math.tan(math.radians(4.8))  # columns 29.7 to 39.3
-    box = np.array([[10 * math.cos(azimuth), 10 * math.sin(azimuth), -0.35, 0.2,
-                     2 * half_width, 1.0, azimuth]])  # fmt: skip
+    x, y, z = on_ray(sensor, 3, 39, 20.0)
+    beside = np.array([x * math.cos(turn) - y * math.sin(turn),
+                       x * math.sin(turn) + y * math.cos(turn), z])  # fmt: skip
+    return wall, box_on_arc(10.0, 29.7, 39.3, 0.2), beside
 
-    def keep(boxes):
-        kept, _ = sensor_occlusion(
-            points.astype(np.float32),
-            owner,
-            np.full(2, -1),
-            sensor,
-            lambda kept: np.zeros(1, dtype=bool),
-            lambda kept: np.zeros(0, dtype=np.int64),
-            1,
-            boxes=boxes,
-        )
-        return kept
 
-    without, within = keep(None), keep(box)
+def occlusion_keeps(points, owner, objects, sensor, boxes) -> np.ndarray:
+    kept, _ = sensor_occlusion(
+        np.column_stack([points, np.zeros(len(points))]).astype(np.float32),
+        np.asarray(owner),
+        np.full(int(np.count_nonzero(np.asarray(owner) < 0)), -1),
+        sensor,
+        lambda kept: np.zeros(objects, dtype=bool),
+        lambda kept: np.zeros(0, dtype=np.int64),
+        1,
+        boxes=boxes,
+    )
+    return kept
+
+
+def test_elements_past_the_box_hide_nothing_beside_it() -> None:
+    """A frame point beside the sparse wall's box is hidden by an element without the boxes,
+    kept with them; one straight behind the wall goes either way."""
+    sensor = wide_sensor()
+    wall, box, beside = sparse_wall(sensor)
+    points = np.array([on_ray(sensor, 3, 33, 20.0), beside, *wall])
+    owner = [-1, -1] + [0] * len(wall)
+    without = occlusion_keeps(points, owner, 1, sensor, None)
+    within = occlusion_keeps(points, owner, 1, sensor, box[None])
     assert not without[0] and not within[0]  # straight behind the wall
     assert not without[1]  # beside it: an element reaches it ...
     assert within[1]  # ... but past the box, which holds the wall
     assert within[2:].all() and without[2:].all()
+
+
+def test_an_inserted_return_beside_a_box_stays_unless_its_cell_has_a_nearer_one() -> None:
+    """Object 1's returns at 20 m: one beside the sparse wall's box (kept with the boxes, an
+    element hides it without them), one in the cell of a frame point at 15 m (hidden either
+    way: the cell rule, whatever the boxes)."""
+    sensor = wide_sensor()
+    wall, wall_box, beside = sparse_wall(sensor)
+    points = np.array([on_ray(sensor, 3, 45, 15.0), *wall, beside, on_ray(sensor, 3, 45, 20.0)])
+    owner = [-1] + [0] * len(wall) + [1, 1]
+    boxes = np.stack([wall_box, box_on_arc(20.0, 39.0, 46.0, 0.4)])
+    without = occlusion_keeps(points, owner, 2, sensor, None)
+    within = occlusion_keeps(points, owner, 2, sensor, boxes)
+    assert not without[-2] and within[-2]
+    assert not without[-1] and not within[-1]
+    assert without[:-2].all() and within[:-2].all()

@@ -382,7 +382,7 @@ def sensor_occlusion(
     if boxes is not None and len(boxes) < objects:
         raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
     gone = np.zeros(objects if boxes is None else len(boxes), dtype=bool)  # per object
-    removed = _in_sight(rays.removed[:count], combined[:first], points, gone, boxes, sensor)
+    removed = _in_sight(rays.removed[:count], combined[:count], points, gone, boxes, sensor)
     dropped = count_kept(~removed[first:])
     gone[:num_drcpo] = dropped
     if added_owner.max(initial=-1) >= 0:
@@ -390,30 +390,42 @@ def sensor_occlusion(
         gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
         removed = rays.without(np.flatnonzero(gone[:objects]))[:count]
-        removed = _in_sight(removed, combined[:first], points, gone, boxes, sensor)
+        removed = _in_sight(removed, combined[:count], points, gone, boxes, sensor)
     return ~removed, dropped
 
 
 def _in_sight(
     removed: np.ndarray,
-    frame_owner: np.ndarray,
+    owner: np.ndarray,
     points: np.ndarray,
     gone: np.ndarray,
     boxes: np.ndarray | None,
     sensor: Sensor,
+    tolerance: float = 0.1,
 ) -> np.ndarray:
-    """``removed`` with the frame's points (the first ``F``, object ``frame_owner``, -1:
-    none) restored whose sight line from the mount enters no box of an object not ``gone``
-    but their own; ``removed`` itself without ``boxes``."""
+    """``removed`` (``bool (N,)``, points of object ``owner``, -1: the frame's own) with the
+    points restored whose sight line from the mount enters no box of an object not ``gone``
+    but their own, unless (an object's point) its ray cell holds a return of another owner
+    (the frame's included) nearer by more than ``tolerance`` metres; ``removed`` itself
+    without ``boxes``."""
     if boxes is None:
         return removed
-    rows = np.flatnonzero(removed[: len(frame_owner)])
+    alive = (owner < 0) | ~gone[owner.clip(0)]
+    rows = np.flatnonzero(removed & alive)
     kept = np.flatnonzero(~gone)
     number = np.full(len(gone) + 1, -1, dtype=np.int64)  # (index -1: none)
     number[kept] = np.arange(len(kept))
-    crossed = sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[frame_owner[rows]])
+    free = rows[~sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[owner[rows]])]
+    if (owner[free] >= 0).any():
+        live = np.flatnonzero(alive)
+        beam, column, distance = point_cells(points[live], sensor)
+        cell = np.where(beam >= 0, beam * sensor.num_columns + column, -1)
+        behind = np.zeros(len(owner), dtype=bool)
+        cells = sensor.num_beams * sensor.num_columns
+        behind[live] = _behind_other_owner(cell, distance, owner[live], tolerance, cells)
+        free = free[~behind[free]]
     removed = removed.copy()
-    removed[rows[~crossed]] = False
+    removed[free] = False
     return removed
 
 
