@@ -313,6 +313,7 @@ BAD_VALUES = {
     "drcpo.placement.camera_fov": "sometimes",
     "drcpo.placement.drop_hidden_added": "yes",
     "drcpo.placement.displace_attempts": -1,
+    "drcpo.placement.repose_attempts": -1,
     "drcpo.self_occlusion.enabled": "true",
     "drcpo.self_occlusion.mode": "raytrace",
     "drcpo.self_occlusion.radius_factor": 1e300,

@@ -484,3 +484,32 @@ def test_bad_input() -> None:
     with pytest.raises(ConfigError, match="tolerance"):
         image.visible_rays(np.ones((1, 7)), tolerance=-1.0)
     assert image.visible_rays(np.zeros((0, 7))).shape == (0,)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_with_boxes_paints_each_rays_entry(seed: int) -> None:
+    """:meth:`RangeImage.with_boxes`: every cell keeps the nearest of its return and the
+    entries of its ray into the boxes (the slab test, ray by ray)."""
+    rng = np.random.default_rng(seed)
+    sensor = small_sensor()
+    image = RangeImage.build(scene(rng, 3000, sensor), sensor)
+    boxes = [[0.0, 0.0, 0.5, 3.0, 2.0, 1.0, 0.3]]  # around the sensor
+    for _ in range(4):
+        angle, distance = rng.uniform(-math.pi, math.pi), rng.uniform(3, 20)
+        sizes = [rng.uniform(0.5, 4), rng.uniform(0.5, 2), rng.uniform(0.5, 2)]
+        x, y = distance * math.cos(angle), distance * math.sin(angle)
+        boxes.append([x, y, rng.uniform(-1, 0.5), *sizes, rng.uniform(-math.pi, math.pi)])
+    boxes = np.array(boxes)
+    expected = np.array(image.ranges)
+    for b in range(sensor.num_beams):
+        origin = sensor.ray_origins(np.array([b]))[0]
+        for c in range(sensor.num_columns):
+            direction = sensor.ray_directions(np.array([b]), np.array([c]))[0]
+            for box in boxes:
+                enter, leave = slab(origin, direction, box)
+                if enter <= leave:
+                    expected[b, c] = min(expected[b, c], enter)
+    painted = image.with_boxes(boxes)
+    np.testing.assert_allclose(painted.ranges, expected, rtol=1e-9, atol=1e-9)
+    assert (painted.ranges < image.ranges).sum() > 100
+    assert image.with_boxes(np.zeros((0, 7))) is image

@@ -292,3 +292,102 @@ def test_radius_share_caps_the_rendered_elements(synthetic_world):  # noqa: F811
     np.testing.assert_array_equal(points, expected)
     wide, _ = plain._object_s_hpr(canonical, box, 4, sensor, 7)
     assert 0 < len(points) < len(wide)
+
+
+def _arc_box(sensor, distance: float, azimuths_deg: tuple[float, float], depth: float = 0.4):
+    """A box at ``distance`` facing the mount, spanning ``azimuths_deg``, 3 m high around the
+    mount's height."""
+    first, last = np.radians(azimuths_deg)
+    middle = (first + last) / 2.0
+    width = 2.0 * distance * math.tan((last - first) / 2.0)
+    x, y, z = sensor.mount
+    return np.array([x + distance * math.cos(middle), y + distance * math.sin(middle),
+                     z - 1.0, depth, width, 3.0, middle])  # fmt: skip
+
+
+def _returns_on_arc(sensor, distance: float, azimuths_deg: tuple[float, float]) -> np.ndarray:
+    """Points on the rays of 5 beams just below the horizon and of the columns between
+    ``azimuths_deg``, at ``distance`` from each beam's origin; ``(n, 4)``."""
+    beams = np.flatnonzero((sensor.elevations < 0.0) & (sensor.elevations > math.radians(-4)))
+    beams = beams[:5]
+    lo, hi = (np.radians(azimuths_deg) - sensor.phase) / sensor.azimuth_step
+    columns = np.arange(math.ceil(lo), math.floor(hi) + 1)
+    b, c = np.repeat(beams, len(columns)), np.tile(columns, len(beams))
+    xyz = sensor.ray_origins(b) + distance * sensor.ray_directions(b, c)
+    return np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32)
+
+
+def test_visible_returns_count_what_neither_the_frame_nor_another_box_hides():
+    """:func:`visible_returns`: returns behind the frame's own (a wall), behind an added
+    object's box though it holds no point there (the added objects are solid), or behind
+    another object's box are hidden; an object in the clear keeps them all, and one in front
+    of another is not hidden by it."""
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.sensor_steps import SensorFrame, visible_returns
+
+    sensor = sensor_preset("hdl64e")
+    wall = _returns_on_arc(sensor, 20.0, (-6.0, -2.0))
+    added = _arc_box(sensor, 8.0, (9.0, 15.0))
+    frame = Frame(wall, added[None], np.array(["Car"]), {BOX_SOURCE: np.array(["gt_sampling"])})
+    seen = SensorFrame(frame, SensorConfig(model="hdl64e"))
+    arcs = {
+        "behind the wall": (25.0, (-5.0, -3.0)),
+        "behind the added box": (15.0, (10.0, 14.0)),
+        "in the clear": (12.0, (30.0, 33.0)),
+        "behind the clear one": (25.0, (31.0, 32.0)),
+    }
+    rendered = [(_returns_on_arc(sensor, d, a), _arc_box(sensor, d, a)) for d, a in arcs.values()]
+    assert all(len(r[0]) > 10 for r in rendered)
+    counts = visible_returns(seen, rendered)
+    np.testing.assert_array_equal(counts, [0, 0, len(rendered[2][0]), 0])
+    assert visible_returns(seen, []).shape == (0,)
+
+
+def test_objects_hidden_once_rendered_get_new_poses(synthetic_world):  # noqa: F811
+    """``placement.repose_attempts``: a placed object left with no visible return gets a new
+    pose (placed as the first pass places: on the frame's ground, clear of every box) and is
+    rendered again there; the others keep theirs; with 0 attempts nothing moves."""
+    import dataclasses
+
+    from drcpo.geometry import bev_overlap_area
+    from drcpo.placement import PlacementRounds
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.sensor_steps import Placing, SensorFrame, visible_returns
+
+    db, index, frames = synthetic_world
+    seen = SensorFrame(frames[0], SensorConfig(model="hdl64e"))
+    dims = np.tile([[0.8, 0.6, 1.7]], (4, 1))
+    source = np.zeros((4, 7))
+    config = _realistic(db, index)._placement[True]
+    rng = np.random.default_rng(3)
+
+    def placing(attempts: int) -> Placing:
+        settings = dataclasses.replace(config, repose_attempts=attempts)
+        rounds = PlacementRounds(seen.frame, dims, source, rng, settings, seen.ground)
+        out = Placing(seen, rounds, dims, source, rng, settings, 12, 0.7)
+        out.first_pass()
+        return out
+
+    calls = []
+
+    def render(k: int, box: np.ndarray):
+        calls.append(k)
+        points = np.tile(np.append(box[:3], 0.5), (12, 1)).astype(np.float32)
+        return points, box
+
+    first = placing(20)
+    boxes = first.rounds.result().boxes
+    assert len(boxes) >= 3
+    rendered = [render(k, box) for k, box in enumerate(boxes)]
+    rendered[1] = (np.zeros((0, 4), np.float32), boxes[1])  # hidden: no return left
+    calls.clear()
+    moved, again = first.repose(seen, boxes, rendered, render, 5)
+    assert calls[:1] == [1] and set(calls) == {1}
+    assert not np.array_equal(moved[1], boxes[1])
+    np.testing.assert_array_equal(np.delete(moved, 1, axis=0), np.delete(boxes, 1, axis=0))
+    assert len(again[1][0]) == 12 and visible_returns(seen, again)[1] > 0
+    others = np.concatenate([np.delete(moved, 1, axis=0), seen.frame.boxes])
+    assert not (bev_overlap_area(moved[1:2], others) > 1e-9).any()
+    still, same = placing(0).repose(seen, boxes, rendered, render, 5)
+    np.testing.assert_array_equal(still, boxes)
+    assert same[1][0].shape == (0, 4)

@@ -38,13 +38,11 @@ Objects are tried up to ``attempts`` times (a fresh pose each time); the paper t
 ``max_attempts_per_frame`` caps the poses of one call in all, so that a crowded frame cannot
 loop for long: the round that reaches the cap draws poses for the first pending objects only,
 and objects that never got a pose end with the reason ``"budget"`` (counted per object, not per
-attempt). The budget counts poses, not seconds: a wall-clock budget would make the output
-depend on the machine's speed, and the same seed must give the same output.
+attempt). The budget counts poses, not seconds, so that the same seed gives the same output.
 
-The hot loops are numba kernels that reproduce the reference numpy arithmetic operation for
-operation (same boxes, same verdicts, bit for bit): collisions are a separating-axis test
-(:func:`bev_collisions`, interiors intersect exactly when the overlap area is positive), the
-points in each box come from a coarse cell index (:func:`box_members`, see ``_Obstacles``).
+The hot loops are numba kernels bit for bit equal to the reference numpy arithmetic:
+collisions a separating-axis test (:func:`bev_collisions`), the points in each box from a
+coarse cell index (:func:`box_members`, see ``_Obstacles``).
 """
 
 from __future__ import annotations
@@ -95,7 +93,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first fourteen fields.
+    section ``drcpo.placement``, whose keys are the first fifteen fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -125,6 +123,8 @@ class PlacementConfig(Checked):
         displace_attempts: for the caller (likewise): poses of a second pass for the objects
             left unplaced, through earlier stages' objects, which make way (are dropped) where
             one is placed (0: no second pass).
+        repose_attempts: for the caller (likewise): poses of another pass for the placed
+            objects that the frame and the others would hide once rendered (0: none).
 
     Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
@@ -230,17 +230,17 @@ class PlacementConfig(Checked):
     )
     drop_hidden_added: bool = field(
         default=False,
-        metadata=spec(
-            "bool",
-            "e-HPR mode sensor: before placing, drop the objects earlier stages added that "
-            "the frame hides (too few points left along the rays), freeing their room",
-        ),
+        metadata=spec("bool", "mode sensor: drop earlier stages' objects the frame hides first"),
     )
     displace_attempts: int = field(
         default=0,
         metadata=spec(
             "int", "poses per unplaced object that displace added ones", low=0, high=1000
         ),
+    )
+    repose_attempts: int = field(
+        default=0,
+        metadata=spec("int", "poses per placed object hidden once rendered", low=0, high=1000),
     )
     fov_only: bool = field(
         default=False,

@@ -88,6 +88,23 @@ class RangeImage:
         )
         return cls(sensor, ranges)
 
+    def with_boxes(self, boxes: np.ndarray) -> RangeImage:
+        """This range image with ``boxes`` ``(K, 7)`` as solids: each cell whose ray enters
+        one of them keeps the nearest of its return and those entries (distances from the
+        beam's origin, within the box windows of :meth:`visible_rays`)."""
+        boxes = _check_boxes(boxes, "boxes")
+        if len(boxes) == 0:
+            return self
+        combined = np.array(self.ranges, dtype=np.float64)
+        geometry = sensor_tables(self.sensor).geometry
+        windows = _windows(boxes, *geometry)
+        cos, sin = heading_terms(boxes)
+        offsets, mount, beam_cos, beam_sin, column_cos, column_sin = geometry[4:10]
+        for g in range(len(boxes)):
+            _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
+                   column_cos, column_sin)  # fmt: skip
+        return RangeImage(self.sensor, combined)
+
     def visible_rays(
         self,
         boxes: np.ndarray,

@@ -268,6 +268,7 @@ class DRCPO(Transform):
                 stats.label_dropped(str(name))
         objects: list[Any] = []
         placed: Future | None = None  # of a Placed
+        dim = frame.points.shape[1]
         with ThreadPoolExecutor(max_workers=1) as pool:
             frame_grid = self._frame_grid(frame, rows, pool)
             # s-HPR of each object, done by this thread and the pool's when it is free.
@@ -284,9 +285,7 @@ class DRCPO(Transform):
                 # (the answers do not depend on it); the construction stage's time then
                 # includes the s-HPR work done meanwhile.
                 with stats.stage("drcpo.construction", 0) as record:
-                    queue = partial(
-                        self._queue_s_hpr, s_hpr, boxes, frame.points.shape[1], seen, seeds
-                    )
+                    queue = partial(self._queue_s_hpr, s_hpr, boxes, dim, seen, seeds)
                     objects = self._construct(rows, rng, stats, queue)
                     record["points_out"] = sum(len(o.points) for o in objects)
             else:  # whole: the box grows while constructing, so place with the final size
@@ -301,13 +300,17 @@ class DRCPO(Transform):
                     rows, objects = rows[accepted], [objects[i] for i in accepted]
                     placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
                 seeds = self._render_seeds(len(boxes), rng)
-                self._queue_s_hpr(s_hpr, boxes, frame.points.shape[1], seen, seeds, 0, objects)
+                self._queue_s_hpr(s_hpr, boxes, dim, seen, seeds, 0, objects)
             if seen is not None and seen.after_placing is not None:  # (displace_attempts)
                 seen, frame = seen.after_placing, seen.after_placing.frame
             points_in = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.self_occlusion", points_in) as record:
                 done = s_hpr.results()
                 visible = [done[k] for k in range(len(rows))]
+                if seen is not None and seen.placing is not None:  # (repose_attempts)
+                    boxes, visible = seen.placing.repose(seen, boxes, visible, lambda k, box: (
+                        self._object_s_hpr(objects[k].points, box, dim, seen.sensor, seeds[k])
+                    ), self.config.min_points_after)  # fmt: skip
                 insertions = self._insertions(rows, boxes, visible, stats)
                 record["points_out"] = sum(len(i.points) for i in insertions)
             with stats.stage("drcpo.insert", len(frame)) as record:
@@ -422,14 +425,11 @@ class DRCPO(Transform):
         rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
         if self._occlusion_along_rays:
             minimum = self.config.external_occlusion.min_visible_rays
-            share = 1.0 if limit is None else limit
-            result = sensor_steps.place_along_rays(rounds, seen, minimum, share)
-            if self.config.placement.displace_attempts:
-                result, gone = sensor_steps.displace_added(
-                    seen, result, dims, source, rng, self._placement[fov], minimum, share
-                )
-                for name in gone:
-                    stats.label_dropped(str(name))
+            settings = (rng, self._placement[fov], minimum, 1.0 if limit is None else limit)
+            seen.placing = sensor_steps.Placing(seen, rounds, dims, source, *settings)
+            result, gone = seen.placing.first_pass()
+            for name in gone:
+                stats.label_dropped(str(name))
             return (*self._placement_result(result, rows, stats), None)
         last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
         while (drawn := rounds.next_round()) is not None:

@@ -48,15 +48,18 @@ from drcpo.sensor_config import SensorConfig
 from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows, update_box_metadata
 
 __all__ = [
+    "Placing",
     "SensorFrame",
     "added_boxes",
     "displace_added",
     "place_along_rays",
     "render",
     "sensor_occlusion",
+    "visible_returns",
 ]
 
 _ADDED_MARGIN = 0.2  # metres around an added box whose points count as the added object's
+_REPOSE_PASSES = 2  # new poses for the objects hidden once rendered: passes at most
 
 
 def added_boxes(frame: Frame) -> np.ndarray:
@@ -81,6 +84,8 @@ class SensorFrame:
     fallback: str = field(default="", init=False)
     #: the frame placement left (:func:`displace_added`: without the objects displaced)
     after_placing: SensorFrame | None = field(default=None, init=False, repr=False)
+    #: the placement of the call (kept through :meth:`without_added`, for its new poses)
+    placing: Placing | None = field(default=None, init=False, repr=False)
     _view: tuple[tuple[int, float], PlacedView] | None = field(default=None, init=False, repr=False)
 
     @cached_property
@@ -158,6 +163,12 @@ class SensorFrame:
         """The frame's nearest return per ray cell (added objects included: they hide too)."""
         return RangeImage.from_cells(self.sensor, *self.cells)
 
+    @cached_property
+    def solid_image(self) -> RangeImage:
+        """:attr:`range_image` with the added objects' boxes as solids (the last step makes
+        each object solid, holes and all: nothing behind one is seen through it)."""
+        return self.range_image.with_boxes(self.frame.boxes[self.added])
+
     def hidden_added(self, min_points: int, tolerance: float = 0.1) -> np.ndarray:
         """``bool (K,)``: of the ``K`` added boxes, those left with fewer than ``min_points``
         of their points in their box once the frame's returns hide theirs: a point of one is
@@ -200,7 +211,7 @@ class SensorFrame:
             metadata=update_box_metadata(frame.metadata, len(frame.boxes), keep=keep),
         )
         out = SensorFrame(pruned, self.config)
-        out.fallback = self.fallback
+        out.fallback, out.placing = self.fallback, self.placing
         out.__dict__["sensor"] = self.sensor  # (cached_property keeps its value there)
         out.__dict__["ground"] = self.ground
         if "cells" in self.__dict__:
@@ -233,8 +244,117 @@ class SensorFrame:
         view = self._view
         key = (int(min_rays), float(max_hidden))
         if view is None or view[0] != key or not view[1].holds(placed):
-            view = self._view = (key, PlacedView(self.range_image, *key, placed=placed))
+            view = self._view = (key, PlacedView(self.solid_image, *key, placed=placed))
         return view[1].admit(boxes, objects, conflicts)
+
+
+@dataclass(eq=False)
+class Placing:
+    """The sensor-true placement of one call: its first pass (:func:`place_along_rays`, then
+    :func:`displace_added`) and, once the objects are rendered, new poses for those that the
+    frame and the others would hide (:meth:`repose`).
+
+    Args:
+        rounds: the first pass's rounds over the objects of sizes ``dims`` ``(K, 3)`` from
+            ``source`` ``(K, 7)``, drawn with ``rng`` under ``config``.
+        min_rays, max_hidden: the visibility test of :meth:`SensorFrame.hidden`.
+    """
+
+    seen: SensorFrame
+    rounds: PlacementRounds
+    dims: np.ndarray
+    source: np.ndarray
+    rng: np.random.Generator
+    config: PlacementConfig
+    min_rays: int
+    max_hidden: float
+    #: the objects the first pass placed (indices into ``dims``), once it ran
+    accepted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def first_pass(self) -> tuple[PlacementResult, np.ndarray]:
+        """The placement and the names of the added objects displaced (see
+        :func:`displace_added`; none with ``displace_attempts`` 0)."""
+        result = place_along_rays(self.rounds, self.seen, self.min_rays, self.max_hidden)
+        gone = np.zeros(0, dtype=str)
+        if self.config.displace_attempts:
+            result, gone = displace_added(
+                self.seen, result, self.dims, self.source, self.rng, self.config,
+                self.min_rays, self.max_hidden,
+            )  # fmt: skip
+        self.accepted = result.accepted
+        return result, gone
+
+    def repose(
+        self,
+        seen: SensorFrame,
+        boxes: np.ndarray,
+        rendered: Sequence[tuple[np.ndarray, Any]],
+        render: Callable[[int, np.ndarray], tuple[np.ndarray, Any]],
+        min_points: int,
+    ) -> tuple[np.ndarray, list[tuple[np.ndarray, Any]]]:
+        """The placed ``boxes`` ``(A, 7)`` and their objects ``rendered`` (returns first) with
+        new poses for the objects left with fewer than ``min_points`` returns that the frame
+        and the other objects would not hide (:func:`visible_returns`), each
+        rendered by ``render(k, box)``: up to ``_REPOSE_PASSES`` passes of
+        ``repose_attempts`` poses per such object, placed as the first pass places (on
+        ``seen``, the frame placement left), clear of the other objects' boxes and not hiding
+        them. An object no new pose fits keeps its own."""
+        boxes, rendered = np.array(boxes, dtype=np.float64), list(rendered)
+        if not self.config.repose_attempts or len(boxes) == 0:
+            return boxes, rendered
+        for _ in range(_REPOSE_PASSES):
+            counts = visible_returns(seen, rendered)
+            hidden = np.flatnonzero(counts < min_points)
+            if len(hidden) == 0:
+                break
+            others = np.delete(boxes, hidden, axis=0)
+            result = self._place_again(seen, self.accepted[hidden], others)
+            for k, box in zip(hidden[result.accepted], result.boxes, strict=True):
+                boxes[k] = box
+                rendered[k] = render(int(k), box)
+        return boxes, rendered
+
+    def _place_again(
+        self, seen: SensorFrame, objects: np.ndarray, others: np.ndarray
+    ) -> PlacementResult:
+        """A pass of ``repose_attempts`` poses per object (``objects``: indices into
+        ``dims``) on ``seen``, with ``others`` (grown by the clearance) as boxes to avoid and
+        as placed before."""
+        room = others.copy()
+        room[:, 3:5] += 2.0 * self.config.clearance
+        frame = seen.frame.replace(
+            boxes=np.concatenate([seen.frame.boxes, room]),
+            names=np.concatenate([seen.frame.names, np.full(len(room), "DontCare")]),
+        )
+        config = dataclasses.replace(
+            self.config, attempts=self.config.repose_attempts, max_attempts_per_frame=None
+        )
+        dims, source = self.dims[objects], self.source[objects]
+        rounds = PlacementRounds(frame, dims, source, self.rng, config, seen.ground)
+        return place_along_rays(rounds, seen, self.min_rays, self.max_hidden, others)
+
+
+def visible_returns(
+    seen: SensorFrame, rendered: Sequence[tuple[np.ndarray, np.ndarray]], tolerance: float = 0.1
+) -> np.ndarray:
+    """``int64 (A,)``: per object, its returns (``rendered[k]``: returns ``(n_k, 3+)`` and
+    label box ``(7,)``) that neither the frame with the added objects as solids
+    (:attr:`SensorFrame.solid_image`: a nearer return or box entry in the return's cell, by
+    more than ``tolerance`` metres) nor another object's box in front (the sight line enters
+    it, :func:`~drcpo.occlusion.sightlines.sight_lines_cross`) would hide."""
+    count = len(rendered)
+    sizes = np.array([len(r[0]) for r in rendered], dtype=np.int64)
+    if count == 0 or sizes.sum() == 0:
+        return np.zeros(count, dtype=np.int64)
+    owner = np.repeat(np.arange(count), sizes)
+    points = np.concatenate([r[0][:, :3] for r in rendered])
+    beam, column, distance = point_cells(points, seen.sensor)
+    on = beam >= 0
+    free = np.zeros(len(points), dtype=bool)
+    free[on] = seen.solid_image.ranges[beam[on], column[on]] >= distance[on] - tolerance
+    labels = np.stack([r[1] for r in rendered])
+    free[free] = ~sight_lines_cross(points[free], seen.sensor.mount, labels, owner[free])
+    return np.bincount(owner[free], minlength=count)
 
 
 def place_along_rays(
