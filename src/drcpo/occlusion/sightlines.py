@@ -11,6 +11,8 @@ one: :func:`sight_lines_cross` finds the points that may be. Imports :mod:`drcpo
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -66,12 +68,27 @@ def sight_lines_cross(
 
 @numba.njit(cache=True, nogil=True)
 def _cross(xyz, origin, boxes, cos, sin, own, margin, crossed):  # pragma: no cover - numba
-    # the ray's parameter t runs from the origin (0) to the point (1)
+    # the ray's parameter t runs from the origin (0) to the point (1); a box is tested only
+    # when the point lies beyond the near side of its bounding circle (seen from the origin)
+    # and within the azimuths that circle spans
     ox, oy, oz = origin[0], origin[1], origin[2]
+    count = boxes.shape[0]
+    azimuth, spread, near = np.empty(count), np.empty(count), np.empty(count)
+    for m in range(count):
+        cx, cy = boxes[m, 0] - ox, boxes[m, 1] - oy
+        radius = math.hypot(boxes[m, 3] / 2.0 + margin, boxes[m, 4] / 2.0 + margin)
+        reach = math.hypot(cx, cy)
+        azimuth[m] = math.atan2(cy, cx)
+        spread[m] = math.asin(radius / reach) + 1e-9 if reach > radius else 4.0
+        near[m] = reach - radius
     for i in range(xyz.shape[0]):
         dx, dy, dz = xyz[i, 0] - ox, xyz[i, 1] - oy, xyz[i, 2] - oz
-        for m in range(boxes.shape[0]):
-            if m == own[i]:
+        horizontal, heading = math.hypot(dx, dy), math.atan2(dy, dx)
+        for m in range(count):
+            if m == own[i] or horizontal < near[m]:
+                continue
+            turn = abs(heading - azimuth[m])
+            if min(turn, 2.0 * math.pi - turn) > spread[m]:
                 continue
             b = boxes[m]
             enter, leave = _slab(

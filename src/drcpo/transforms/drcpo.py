@@ -67,8 +67,7 @@ class DRCPO(Transform):
        always leave such an object too few points (the counts: ``docs/measurements.md``), so
        it is not built and hides nothing.
        Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
-       ``whole`` mode the box grows during construction, so objects are constructed first
-       and placed with their final size.
+       ``whole`` mode (the box grows while built) objects are placed once built.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
        ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
@@ -660,6 +659,7 @@ class DRCPO(Transform):
                 self.config.min_points_after,
                 settings.fill_holes,
                 seen.boxes_with([i.box for i in insertions]),
+                seen.cells,
             )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()

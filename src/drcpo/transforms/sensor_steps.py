@@ -23,7 +23,7 @@ import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cache, cached_property, partial
 from typing import Any
 
 import numba
@@ -461,6 +461,7 @@ def sensor_occlusion(
     min_points: int,
     fill_holes: bool = False,
     boxes: np.ndarray | None = None,
+    frame_cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -485,6 +486,8 @@ def sensor_occlusion(
             (:meth:`SensorFrame.boxes_with`): a frame point whose sight line enters none of
             the kept ones (its own aside) is never hidden, though a surface element beside
             a box reaches it (:func:`~drcpo.occlusion.sightlines.sight_lines_cross`).
+        frame_cells: the frame points' ray cells and distances, when known
+            (:attr:`SensorFrame.cells`; found here otherwise).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -502,7 +505,8 @@ def sensor_occlusion(
     if boxes is not None and len(boxes) < objects:
         raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
     gone = np.zeros(objects if boxes is None else len(boxes), dtype=bool)  # per object
-    removed = _in_sight(rays.removed[:count], combined[:count], points, gone, boxes, sensor)
+    cells = cache(partial(_cell_numbers, points, first, count, sensor, frame_cells))
+    removed = _in_sight(rays.removed[:count], combined[:count], points, gone, boxes, cells, sensor)
     dropped = count_kept(~removed[first:])
     gone[:num_drcpo] = dropped
     if added_owner.max(initial=-1) >= 0:
@@ -510,8 +514,28 @@ def sensor_occlusion(
         gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
         removed = rays.without(np.flatnonzero(gone[:objects]))[:count]
-        removed = _in_sight(removed, combined[:count], points, gone, boxes, sensor)
+        removed = _in_sight(removed, combined[:count], points, gone, boxes, cells, sensor)
     return ~removed, dropped
+
+
+def _cell_numbers(
+    points: np.ndarray,
+    first: int,
+    count: int,
+    sensor: Sensor,
+    frame_cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each of the first ``count`` points' ray cell (``beam * columns + column``, -1: none)
+    and distance from its beam's origin; the first ``first`` (the frame's) from
+    ``frame_cells`` when given."""
+    if frame_cells is None:
+        frame_cells = point_cells(points[:first], sensor)
+    elif len(frame_cells[0]) != first:
+        raise DataError(f"frame_cells must hold {first} points, got {len(frame_cells[0])}")
+    inserted = point_cells(points[first:count], sensor)
+    pairs = zip(frame_cells, inserted, strict=True)
+    beam, column, distance = (np.concatenate(pair) for pair in pairs)
+    return np.where(beam >= 0, beam * sensor.num_columns + column, -1), distance
 
 
 def _in_sight(
@@ -520,14 +544,15 @@ def _in_sight(
     points: np.ndarray,
     gone: np.ndarray,
     boxes: np.ndarray | None,
+    cells: Callable[[], tuple[np.ndarray, np.ndarray]],
     sensor: Sensor,
     tolerance: float = 0.1,
 ) -> np.ndarray:
     """``removed`` (``bool (N,)``, points of object ``owner``, -1: the frame's own) with the
     points restored whose sight line from the mount enters no box of an object not ``gone``
-    but their own, unless (an object's point) its ray cell holds a return of another owner
-    (the frame's included) nearer by more than ``tolerance`` metres; ``removed`` itself
-    without ``boxes``."""
+    but their own, unless (an object's point) its ray cell (``cells()``: see
+    :func:`_cell_numbers`) holds a return of another owner (the frame's included) nearer by
+    more than ``tolerance`` metres; ``removed`` itself without ``boxes``."""
     if boxes is None:
         return removed
     alive = (owner < 0) | ~gone[owner.clip(0)]
@@ -537,12 +562,9 @@ def _in_sight(
     number[kept] = np.arange(len(kept))
     free = rows[~sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[owner[rows]])]
     if (owner[free] >= 0).any():
-        live = np.flatnonzero(alive)
-        beam, column, distance = point_cells(points[live], sensor)
-        cell = np.where(beam >= 0, beam * sensor.num_columns + column, -1)
-        behind = np.zeros(len(owner), dtype=bool)
-        cells = sensor.num_beams * sensor.num_columns
-        behind[live] = _behind_other_owner(cell, distance, owner[live], tolerance, cells)
+        cell, distance = cells()
+        count = sensor.num_beams * sensor.num_columns
+        behind = _behind_other_owner(np.where(alive, cell, -1), distance, owner, tolerance, count)
         free = free[~behind[free]]
     removed = removed.copy()
     removed[free] = False
