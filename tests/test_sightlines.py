@@ -169,3 +169,27 @@ def test_an_inserted_return_beside_a_box_stays_unless_its_cell_has_a_nearer_one(
     assert not without[-2] and within[-2]
     assert not without[-1] and not within[-1]
     assert without[:-2].all() and within[:-2].all()
+
+
+def test_frame_cells_given_or_found_alike() -> None:
+    """``frame_cells`` (the frame's cells found before) gives the verdicts found without it;
+    cells of another frame are refused."""
+    from drcpo.occlusion.render import point_cells
+
+    sensor = wide_sensor()
+    wall, box, beside = sparse_wall(sensor)
+    points = np.array([on_ray(sensor, 3, 33, 20.0), beside, *wall])
+    xyz = np.column_stack([points, np.zeros(len(points))]).astype(np.float32)
+    owner = np.array([-1, -1] + [0] * len(wall))
+
+    def keep(frame_cells):
+        kept, _ = sensor_occlusion(
+            xyz, owner, np.full(2, -1), sensor,
+            lambda kept: np.zeros(1, dtype=bool), lambda kept: np.zeros(0, dtype=np.int64),
+            1, fill_holes=True, boxes=box[None], frame_cells=frame_cells,
+        )  # fmt: skip
+        return kept
+
+    np.testing.assert_array_equal(keep(point_cells(xyz[:2], sensor)), keep(None))
+    with pytest.raises(DataError, match="frame_cells"):
+        keep(point_cells(xyz[:3], sensor))

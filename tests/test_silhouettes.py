@@ -10,6 +10,8 @@ import math
 import numpy as np
 import pytest
 
+from drcpo.errors import DataError
+from drcpo.occlusion.render import point_cells
 from drcpo.occlusion.silhouettes import silhouette_gaps
 from drcpo.sensor import Sensor
 from drcpo.transforms.sensor_steps import sensor_occlusion, with_silhouette_gaps
@@ -102,6 +104,12 @@ def test_silhouette_gaps_match_a_loop_over_objects_beams_and_columns() -> None:
     assert got.keys() == expected.keys()
     for key, xyz in expected.items():
         np.testing.assert_allclose(got[key], xyz, atol=2e-6)
+    # the cells given instead of found: the same gaps, bit for bit
+    again, again_owner = silhouette_gaps(points, owner, sensor, point_cells(points, sensor))
+    np.testing.assert_array_equal(again, gaps)
+    np.testing.assert_array_equal(again_owner, gap_owner)
+    with pytest.raises(DataError, match="cells"):
+        silhouette_gaps(points, owner, sensor, tuple(a[1:] for a in point_cells(points, sensor)))
 
 
 def test_no_inserted_points_no_gaps() -> None:

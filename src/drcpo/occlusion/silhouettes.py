@@ -8,13 +8,14 @@ returns of one beam, or of one column, that hold none of its returns, as points 
 at the mean distance of that beam's (column's) returns; occlusion along the rays
 (:mod:`~drcpo.occlusion.rays`) takes them as surfaces that hide and are never returned. The
 outline is unchanged: nothing is added beyond a row's or a column's outermost returns.
-Imports :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.render` only.
+Imports :mod:`drcpo.errors`, :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.render` only.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from drcpo.errors import DataError
 from drcpo.occlusion.render import point_cells
 from drcpo.sensor import Sensor
 
@@ -22,7 +23,10 @@ __all__ = ["silhouette_gaps"]
 
 
 def silhouette_gaps(
-    points: np.ndarray, owner: np.ndarray, sensor: Sensor
+    points: np.ndarray,
+    owner: np.ndarray,
+    sensor: Sensor,
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The empty ray cells inside each inserted object's rows and columns of returns.
 
@@ -39,6 +43,8 @@ def silhouette_gaps(
         points: ``(N, 3+)`` the frame after insertion, metres, LiDAR frame.
         owner: ``int (N,)``: -1 for the frame's own points, ``k`` for inserted object ``k``.
         sensor: the LiDAR whose cells these are.
+        cells: each point's beam, column and distance from its beam's origin
+            (:func:`~drcpo.occlusion.render.point_cells` of ``points``), when known.
 
     Returns:
         ``gaps float64 (G, 3)`` and ``gap_owner int64 (G,)``: the points and their objects,
@@ -46,7 +52,12 @@ def silhouette_gaps(
     """
     owner = np.asarray(owner)
     inserted = np.flatnonzero(owner >= 0)
-    beam, column, distance = point_cells(np.asarray(points)[inserted], sensor)
+    if cells is None:
+        beam, column, distance = point_cells(np.asarray(points)[inserted], sensor)
+    else:
+        if any(len(a) != len(owner) for a in cells):
+            raise DataError(f"cells must hold {len(owner)} points each")
+        beam, column, distance = (a[inserted] for a in cells)
     seen = (beam >= 0) & (column >= 0)
     if not seen.any():
         return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)

@@ -498,14 +498,14 @@ def sensor_occlusion(
     combined = owner.copy()
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
     count, radii = len(points), None
+    cells = cache(partial(_point_cell_arrays, points, first, sensor, frame_cells))
     if fill_holes:
-        points, combined, radii = with_silhouette_gaps(points, combined, sensor)
+        points, combined, radii = with_silhouette_gaps(points, combined, sensor, cells())
     rays = RayOcclusion(points, combined, sensor, radii)
     objects = int(combined.max(initial=-1)) + 1  # (those with points)
     if boxes is not None and len(boxes) < objects:
         raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
     gone = np.zeros(objects if boxes is None else len(boxes), dtype=bool)  # per object
-    cells = cache(partial(_cell_numbers, points, first, count, sensor, frame_cells))
     removed = _in_sight(rays.removed[:count], combined[:count], points, gone, boxes, cells, sensor)
     dropped = count_kept(~removed[first:])
     gone[:num_drcpo] = dropped
@@ -518,24 +518,21 @@ def sensor_occlusion(
     return ~removed, dropped
 
 
-def _cell_numbers(
+def _point_cell_arrays(
     points: np.ndarray,
     first: int,
-    count: int,
     sensor: Sensor,
     frame_cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each of the first ``count`` points' ray cell (``beam * columns + column``, -1: none)
-    and distance from its beam's origin; the first ``first`` (the frame's) from
-    ``frame_cells`` when given."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`~drcpo.occlusion.render.point_cells` of ``points``; of the first ``first`` (the
+    frame's) from ``frame_cells`` when given."""
     if frame_cells is None:
-        frame_cells = point_cells(points[:first], sensor)
-    elif len(frame_cells[0]) != first:
+        return point_cells(points, sensor)
+    if len(frame_cells[0]) != first:
         raise DataError(f"frame_cells must hold {first} points, got {len(frame_cells[0])}")
-    inserted = point_cells(points[first:count], sensor)
-    pairs = zip(frame_cells, inserted, strict=True)
+    pairs = zip(frame_cells, point_cells(points[first:], sensor), strict=True)
     beam, column, distance = (np.concatenate(pair) for pair in pairs)
-    return np.where(beam >= 0, beam * sensor.num_columns + column, -1), distance
+    return beam, column, distance
 
 
 def _in_sight(
@@ -544,14 +541,14 @@ def _in_sight(
     points: np.ndarray,
     gone: np.ndarray,
     boxes: np.ndarray | None,
-    cells: Callable[[], tuple[np.ndarray, np.ndarray]],
+    cells: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]],
     sensor: Sensor,
     tolerance: float = 0.1,
 ) -> np.ndarray:
     """``removed`` (``bool (N,)``, points of object ``owner``, -1: the frame's own) with the
     points restored whose sight line from the mount enters no box of an object not ``gone``
-    but their own, unless (an object's point) its ray cell (``cells()``: see
-    :func:`_cell_numbers`) holds a return of another owner (the frame's included) nearer by
+    but their own, unless (an object's point) its ray cell (``cells()``: beam, column and
+    distance of each) holds a return of another owner (the frame's included) nearer by
     more than ``tolerance`` metres; ``removed`` itself without ``boxes``."""
     if boxes is None:
         return removed
@@ -562,9 +559,10 @@ def _in_sight(
     number[kept] = np.arange(len(kept))
     free = rows[~sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[owner[rows]])]
     if (owner[free] >= 0).any():
-        cell, distance = cells()
+        beam, column, distance = cells()
+        cell = np.where(alive & (beam >= 0), beam * sensor.num_columns + column, -1)
         count = sensor.num_beams * sensor.num_columns
-        behind = _behind_other_owner(np.where(alive, cell, -1), distance, owner, tolerance, count)
+        behind = _behind_other_owner(cell, distance, owner, tolerance, count)
         free = free[~behind[free]]
     removed = removed.copy()
     removed[free] = False
@@ -572,15 +570,19 @@ def _in_sight(
 
 
 def with_silhouette_gaps(
-    points: np.ndarray, owner: np.ndarray, sensor: Sensor
+    points: np.ndarray,
+    owner: np.ndarray,
+    sensor: Sensor,
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``points`` ``(N, F)`` and ``owner`` ``(N,)`` with the holes of each inserted object's
     returns (:func:`~drcpo.occlusion.silhouettes.silhouette_gaps`) appended as points of that
     object (features 0), and the surface-element radii of every inserted point in order: the
     default ones (:func:`~drcpo.occlusion.rays.element_radii`) for the points given, half an
     azimuth step across at its distance for a gap, so that a gap hides the rays of its own
-    cell and not its neighbours'. The rows after the first ``N`` are never returns."""
-    gaps, gap_owner = silhouette_gaps(points, owner, sensor)
+    cell and not its neighbours'. The rows after the first ``N`` are never returns. ``cells``:
+    the points' ray cells, when known (see :func:`silhouette_gaps`)."""
+    gaps, gap_owner = silhouette_gaps(points, owner, sensor, cells)
     extra = np.zeros((len(gaps), points.shape[1]), dtype=points.dtype)
     extra[:, :3] = gaps
     reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
