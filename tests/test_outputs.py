@@ -3,6 +3,7 @@ that a kill cannot turn into nothing, temporaries of dead runs, SIGTERM, OS erro
 
 from __future__ import annotations
 
+import ctypes
 import errno
 import json
 import os
@@ -521,3 +522,29 @@ def test_sigterm_whose_exception_is_swallowed_still_stops_the_write(tmp_path):
         write_directory(tmp_path / "db", write, KIND)
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_sigterm_in_a_c_callback_prints_no_traceback(tmp_path, capfd, monkeypatch):
+    # numba compiling calls back into Python through ctypes: a SIGTERM landing there raises
+    # in the callback, which reports the exception as "ignored" with a traceback. The write
+    # stops all the same, and that report is left out (the CLI prints one line instead);
+    # any other exception a callback drops still reaches the hook in place before.
+    reported = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda info: reported.append(info.exc_type))
+    before = sys.unraisablehook
+    terminate = ctypes.CFUNCTYPE(None)(lambda: signal.raise_signal(signal.SIGTERM))
+    fail = ctypes.CFUNCTYPE(None)(lambda: 1 / 0)
+
+    def write(tmp: Path) -> None:
+        (tmp / KIND.marker).write_text(json.dumps({"format": KIND.format}))
+        fail()
+        terminate()  # through C: the exception is dropped there
+        (tmp / "b.txt").write_text("more")
+
+    with pytest.raises(KeyboardInterrupt):
+        write_directory(tmp_path / "db", write, KIND)
+    assert list(tmp_path.iterdir()) == []
+    assert reported == [ZeroDivisionError]
+    assert sys.unraisablehook is before
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "Exception ignored" not in err

@@ -42,6 +42,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from drcpo.errors import OutputError, OutputExistsError
 
@@ -483,13 +484,23 @@ def _sigterm_unwinds() -> Iterator[None]:
         _TERMINATED.set()
         raise _Terminated
 
+    previous_hook = sys.unraisablehook
+
+    def unraisable(info: Any) -> None:
+        # a _Terminated a C callback could not raise is handled through _TERMINATED: printing
+        # it would put a traceback before the one-line report
+        if not isinstance(info.exc_value, _Terminated):
+            previous_hook(info)
+
     _TERMINATED.clear()
     signal.signal(signal.SIGTERM, handler)
+    sys.unraisablehook = unraisable
     try:
         yield
         _raise_if_terminated()
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        sys.unraisablehook = previous_hook
         _TERMINATED.clear()
 
 
