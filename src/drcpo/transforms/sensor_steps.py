@@ -318,20 +318,13 @@ class Placing:
         self, seen: SensorFrame, objects: np.ndarray, others: np.ndarray
     ) -> PlacementResult:
         """A pass of ``repose_attempts`` poses per object (``objects``: indices into
-        ``dims``) on ``seen``, with ``others`` (grown by the clearance) as boxes to avoid and
-        as placed before."""
-        room = others.copy()
-        room[:, 3:5] += 2.0 * self.config.clearance
-        frame = seen.frame.replace(
-            boxes=np.concatenate([seen.frame.boxes, room]),
-            names=np.concatenate([seen.frame.names, np.full(len(room), "DontCare")]),
-        )
+        ``dims``) on ``seen``, clear of ``others`` (see :func:`place_clear_of`)."""
         config = dataclasses.replace(
             self.config, attempts=self.config.repose_attempts, max_attempts_per_frame=None
         )
         dims, source = self.dims[objects], self.source[objects]
-        rounds = PlacementRounds(frame, dims, source, self.rng, config, seen.ground)
-        return place_along_rays(rounds, seen, self.min_rays, self.max_hidden, others)
+        return place_clear_of(seen, others, dims, source, self.rng, config, self.min_rays,
+                              self.max_hidden)  # fmt: skip
 
 
 def visible_returns(
@@ -378,6 +371,29 @@ def place_along_rays(
     return rounds.result()
 
 
+def place_clear_of(
+    seen: SensorFrame,
+    placed: np.ndarray,
+    dims: np.ndarray,
+    source: np.ndarray,
+    rng: np.random.Generator,
+    config: PlacementConfig,
+    min_rays: int,
+    max_hidden: float,
+) -> PlacementResult:
+    """A placement pass on ``seen`` for the objects of sizes ``dims`` ``(K, 3)`` from
+    ``source`` ``(K, 7)`` under ``config``, with ``placed`` ``(P, 7)`` (grown by
+    ``config.clearance``) as boxes to avoid and as placed before (:func:`place_along_rays`)."""
+    room = placed.copy()
+    room[:, 3:5] += 2.0 * config.clearance
+    frame = seen.frame.replace(
+        boxes=np.concatenate([seen.frame.boxes, room]),
+        names=np.concatenate([seen.frame.names, np.full(len(room), "DontCare")]),
+    )
+    rounds = PlacementRounds(frame, dims, source, rng, config, seen.ground)
+    return place_along_rays(rounds, seen, min_rays, max_hidden, placed)
+
+
 def displace_added(
     seen: SensorFrame,
     first: PlacementResult,
@@ -405,12 +421,6 @@ def displace_added(
     if len(failed) == 0 or not seen.added.any():
         return first, np.zeros(0, dtype=str)
     bare, _ = seen.without_added(np.ones(int(np.count_nonzero(seen.added)), dtype=bool))
-    room = first.boxes.copy()
-    room[:, 3:5] += 2.0 * config.clearance
-    frame = bare.frame.replace(
-        boxes=np.concatenate([bare.frame.boxes, room]),
-        names=np.concatenate([bare.frame.names, np.full(len(room), "DontCare")]),
-    )
     cap = config.max_attempts_per_frame
     if cap is not None and cap <= first.attempts:
         return first, np.zeros(0, dtype=str)
@@ -418,8 +428,8 @@ def displace_added(
     config = dataclasses.replace(
         config, attempts=config.displace_attempts, max_attempts_per_frame=budget
     )
-    rounds = PlacementRounds(frame, dims[failed], source[failed], rng, config, seen.ground)
-    second = place_along_rays(rounds, bare, min_rays, max_hidden, first.boxes)
+    second = place_clear_of(bare, first.boxes, dims[failed], source[failed], rng, config,
+                            min_rays, max_hidden)  # fmt: skip
     grown = second.boxes.copy()
     grown[:, 3:5] += 2.0 * config.clearance
     added = seen.frame.boxes[seen.added]
