@@ -53,6 +53,7 @@ __all__ = [
     "added_boxes",
     "displace_added",
     "place_along_rays",
+    "place_clear_of",
     "render",
     "sensor_occlusion",
     "visible_returns",
