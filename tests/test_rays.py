@@ -11,7 +11,7 @@ import pytest
 
 from drcpo.errors import ConfigError, DataError
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
-from drcpo.occlusion.render import render_object, surfel_radii
+from drcpo.occlusion.render import point_cells, render_object, surfel_radii
 from drcpo.sensor import Sensor, sensor_preset
 
 HDL64E = sensor_preset("hdl64e")
@@ -448,6 +448,29 @@ def test_default_radii_are_each_objects_own() -> None:
 def test_no_inserted_points_removes_nothing() -> None:
     points = scene(np.random.default_rng(0), 500, HDL64E)
     assert not ray_occlusion(points, np.full(500, -1), HDL64E).any()
+
+
+def test_cells_given_or_found_alike() -> None:
+    """``cells`` (the points' cells found before) gives the verdicts found without it, and
+    is what the verdict uses (the distances halved, the frame's points come before the
+    object's surface); a wrong length is refused."""
+    rng = np.random.default_rng(21)
+    sensor = small_sensor()
+    frame = scene(rng, 1500, sensor)
+    local = rng.uniform(-0.5, 0.5, (300, 3)) * (3.0, 1.6, 1.4) + (6.0, 1.0, -0.9)
+    inserted = np.column_stack([local, rng.random(300)]).astype(np.float32)
+    points = np.concatenate([frame, inserted])
+    owner = np.concatenate([np.full(len(frame), -1), np.zeros(300, np.int64)])
+    radii = rng.uniform(0.05, 0.3, len(points))
+    found = RayOcclusion(points, owner, sensor, radii=radii)
+    beam, column, distance = point_cells(points, sensor)
+    given = RayOcclusion(points, owner, sensor, radii=radii, cells=(beam, column, distance))
+    np.testing.assert_array_equal(given.removed, found.removed)
+    assert found.removed[owner == -1].sum() > 10
+    nearer = RayOcclusion(points, owner, sensor, radii=radii, cells=(beam, column, distance / 2))
+    assert nearer.removed[owner == -1].sum() < found.removed[owner == -1].sum()
+    with pytest.raises(DataError, match="cells' column"):
+        RayOcclusion(points, owner, sensor, cells=(beam, column[:-1], distance))
 
 
 # ----------------------------------------------------------------------------------------------

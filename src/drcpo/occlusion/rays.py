@@ -304,7 +304,8 @@ class RayOcclusion:
     elements and their windows) kept, so that the verdict without some of the objects costs
     little more (:meth:`without`).
 
-    Args: as :func:`ray_occlusion`.
+    Args: as :func:`ray_occlusion`, and ``cells``: the points' ray cells and distances
+    (:func:`~drcpo.occlusion.render.point_cells` of them), when known; found here otherwise.
 
     Attributes:
         removed: ``bool (N,)`` :func:`ray_occlusion` of all the points (read-only).
@@ -317,6 +318,7 @@ class RayOcclusion:
         sensor: Sensor,
         radii: np.ndarray | None = None,
         tolerance: float = 0.1,
+        cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> None:
         array = _frame_points(points)
         self._owner = owner = _check_owner(owner, len(array))
@@ -325,7 +327,8 @@ class RayOcclusion:
         self._radii = _inserted_radii(array, owner, inserted, radii)
         self._tables = tables = sensor_tables(sensor)
         self._objects = int(owner.max()) + 1 if len(inserted) else 0
-        index = _ray_index(array, owner, inserted, self._radii, *tables.geometry)
+        known = _known_cells(cells, len(array))
+        index = _ray_index(array, owner, inserted, self._radii, *known, *tables.geometry)
         if index[0] >= 0:
             raise DataError(f"points hold NaN/inf coordinates (first: row {index[0]})")
         self._index = index[1:]
@@ -385,6 +388,25 @@ def element_radii(points: np.ndarray, owner: np.ndarray) -> np.ndarray:
     array = _frame_points(points)
     owner = _check_owner(owner, len(array))
     return _inserted_radii(array, owner, np.flatnonzero(owner >= 0), None)
+
+
+def _known_cells(
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None, count: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``cells`` (beam, column, distance of each of ``count`` points) as :func:`_ray_index`
+    takes them; empty arrays (found there) when ``None``."""
+    if cells is None:
+        none = np.zeros(0, dtype=np.int64)
+        return none, none, np.zeros(0)
+    beam, column, distance = (np.asarray(part) for part in cells)
+    for name, part in (("beam", beam), ("column", column), ("distance", distance)):
+        if part.shape != (count,):
+            raise DataError(f"cells' {name} must have shape ({count},), got {part.shape}")
+    return (
+        beam.astype(np.int64, copy=False),
+        column.astype(np.int64, copy=False),
+        distance.astype(np.float64, copy=False),
+    )
 
 
 def _frame_points(points: np.ndarray) -> np.ndarray:
@@ -829,6 +851,9 @@ def _ray_index(
     owner,
     inserted,
     radii,
+    known_beam,
+    known_column,
+    known_distance,
     edge_slopes,
     edge_lut,
     beam_slopes,
@@ -854,9 +879,12 @@ def _ray_index(
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
     m = inserted.shape[0]
     # 1. The inserted points: their cells, distances and offsets from the mount.
-    own_beam, own_column, own_distance, rel, bad = _point_cells(
+    own_beam, own_column, own_distance, rel, bad = _cells_of(
         points,
         inserted,
+        known_beam,
+        known_column,
+        known_distance,
         edge_slopes,
         edge_lut,
         beam_slopes,
@@ -1006,9 +1034,12 @@ def _ray_index(
             candidates[found] = i
             found += 1
     candidates = candidates[:found]
-    beam, column, distance, near, bad = _point_cells(
+    beam, column, distance, near, bad = _cells_of(
         points,
         candidates,
+        known_beam,
+        known_column,
+        known_distance,
         edge_slopes,
         edge_lut,
         beam_slopes,
@@ -1034,6 +1065,54 @@ def _ray_index(
         -1, own_beam, own_column, own_distance, rel, element_owner, covered, slot, used, top,
         bottom, entries, start, candidates, beam, column, distance, near, frame,
     )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True)
+def _cells_of(
+    points,
+    index,
+    known_beam,
+    known_column,
+    known_distance,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # _point_cells of points[index], from the known cells of every point when given (they
+    # are that function's answer, so the same), computed otherwise.
+    if known_beam.shape[0] != points.shape[0]:
+        return _point_cells(
+            points, index, edge_slopes, edge_lut, beam_slopes, beam_lut, offsets, mount,
+            beam_cos, beam_sin, column_cos, column_sin, first, crosses, bound_cos, bound_sin,
+            constants,
+        )  # fmt: skip
+    n = index.shape[0]
+    beam = np.empty(n, np.int64)
+    column = np.empty(n, np.int64)
+    distance = np.empty(n)
+    rel = np.empty((n, 3))
+    for q in range(n):
+        i = index[q]
+        x = np.float64(points[i, 0]) - mount[0]
+        y = np.float64(points[i, 1]) - mount[1]
+        z = np.float64(points[i, 2]) - mount[2]
+        if not np.isfinite(x + y + z):
+            return beam, column, distance, rel, i
+        rel[q, 0], rel[q, 1], rel[q, 2] = x, y, z
+        beam[q], column[q], distance[q] = known_beam[i], known_column[i], known_distance[i]
+    return beam, column, distance, rel, -1
 
 
 @numba.njit(cache=True, nogil=True)

@@ -512,7 +512,9 @@ def sensor_occlusion(
     cells = cache(partial(_point_cell_arrays, points, first, sensor, frame_cells))
     if fill_holes:
         points, combined, radii = with_silhouette_gaps(points, combined, sensor, cells())
-    rays = RayOcclusion(points, combined, sensor, radii)
+    rays = RayOcclusion(
+        points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor)
+    )
     objects = int(combined.max(initial=-1)) + 1  # (those with points)
     if boxes is not None and len(boxes) < objects:
         raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
@@ -544,6 +546,18 @@ def _point_cell_arrays(
     pairs = zip(frame_cells, point_cells(points[first:], sensor), strict=True)
     beam, column, distance = (np.concatenate(pair) for pair in pairs)
     return beam, column, distance
+
+
+def _with_cells_of(
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray], points: np.ndarray, sensor: Sensor
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``cells`` of the first points, then those of the rest of ``points`` (the holes'
+    points :func:`with_silhouette_gaps` appended; none when it did not run)."""
+    count = len(cells[0])
+    if count == len(points):
+        return cells
+    pairs = zip(cells, point_cells(points[count:], sensor), strict=True)
+    return tuple(np.concatenate(pair) for pair in pairs)
 
 
 def _in_sight(
