@@ -16,6 +16,7 @@ from drcpo.occlusion.render import (
     point_cells,
     radius_cap,
     render_object,
+    sensor_tables,
     surfel_radii,
 )
 from drcpo.sensor import Sensor, sensor_preset
@@ -413,6 +414,27 @@ def test_point_cells_are_the_sensors_cells(name: str) -> None:
     np.testing.assert_allclose(
         distance[inside], np.linalg.norm(points[inside].astype(np.float64) - origin, axis=1)
     )
+
+
+def test_point_cells_where_several_beams_bands_hold_a_point() -> None:
+    """Origins far apart make the bands seen from them overlap: a point some beams' bands
+    both hold gets the beam Sensor.cells gives (the one nearest its elevation), as does a
+    point in one band only."""
+    base = sensor_preset("hdl64e")
+    sensor = dataclasses.replace(base, offsets=np.where(np.arange(64) % 2 == 0, 0.4, -0.4))
+    rng = np.random.default_rng(12)
+    radius = rng.uniform(1.0, 20.0, 5000)
+    angle = rng.uniform(-math.pi, math.pi, 5000)
+    points = np.column_stack(
+        [radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-3.0, 1.0, 5000)]
+    ).astype(np.float32)
+    beam, _, _ = point_cells(points, sensor)
+    np.testing.assert_array_equal(beam, sensor.cells(points)[0])
+    edges = sensor_tables(sensor).geometry[0]
+    relative = points.astype(np.float64) - np.asarray(sensor.mount)
+    own = (relative[:, 2:3] - sensor.offsets) / np.hypot(relative[:, 0], relative[:, 1])[:, None]
+    holders = ((edges[1:] < own) & (own <= edges[:-1])).sum(axis=1)
+    assert (holders >= 2).sum() > 100 and (holders == 1).sum() > 100
 
 
 def test_point_cells_name_the_bad_row() -> None:

@@ -551,8 +551,19 @@ def _beam_at(
         return row - 1 if 0 < row <= beams else -1
     top = _edge_row((z - low) * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
     bottom = _edge_row((z - high) * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
+    lo, hi = max(top - 1, 0), min(bottom - 1, beams - 1)
+    # most points fall in one beam's band only: then no angle needs comparing
+    best, holding = -1, 0
+    for candidate in range(lo, hi + 1):
+        own = (z - offsets[candidate]) * inverse
+        if edge_slopes[candidate + 1] < own <= edge_slopes[candidate]:
+            holding += 1
+            if best < 0:
+                best = candidate
+    if holding <= 1:
+        return best
     best, best_miss = -1, math.inf
-    for candidate in range(max(top - 1, 0), min(bottom - 1, beams - 1) + 1):
+    for candidate in range(lo, hi + 1):
         own = (z - offsets[candidate]) * inverse
         if edge_slopes[candidate + 1] < own <= edge_slopes[candidate]:
             miss = abs(math.atan(own) - math.atan(beam_slopes[candidate]))
