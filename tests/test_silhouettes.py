@@ -6,6 +6,7 @@ grow)."""
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -161,3 +162,8 @@ def test_with_silhouette_gaps_appends_gaps_that_are_never_returns() -> None:
     reach = np.linalg.norm(filled[-1, :3] - np.asarray(sensor.mount))
     assert radii[-1] == pytest.approx(reach * sensor.azimuth_step / 2, rel=1e-5)
     assert len(radii) == int((filled_owner >= 0).sum())
+    # the radii found on a pool's thread meanwhile: the same, bit for bit
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        lent = with_silhouette_gaps(points, owner, sensor, pool=pool)
+    for mine, theirs in zip((filled, filled_owner, radii), lent, strict=True):
+        np.testing.assert_array_equal(theirs, mine)

@@ -635,7 +635,6 @@ class DRCPO(Transform):
         and the insertions left with too few points in their box, ``bool (len(insertions),)``.
         Mode ``sensor``: along the sensor's rays, with the objects earlier stages added
         (:func:`~drcpo.transforms.sensor_steps.sensor_occlusion`; the scope does not apply).
-
         e-HPR itself is :mod:`drcpo.occlusion.external`'s; this applies the label rule. Scope
         ``frame``: every hidden point goes (:func:`~drcpo.occlusion.external_occlusion`).
         Scope ``inserted`` (:func:`~drcpo.occlusion.inserted_scope`): the inserted points are
@@ -660,6 +659,7 @@ class DRCPO(Transform):
                 settings.fill_holes,
                 seen.boxes_with([i.box for i in insertions]),
                 seen.cells,
+                pool,
             )
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from functools import cache, cached_property, partial
 from typing import Any
@@ -473,6 +474,7 @@ def sensor_occlusion(
     fill_holes: bool = False,
     boxes: np.ndarray | None = None,
     frame_cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    pool: Executor | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -499,6 +501,7 @@ def sensor_occlusion(
             a box reaches it (:func:`~drcpo.occlusion.sightlines.sight_lines_cross`).
         frame_cells: the frame points' ray cells and distances, when known
             (:attr:`SensorFrame.cells`; found here otherwise).
+        pool: lends a thread for the surface elements' radii while the holes are found.
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -511,7 +514,7 @@ def sensor_occlusion(
     count, radii = len(points), None
     cells = cache(partial(_point_cell_arrays, points, first, sensor, frame_cells))
     if fill_holes:
-        points, combined, radii = with_silhouette_gaps(points, combined, sensor, cells())
+        points, combined, radii = with_silhouette_gaps(points, combined, sensor, cells(), pool)
     rays = RayOcclusion(
         points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor)
     )
@@ -599,6 +602,7 @@ def with_silhouette_gaps(
     owner: np.ndarray,
     sensor: Sensor,
     cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    pool: Executor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``points`` ``(N, F)`` and ``owner`` ``(N,)`` with the holes of each inserted object's
     returns (:func:`~drcpo.occlusion.silhouettes.silhouette_gaps`) appended as points of that
@@ -606,12 +610,15 @@ def with_silhouette_gaps(
     default ones (:func:`~drcpo.occlusion.rays.element_radii`) for the points given, half an
     azimuth step across at its distance for a gap, so that a gap hides the rays of its own
     cell and not its neighbours'. The rows after the first ``N`` are never returns. ``cells``:
-    the points' ray cells, when known (see :func:`silhouette_gaps`)."""
+    the points' ray cells, when known (see :func:`silhouette_gaps`); ``pool``: finds the
+    radii of the points given on its thread meanwhile."""
+    radii = pool.submit(element_radii, points, owner) if pool is not None else None
     gaps, gap_owner = silhouette_gaps(points, owner, sensor, cells)
     extra = np.zeros((len(gaps), points.shape[1]), dtype=points.dtype)
     extra[:, :3] = gaps
     reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
-    radii = np.concatenate([element_radii(points, owner), reach * (sensor.azimuth_step / 2.0)])
+    given = element_radii(points, owner) if radii is None else radii.result()
+    radii = np.concatenate([given, reach * (sensor.azimuth_step / 2.0)])
     return np.concatenate([points, extra]), np.concatenate([owner, gap_owner]), radii
 
 
