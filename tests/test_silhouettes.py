@@ -13,7 +13,7 @@ import pytest
 
 from drcpo.errors import DataError
 from drcpo.occlusion.render import point_cells
-from drcpo.occlusion.silhouettes import silhouette_gaps
+from drcpo.occlusion.silhouettes import _line_gaps, silhouette_gaps
 from drcpo.sensor import Sensor
 from drcpo.transforms.sensor_steps import sensor_occlusion, with_silhouette_gaps
 
@@ -167,3 +167,64 @@ def test_with_silhouette_gaps_appends_gaps_that_are_never_returns() -> None:
         lent = with_silhouette_gaps(points, owner, sensor, pool=pool)
     for mine, theirs in zip((filled, filled_owner, radii), lent, strict=True):
         np.testing.assert_array_equal(theirs, mine)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_line_gaps_match_the_vectorised_reference(seed: int) -> None:
+    """One pass over the sorted cells gives the lines' gaps, positions and means the
+    vectorised rule gives, bit for bit: repeated cells, lines of one cell, ties between the
+    widest empty arcs, arcs that wrap around the circle."""
+    rng = np.random.default_rng(seed)
+    period = int(rng.choice([8, 40, 2000]))
+    count = int(rng.integers(1, 400))
+    line = rng.integers(0, 12, count)
+    position = rng.integers(0, period, count)
+    position[: count // 3] = rng.integers(0, 3, count // 3)  # crowded: repeats and ties
+    distance = rng.uniform(1.0, 60.0, count)
+    got = _line_gaps(line, position, period, distance)
+    want = reference_line_gaps(line, position, period, distance)
+    for mine, theirs in zip(got, want, strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+    assert len(got[0]) > 0
+
+
+def test_line_gaps_of_one_line_leave_the_widest_arc_outside() -> None:
+    # held 0, 1, 4 and 9 of 12: empty arcs 2-3 (2), 5-8 (4) and 10-11 (2): the widest,
+    # 5-8, is outside; 2, 3, 10 and 11 are gaps, at the line's mean distance
+    line, position, mean = _line_gaps(
+        np.zeros(5, np.int64), np.array([9, 0, 4, 1, 4]), 12, np.array([1.0, 2, 3, 4, 5])
+    )
+    np.testing.assert_array_equal(position, [10, 11, 2, 3])
+    np.testing.assert_array_equal(line, [0, 0, 0, 0])
+    np.testing.assert_array_equal(mean, [3.0] * 4)
+
+
+def reference_line_gaps(
+    line: np.ndarray, position: np.ndarray, period: int, distance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vectorised rule the kernel replaced (argsort, bincount, reduceat): of the cells
+    ``(line, position)`` on a circle of ``period``, every empty arc between two held positions
+    of a line but the widest; each gap's line, position and its line's mean ``distance``."""
+    code = line * period + position
+    order = np.argsort(code, kind="stable")
+    code, distance = code[order], distance[order]
+    line = code // period
+    index = np.cumsum(np.r_[True, line[1:] != line[:-1]]) - 1
+    mean = np.bincount(index, distance) / np.bincount(index)
+    new_cell = np.r_[True, code[1:] != code[:-1]]
+    held_line, held = index[new_cell], code[new_cell] % period
+    first = np.flatnonzero(np.r_[True, held_line[1:] != held_line[:-1]])
+    last = np.r_[first[1:] - 1, len(held_line) - 1]
+    empty_before = np.empty(len(held_line), dtype=np.int64)
+    empty_before[1:] = held[1:] - held[:-1] - 1
+    empty_before[first] = held[first] + period - held[last] - 1
+    # the widest empty arc of each line (its first, on a tie) lies outside the object
+    widest = np.maximum.reduceat(empty_before, first)
+    candidates = np.flatnonzero(empty_before == widest[held_line])
+    outside = candidates[np.r_[True, held_line[candidates][1:] != held_line[candidates][:-1]]]
+    empty_before[outside] = 0
+    cell_of = np.repeat(np.arange(len(held_line)), empty_before)
+    step = np.arange(len(cell_of)) - np.repeat(np.cumsum(empty_before) - empty_before, empty_before)
+    gap_position = (held[cell_of] - empty_before[cell_of] + step) % period
+    gap_line = held_line[cell_of]
+    return line[new_cell][cell_of], gap_position, mean[gap_line]

@@ -13,6 +13,7 @@ Imports :mod:`drcpo.errors`, :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.rende
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from drcpo.errors import DataError
@@ -84,28 +85,59 @@ def _line_gaps(
     """The empty positions of each line of cells between its held ones: of the cells
     ``(line, position)`` (positions on a circle of ``period``; a period over twice the
     positions' range makes the lines straight), every empty arc between two held positions
-    of a line but the widest. Returns each gap's line, position and the mean ``distance``
-    of its line's cells."""
-    code = line * period + position
-    order = np.argsort(code, kind="stable")
-    code, distance = code[order], distance[order]
-    line = code // period
-    index = np.cumsum(np.r_[True, line[1:] != line[:-1]]) - 1
-    mean = np.bincount(index, distance) / np.bincount(index)
-    new_cell = np.r_[True, code[1:] != code[:-1]]
-    held_line, held = index[new_cell], code[new_cell] % period
-    first = np.flatnonzero(np.r_[True, held_line[1:] != held_line[:-1]])
-    last = np.r_[first[1:] - 1, len(held_line) - 1]
-    empty_before = np.empty(len(held_line), dtype=np.int64)
-    empty_before[1:] = held[1:] - held[:-1] - 1
-    empty_before[first] = held[first] + period - held[last] - 1
-    # the widest empty arc of each line (its first, on a tie) lies outside the object
-    widest = np.maximum.reduceat(empty_before, first)
-    candidates = np.flatnonzero(empty_before == widest[held_line])
-    outside = candidates[np.r_[True, held_line[candidates][1:] != held_line[candidates][:-1]]]
-    empty_before[outside] = 0
-    cell_of = np.repeat(np.arange(len(held_line)), empty_before)
-    step = np.arange(len(cell_of)) - np.repeat(np.cumsum(empty_before) - empty_before, empty_before)
-    gap_position = (held[cell_of] - empty_before[cell_of] + step) % period
-    gap_line = held_line[cell_of]
-    return line[new_cell][cell_of], gap_position, mean[gap_line]
+    of a line but the widest (its first, on a tie: that one lies outside the object).
+    Returns each gap's line, position and the mean ``distance`` of its line's cells, by
+    line, then by the held position the gap comes before."""
+    code = np.asarray(line, dtype=np.int64) * period + np.asarray(position, dtype=np.int64)
+    order = np.argsort(code, kind="stable")  # (numpy's sort is faster than numba's)
+    return _gaps_of_lines(code, order, int(period), np.asarray(distance, dtype=np.float64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _gaps_of_lines(code, order, period, distance):  # pragma: no cover - numba
+    # One pass over the cells in `order` (by code, stable, so each line's distances are
+    # summed in the order given): per line its held positions, the empty run before each
+    # (the first's wraps around from the last) and, but for the widest, its gaps.
+    n = code.shape[0]
+    held = np.empty(n, np.int64)  # per held cell: its position, its line's number
+    held_line = np.empty(n, np.int64)
+    empty = np.empty(n, np.int64)  # empty positions before it
+    lines = np.empty(n, np.int64)  # per line: its code // period and mean distance
+    mean = np.empty(n)
+    cells, count, a = 0, 0, 0
+    while a < n:
+        current = code[order[a]] // period
+        total, z = 0.0, a
+        start = cells
+        while z < n and code[order[z]] // period == current:
+            total += distance[order[z]]
+            p = code[order[z]] % period
+            if cells == start or held[cells - 1] != p:
+                held[cells], held_line[cells] = p, count
+                cells += 1
+            z += 1
+        lines[count], mean[count] = current, total / (z - a)
+        for c in range(start + 1, cells):
+            empty[c] = held[c] - held[c - 1] - 1
+        empty[start] = held[start] + period - held[cells - 1] - 1
+        widest = start
+        for c in range(start + 1, cells):
+            if empty[c] > empty[widest]:
+                widest = c
+        empty[widest] = 0
+        count += 1
+        a = z
+    gaps = 0
+    for c in range(cells):
+        gaps += empty[c]
+    gap_line = np.empty(gaps, np.int64)
+    gap_position = np.empty(gaps, np.int64)
+    gap_mean = np.empty(gaps)
+    g = 0
+    for c in range(cells):
+        for step in range(empty[c]):
+            k = held_line[c]
+            gap_line[g], gap_mean[g] = lines[k], mean[k]
+            gap_position[g] = (held[c] - empty[c] + step) % period
+            g += 1
+    return gap_line, gap_position, gap_mean
