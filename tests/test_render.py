@@ -395,15 +395,22 @@ def test_bad_input_is_a_data_error() -> None:
     assert empty.shape == (0, 5) and source.shape == (0,)
 
 
+def points_around(
+    rng: np.random.Generator, reach: float, heights: tuple[float, float]
+) -> np.ndarray:
+    """5,000 points 1 m to ``reach`` metres around the origin, at any azimuth and heights."""
+    radius = rng.uniform(1.0, reach, 5000)
+    angle = rng.uniform(-math.pi, math.pi, 5000)
+    height = rng.uniform(*heights, 5000)
+    return np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height]).astype(
+        np.float32
+    )
+
+
 @pytest.mark.parametrize("name", ["hdl64e", "hdl32e", "small"])
 def test_point_cells_are_the_sensors_cells(name: str) -> None:
     sensor = small_sensor() if name == "small" else sensor_preset(name)
-    rng = np.random.default_rng(11)
-    radius = rng.uniform(1.0, 80.0, 5000)
-    angle = rng.uniform(-math.pi, math.pi, 5000)
-    points = np.column_stack(
-        [radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-4.0, 3.0, 5000)]
-    ).astype(np.float32)
+    points = points_around(np.random.default_rng(11), 80.0, (-4.0, 3.0))
     beam, column, distance = point_cells(points, sensor)
     want_beam, want_column, _ = sensor.cells(points)
     np.testing.assert_array_equal(beam, want_beam)
@@ -422,12 +429,7 @@ def test_point_cells_where_several_beams_bands_hold_a_point() -> None:
     point in one band only."""
     base = sensor_preset("hdl64e")
     sensor = dataclasses.replace(base, offsets=np.where(np.arange(64) % 2 == 0, 0.4, -0.4))
-    rng = np.random.default_rng(12)
-    radius = rng.uniform(1.0, 20.0, 5000)
-    angle = rng.uniform(-math.pi, math.pi, 5000)
-    points = np.column_stack(
-        [radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-3.0, 1.0, 5000)]
-    ).astype(np.float32)
+    points = points_around(np.random.default_rng(12), 20.0, (-3.0, 1.0))
     beam, _, _ = point_cells(points, sensor)
     np.testing.assert_array_equal(beam, sensor.cells(points)[0])
     edges = sensor_tables(sensor).geometry[0]
