@@ -104,19 +104,19 @@ def _gaps_of_lines(code, order, period, distance):  # pragma: no cover - numba
     empty = np.empty(n, np.int64)  # empty positions before it
     lines = np.empty(n, np.int64)  # per line: its code // period and mean distance
     mean = np.empty(n)
-    cells, count, a = 0, 0, 0
-    while a < n:
-        current = code[order[a]] // period
-        total, z = 0.0, a
+    cells, count, begin = 0, 0, 0
+    while begin < n:
+        current = code[order[begin]] // period
+        total, end = 0.0, begin
         start = cells
-        while z < n and code[order[z]] // period == current:
-            total += distance[order[z]]
-            p = code[order[z]] % period
+        while end < n and code[order[end]] // period == current:
+            total += distance[order[end]]
+            p = code[order[end]] % period
             if cells == start or held[cells - 1] != p:
                 held[cells], held_line[cells] = p, count
                 cells += 1
-            z += 1
-        lines[count], mean[count] = current, total / (z - a)
+            end += 1
+        lines[count], mean[count] = current, total / (end - begin)
         for c in range(start + 1, cells):
             empty[c] = held[c] - held[c - 1] - 1
         empty[start] = held[start] + period - held[cells - 1] - 1
@@ -126,7 +126,7 @@ def _gaps_of_lines(code, order, period, distance):  # pragma: no cover - numba
                 widest = c
         empty[widest] = 0
         count += 1
-        a = z
+        begin = end
     gaps = 0
     for c in range(cells):
         gaps += empty[c]
