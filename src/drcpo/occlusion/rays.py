@@ -879,28 +879,30 @@ def _ray_index(
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
     m = inserted.shape[0]
     # 1. The inserted points: their cells, distances and offsets from the mount.
-    own_beam, own_column, own_distance, rel, bad = _cells_of(
-        points,
-        inserted,
-        known_beam,
-        known_column,
-        known_distance,
-        edge_slopes,
-        edge_lut,
-        beam_slopes,
-        beam_lut,
-        offsets,
-        mount,
-        beam_cos,
-        beam_sin,
-        column_cos,
-        column_sin,
-        first,
-        crosses,
-        bound_cos,
-        bound_sin,
-        constants,
-    )
+    if known_beam.shape[0] == points.shape[0]:  # (_point_cells' answer, found before)
+        own_beam, own_column, own_distance, rel, bad = _known_cells_of(
+            points, inserted, known_beam, known_column, known_distance, mount
+        )
+    else:
+        own_beam, own_column, own_distance, rel, bad = _point_cells(
+            points,
+            inserted,
+            edge_slopes,
+            edge_lut,
+            beam_slopes,
+            beam_lut,
+            offsets,
+            mount,
+            beam_cos,
+            beam_sin,
+            column_cos,
+            column_sin,
+            first,
+            crosses,
+            bound_cos,
+            bound_sin,
+            constants,
+        )
     if bad >= 0:
         return _no_index(bad)
     # 2. Each element's window of cells: rows 0..B + 1 (above, in and below the beams) of the
@@ -1034,28 +1036,30 @@ def _ray_index(
             candidates[found] = i
             found += 1
     candidates = candidates[:found]
-    beam, column, distance, near, bad = _cells_of(
-        points,
-        candidates,
-        known_beam,
-        known_column,
-        known_distance,
-        edge_slopes,
-        edge_lut,
-        beam_slopes,
-        beam_lut,
-        offsets,
-        mount,
-        beam_cos,
-        beam_sin,
-        column_cos,
-        column_sin,
-        first,
-        crosses,
-        bound_cos,
-        bound_sin,
-        constants,
-    )
+    if known_beam.shape[0] == points.shape[0]:  # (_point_cells' answer, found before)
+        beam, column, distance, near, bad = _known_cells_of(
+            points, candidates, known_beam, known_column, known_distance, mount
+        )
+    else:
+        beam, column, distance, near, bad = _point_cells(
+            points,
+            candidates,
+            edge_slopes,
+            edge_lut,
+            beam_slopes,
+            beam_lut,
+            offsets,
+            mount,
+            beam_cos,
+            beam_sin,
+            column_cos,
+            column_sin,
+            first,
+            crosses,
+            bound_cos,
+            bound_sin,
+            constants,
+        )
     frame = np.full(rows * used, np.inf)
     for q in range(found):
         if beam[q] >= 0 and wanted[column[q]] and top <= beam[q] + 1 <= bottom:
@@ -1068,36 +1072,11 @@ def _ray_index(
 
 
 @numba.njit(cache=True, nogil=True)
-def _cells_of(
-    points,
-    index,
-    known_beam,
-    known_column,
-    known_distance,
-    edge_slopes,
-    edge_lut,
-    beam_slopes,
-    beam_lut,
-    offsets,
-    mount,
-    beam_cos,
-    beam_sin,
-    column_cos,
-    column_sin,
-    first,
-    crosses,
-    bound_cos,
-    bound_sin,
-    constants,
+def _known_cells_of(
+    points, index, known_beam, known_column, known_distance, mount
 ):  # pragma: no cover - numba
-    # _point_cells of points[index], from the known cells of every point when given (they
-    # are that function's answer, so the same), computed otherwise.
-    if known_beam.shape[0] != points.shape[0]:
-        return _point_cells(
-            points, index, edge_slopes, edge_lut, beam_slopes, beam_lut, offsets, mount,
-            beam_cos, beam_sin, column_cos, column_sin, first, crosses, bound_cos, bound_sin,
-            constants,
-        )  # fmt: skip
+    # _point_cells of points[index] from the known cells of every point: their cells and
+    # distances taken, their offsets from the mount found (and non-finite rows caught).
     n = index.shape[0]
     beam = np.empty(n, np.int64)
     column = np.empty(n, np.int64)

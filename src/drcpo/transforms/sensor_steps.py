@@ -546,21 +546,21 @@ def _point_cell_arrays(
         return point_cells(points, sensor)
     if len(frame_cells[0]) != first:
         raise DataError(f"frame_cells must hold {first} points, got {len(frame_cells[0])}")
-    pairs = zip(frame_cells, point_cells(points[first:], sensor), strict=True)
-    beam, column, distance = (np.concatenate(pair) for pair in pairs)
-    return beam, column, distance
+    return _with_cells_of(frame_cells, points, sensor)
 
 
 def _with_cells_of(
     cells: tuple[np.ndarray, np.ndarray, np.ndarray], points: np.ndarray, sensor: Sensor
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``cells`` of the first points, then those of the rest of ``points`` (the holes'
-    points :func:`with_silhouette_gaps` appended; none when it did not run)."""
+    """``cells`` of the first points, then those of the rest of ``points`` (found here)."""
     count = len(cells[0])
     if count == len(points):
         return cells
-    pairs = zip(cells, point_cells(points[count:], sensor), strict=True)
-    return tuple(np.concatenate(pair) for pair in pairs)
+    beam, column, distance = (
+        np.concatenate(pair)
+        for pair in zip(cells, point_cells(points[count:], sensor), strict=True)
+    )
+    return beam, column, distance
 
 
 def _in_sight(
@@ -612,12 +612,12 @@ def with_silhouette_gaps(
     cell and not its neighbours'. The rows after the first ``N`` are never returns. ``cells``:
     the points' ray cells, when known (see :func:`silhouette_gaps`); ``pool``: finds the
     radii of the points given on its thread meanwhile."""
-    radii = pool.submit(element_radii, points, owner) if pool is not None else None
+    found = pool.submit(element_radii, points, owner) if pool is not None else None
     gaps, gap_owner = silhouette_gaps(points, owner, sensor, cells)
     extra = np.zeros((len(gaps), points.shape[1]), dtype=points.dtype)
     extra[:, :3] = gaps
     reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
-    given = element_radii(points, owner) if radii is None else radii.result()
+    given = element_radii(points, owner) if found is None else found.result()
     radii = np.concatenate([given, reach * (sensor.azimuth_step / 2.0)])
     return np.concatenate([points, extra]), np.concatenate([owner, gap_owner]), radii
 
