@@ -61,6 +61,31 @@ def test_sight_lines_match_the_naive_clip(margin: float) -> None:
     np.testing.assert_array_equal(got, expected)
 
 
+def test_the_prefilter_never_passes_over_a_box_the_segment_enters() -> None:
+    """Boxes whose bounding circle holds the origin, points straight above it, and segments
+    that end at or graze a box (tangent, corner, just short of its near face) against the
+    naive clip: the cheap cone and distance tests only pass over boxes the clip misses."""
+    origin = np.array([0.0, 0.0, 1.7])
+    around = np.array([[0.5, 0.2, 0.0, 3.0, 2.0, 2.0, 0.4], [-1.0, 0.0, 0.0, 4.0, 4.0, 1.0, 0.0]])
+    # a square turned 45 degrees: its corners touch its bounding circle's tangents and near side
+    far = np.array(
+        [[10.0, 0.0, 0.0, 2.0, 2.0, 4.0, math.pi / 4], [0.0, -8.0, 1.0, 1.0, 6.0, 2.0, 1.1]]
+    )
+    boxes = np.concatenate([around, far])
+    rng = np.random.default_rng(8)
+    corner = np.array([10.0, math.sqrt(2.0), 0.5])  # its corner on a tangent
+    points = np.concatenate([
+        np.array([[0.0, 0.0, 5.0], [0.0, 0.0, -3.0], corner, [8.6, 0.0, 0.5], [8.58, 0.0, 0.5]]),
+        corner * np.array([[1.0, 1.0 - 1e-9, 1.0], [1.0, 1.0 + 1e-9, 1.0], [2.0, 2.0 - 1e-6, 1.0]]),
+        np.column_stack([np.full(80, 20.0), np.linspace(-3.0, 3.0, 80), np.zeros(80)]),
+        rng.uniform([-15, -15, -2], [15, 15, 4], (400, 3)),
+    ])  # fmt: skip
+    got = sight_lines_cross(points, origin, boxes)
+    expected = [any(naive_enters(p, origin, b) for b in boxes) for p in points]
+    assert 0 < got.sum() < len(points)
+    np.testing.assert_array_equal(got, expected)
+
+
 def test_a_point_in_front_of_or_inside_a_box() -> None:
     box = np.array([[10.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.3]])
     points = np.array([[5.0, 0.0, 0.0], [10.0, 0.0, 0.0], [15.0, 0.0, 0.0], [15.0, 5.0, 0.0]])

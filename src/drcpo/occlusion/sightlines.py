@@ -70,25 +70,27 @@ def sight_lines_cross(
 def _cross(xyz, origin, boxes, cos, sin, own, margin, crossed):  # pragma: no cover - numba
     # the ray's parameter t runs from the origin (0) to the point (1); a box is tested only
     # when the point lies beyond the near side of its bounding circle (seen from the origin)
-    # and within the azimuths that circle spans
+    # and within the cone of azimuths that circle spans. Both tests are squared or cosine
+    # forms with some slack (no atan2 per point): they only pass over boxes the slab test
+    # would miss, so the answer is the slab test's.
     ox, oy, oz = origin[0], origin[1], origin[2]
     count = boxes.shape[0]
-    azimuth, spread, near = np.empty(count), np.empty(count), np.empty(count)
+    ux, uy, cone, near2 = np.empty(count), np.empty(count), np.empty(count), np.empty(count)
     for m in range(count):
         cx, cy = boxes[m, 0] - ox, boxes[m, 1] - oy
         radius = math.hypot(boxes[m, 3] / 2.0 + margin, boxes[m, 4] / 2.0 + margin)
         reach = math.hypot(cx, cy)
-        azimuth[m] = math.atan2(cy, cx)
-        spread[m] = math.asin(radius / reach) + 1e-9 if reach > radius else 4.0
-        near[m] = reach - radius
+        ux[m], uy[m], cone[m], near2[m] = 0.0, 0.0, -2.0, -1.0  # (the origin in the circle)
+        if reach > radius * (1.0 + 1e-9) + 1e-9:
+            ux[m], uy[m] = cx / reach, cy / reach
+            cone[m] = math.cos(math.asin(radius / reach) + 1e-9) - 1e-12
+            near2[m] = (reach - radius) ** 2 * (1.0 - 1e-12)
     for i in range(xyz.shape[0]):
         dx, dy, dz = xyz[i, 0] - ox, xyz[i, 1] - oy, xyz[i, 2] - oz
-        horizontal, heading = math.hypot(dx, dy), math.atan2(dy, dx)
+        squared = dx * dx + dy * dy
+        horizontal = math.sqrt(squared)
         for m in range(count):
-            if m == own[i] or horizontal < near[m]:
-                continue
-            turn = abs(heading - azimuth[m])
-            if min(turn, 2.0 * math.pi - turn) > spread[m]:
+            if m == own[i] or squared < near2[m] or dx * ux[m] + dy * uy[m] < cone[m] * horizontal:
                 continue
             b = boxes[m]
             enter, leave = _slab(
