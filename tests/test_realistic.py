@@ -259,6 +259,50 @@ def test_unplaced_objects_displace_added_ones(synthetic_world):  # noqa: F811
     assert len(after.points) <= len(sampled.points) - int(gone_points.sum())
 
 
+def test_a_frame_without_some_added_objects_knows_their_points_as_a_fresh_one(
+    synthetic_world,  # noqa: F811
+):
+    """:meth:`SensorFrame.without_added` hands on the added objects' points (renumbered, not
+    found again) and :meth:`SensorFrame.added_counts` counts from one pass: both as a
+    SensorFrame built afresh on the pruned frame and a per-box count find them, also where
+    two added boxes overlap (a point's box is the last holding it)."""
+    from drcpo.sensor_config import SensorConfig
+    from drcpo.transforms.insertion import BoxQuery, take_rows
+    from drcpo.transforms.sensor_steps import SensorFrame
+
+    db, index, frames = synthetic_world
+    gt = build_pipeline("realistic", db, index=index, kind="drcpo").transforms[0]
+    sampled = gt(frames[0], np.random.default_rng(5))
+    first = np.flatnonzero(np.asarray(sampled.metadata[BOX_SOURCE]) != "")[0]
+    twin = sampled.boxes[first] + np.array([0.6, 0.3, 0.0, 0.0, 0.0, 0.0, 0.2])
+    made = Frame(
+        sampled.points,
+        np.concatenate([sampled.boxes, twin[None]]),
+        np.concatenate([sampled.names, sampled.names[first : first + 1]]),
+        {**sampled.metadata, BOX_SOURCE: np.append(sampled.metadata[BOX_SOURCE], "gt_sampling")},
+    )
+    config = SensorConfig(model="hdl64e")
+    seen = SensorFrame(made, config)
+    added = int(seen.added.sum())
+    assert added >= 3
+    shared = (seen.added_owner == 0).sum(), (seen.added_owner == added - 1).sum()
+    assert min(shared) > 0
+    keep = np.random.default_rng(2).random(len(made.points)) < 0.7
+    expected = BoxQuery(take_rows(made.points, keep)).counts(made.boxes[seen.added])
+    np.testing.assert_array_equal(seen.added_counts(keep), expected)
+    for drop in ([0], [added - 1], [0, added - 1], list(range(1, added, 2))):
+        mask = np.isin(np.arange(added), drop)
+        pruned, names = seen.without_added(mask)
+        fresh = SensorFrame(pruned.frame, config)
+        assert len(names) == len(drop)
+        np.testing.assert_array_equal(pruned.added_owner, fresh.added_owner)
+        keep = np.random.default_rng(len(drop)).random(len(pruned.frame.points)) < 0.5
+        np.testing.assert_array_equal(pruned.added_counts(keep), fresh.added_counts(keep))
+        boxes = pruned.frame.boxes[pruned.added]
+        reference = BoxQuery(take_rows(pruned.frame.points, keep)).counts(boxes)
+        np.testing.assert_array_equal(pruned.added_counts(keep), reference)
+
+
 def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811
     db, index, frames = synthetic_world
     one = _realistic(db, index)

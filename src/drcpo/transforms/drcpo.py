@@ -654,7 +654,7 @@ class DRCPO(Transform):
                 seen.added_owner,
                 seen.sensor,
                 count,
-                partial(seen.added_counts, points[:first]),
+                seen.added_counts,  # (the frame's points come first, all of them)
                 self.config.min_points_after,
                 settings.fill_holes,
                 seen.boxes_with([i.box for i in insertions]),

@@ -32,6 +32,7 @@ import numpy as np
 
 from drcpo.errors import DataError
 from drcpo.frame import Frame
+from drcpo.geometry import box_members
 from drcpo.ground import GroundModel
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, element_radii
 from drcpo.occlusion.render import point_cells, render_object
@@ -105,11 +106,18 @@ class SensorFrame:
         # (grown: a sampled object brings points up to a few cm outside its box)
         return BoxQuery(self.frame.points).owners(boxes, margin=_ADDED_MARGIN)
 
-    def added_counts(self, points: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        """``int64 (K,)``: of the frame's ``points`` (its points, maybe fewer of them), the
-        ``keep`` ones that lie in each added box."""
-        boxes = self.frame.boxes[self.added]
-        return BoxQuery(take_rows(points, keep)).counts(boxes)
+    @cached_property
+    def _added_members(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(point, box)`` pairs of the frame's points inside added boxes (numbered among
+        the added ones), found once for every :meth:`added_counts`."""
+        return box_members(self.frame.points, self.frame.boxes[self.added])
+
+    def added_counts(self, keep: np.ndarray) -> np.ndarray:
+        """``int64 (K,)``: the frame's points of ``keep`` (``bool (N,)``) that lie in each
+        added box."""
+        point, box = self._added_members
+        count = int(np.count_nonzero(self.added))
+        return np.bincount(box[keep[point]], minlength=count).astype(np.int64)
 
     def boxes_with(self, boxes: Sequence[np.ndarray]) -> np.ndarray:
         """``float64 (K + A, 7)``: ``boxes`` (DR.CPO's objects, numbered first) then the
@@ -185,7 +193,7 @@ class SensorFrame:
         cell = np.where(beam >= 0, beam * sensor.num_columns + column, -1)
         cells = sensor.num_beams * sensor.num_columns
         keep = ~_behind_other_owner(cell, distance, self.added_owner, float(tolerance), cells)
-        return self.added_counts(self.frame.points, keep) < min_points
+        return self.added_counts(keep) < min_points
 
     def without_hidden_added(self, min_points: int) -> tuple[SensorFrame, np.ndarray]:
         """This frame without the added objects of :meth:`hidden_added` (see
@@ -216,6 +224,11 @@ class SensorFrame:
         out.fallback, out.placing = self.fallback, self.placing
         out.__dict__["sensor"] = self.sensor  # (cached_property keeps its value there)
         out.__dict__["ground"] = self.ground
+        # the last kept added box holding each point left is the last of all holding it (the
+        # points of the dropped ones went with them): numbered among the kept ones
+        number = np.cumsum(~drop) - 1
+        owner = self.added_owner[points]
+        out.__dict__["added_owner"] = np.where(owner >= 0, number[owner.clip(0)], -1)
         if "cells" in self.__dict__:
             out.__dict__["cells"] = tuple(a[points] for a in self.cells)
         return out, frame.names[boxes]
