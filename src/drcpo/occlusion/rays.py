@@ -731,6 +731,12 @@ def _admit(
     count = first
     near = np.empty(total, np.int64)
     lost = np.zeros(total, np.int64)
+    # where each ray of a candidate's window enters it (inf: it misses), found once for its
+    # count, the boxes it may hide and its painting
+    size = 0
+    for g in range(first, total):
+        size = max(size, (windows[g, 1] - windows[g, 0] + 1) * windows[g, 3])
+    entry = np.empty(size)
     for g in range(first, total):
         if not every:
             done = False
@@ -740,7 +746,7 @@ def _admit(
             if done:
                 continue
         b0, b1, c0, width = windows[g, 0], windows[g, 1], windows[g, 2], windows[g, 3]
-        crossing, seen = 0, 0
+        crossing, seen, k = 0, 0, 0
         for b in range(b0, b1 + 1):
             ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
             c = c0
@@ -750,6 +756,8 @@ def _admit(
                     ox, oy, oz, dx, dy, beam_sin[b], boxes[g, 0], boxes[g, 1], boxes[g, 2],
                     boxes[g, 3] / 2.0, boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
                 )  # fmt: skip
+                entry[k] = enter if enter <= leave else np.inf
+                k += 1
                 if enter <= leave and enter <= max_range:
                     crossing += 1
                     if combined[b, c] >= enter - tolerance:
@@ -772,17 +780,16 @@ def _admit(
                 lost[found] = 0
                 found += 1
         if found:
+            k = 0
             for b in range(b0, b1 + 1):
                 ox, oy, oz = mount[0], mount[1], mount[2] + offsets[b]
                 c = c0
                 for _ in range(width):
                     dx, dy = beam_cos[b] * column_cos[c], beam_cos[b] * column_sin[c]
                     dz = beam_sin[b]
-                    into, out = _slab(
-                        ox, oy, oz, dx, dy, dz, boxes[g, 0], boxes[g, 1], boxes[g, 2],
-                        boxes[g, 3] / 2.0, boxes[g, 4] / 2.0, boxes[g, 5] / 2.0, cos[g], sin[g],
-                    )  # fmt: skip
-                    if into <= out:  # the ray enters it: it hides what lies beyond
+                    into = entry[k]
+                    k += 1
+                    if into < np.inf:  # the ray enters it: it hides what lies beyond
                         for n in range(found):
                             a = near[n]
                             enter, leave = _slab(
@@ -806,8 +813,13 @@ def _admit(
                 continue
             for n in range(found):
                 left[near[n]] -= lost[n]
-        _paint(g, boxes, cos, sin, windows, combined, offsets, mount, beam_cos, beam_sin,
-               column_cos, column_sin)  # fmt: skip
+        k = 0  # painted in: its entry distance into each cell its rays cross, where nearer
+        for b in range(b0, b1 + 1):
+            c = c0
+            for _ in range(width):
+                combined[b, c] = min(combined[b, c], entry[k])
+                k += 1
+                c = c + 1 if c + 1 < columns else 0
         left[g] = seen
         taken[g - first] = True
         accepted[count] = g
