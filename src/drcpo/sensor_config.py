@@ -297,7 +297,7 @@ def _robust_lines(
     inlier = np.ones(len(y), dtype=bool)
     prior = 0.0
     for threshold in (math.radians(1.0), math.radians(0.3), None):
-        miss = np.abs(y - tan_e[ring] - height[ring] * x) / (1.0 + tan_e[ring] ** 2)  # radians
+        miss = _misses(x, y, ring, tan_e, height if heights else None)
         if threshold is None:
             kept = np.add.reduceat(inlier.astype(np.float64), first)
             scale = np.sqrt(np.add.reduceat(miss**2 * inlier, first) / np.maximum(kept, 1.0))
@@ -311,8 +311,19 @@ def _robust_lines(
             tan_e = np.add.reduceat(w * y, first) / np.maximum(np.add.reduceat(w, first), 1e-12)
     # Judged against a fixed tolerance: the last threshold grows with a ring's spread, so a
     # ring made of two beams would pass it.
-    miss = np.abs(y - tan_e[ring] - height[ring] * x) / (1.0 + tan_e[ring] ** 2)
+    miss = _misses(x, y, ring, tan_e, height if heights else None)
     return tan_e, height, float((miss <= _ON_BEAM).mean())
+
+
+def _misses(
+    x: np.ndarray, y: np.ndarray, ring: np.ndarray, tan_e: np.ndarray, height: np.ndarray | None
+) -> np.ndarray:
+    """Each point's angular miss (radians) off its ring's line ``y = tan(e) + h x``;
+    ``height`` ``None``: every ``h`` is 0 (the term then adds exactly nothing, so it is left
+    out)."""
+    along = tan_e[ring]
+    off = y - along if height is None else y - along - height[ring] * x
+    return np.abs(off) / (1.0 + along**2)
 
 
 def _ring_mode(y: np.ndarray, ring: np.ndarray, rings: int, far: np.ndarray) -> np.ndarray:
