@@ -23,6 +23,11 @@ frames with the same generator seeds):
   ``nothing_in_front``: no inserted return of the output within 0.2 degree of their ray and
   nearer; ``in_box``: inside an inserted box (cleared room); ``no_box_on_ray``: neither inside
   nor behind any inserted box.
+* ``emptied_rays``: original points removed whose ray cell (the sweep's own rays) holds no
+  point of the output: a return gone with nothing recorded in its place, per frame and as a
+  share of the points removed (all stages; DR.CPO's; and ``truth``: of the points the truth's
+  objects hide, those whose ray returns from none of them, since glass, dark paint and
+  grazing rays lose returns too).
 * ``hidden_removed``: of the original points an inserted object truly hides, the share
   removed (``hidden_removed_by_source``: behind ground-truth sampling's / DR.CPO's objects).
 * ``counts``: DR.CPO objects tried / added per class per frame, and the rejection reasons.
@@ -36,7 +41,8 @@ output rows are matched to input rows exactly.
 
 ``--kitti PATH`` scores the figures that need no truth on a KITTI root (the repository's sample
 by default: its database imported from OpenPCDet's dbinfos): ground contact against the frame's
-own ground returns, points on beam elevations (``drcpo.sensor_config.estimate_sensor``)
+own ground returns, points on beam elevations (``drcpo.sensor_config.estimate_sensor``),
+the removed points leaving their ray empty (cells of the sensor estimated from the whole sweep)
 and counts.
 
 Usage::
@@ -82,6 +88,7 @@ GROUND_LIMIT = 0.3
 SOLID_KINDS = ("building", "pole", "trunk")
 INSERTING_STAGES = ("gt_sampling", "drcpo")
 ORIGINAL, GT_SAMPLING, DRCPO_SOURCE = "", "gt_sampling", "drcpo"
+TRUTH = "truth"  # the truth's own figures, beside those of the stages
 KITTI_SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_sample"
 TRAIN_SEED, EVAL_SEEDS = 500, (501,)  # the tests use seeds 0-3, 11, 2024
 
@@ -246,6 +253,30 @@ def nothing_nearer(
     for i, found in enumerate(tree.query_ball_point(unit, chord)):
         out[i] = not (near[found] < reach[i]).any()
     return out
+
+
+def emptied_rays(sensor, deleted: np.ndarray, output: np.ndarray) -> int:
+    """Of the ``deleted`` original points ``(N, 3+)``, how many leave their ray cell of
+    ``sensor`` (:meth:`drcpo.sensor.Sensor.cells`) without any point of ``output`` ``(M, 3+)``:
+    a return gone with nothing recorded in its place, which a LiDAR gives only where the
+    occluder's own return is lost (its dropout)."""
+    if len(deleted) == 0:
+        return 0
+    beam, column, _ = sensor.cells(deleted)
+    held_beam, held_column, _ = sensor.cells(output)
+    held = held_beam >= 0
+    filled = np.unique(held_beam[held] * sensor.num_columns + held_column[held])
+    cell = beam * sensor.num_columns + column
+    return int(((beam >= 0) & ~np.isin(cell, filled)).sum())
+
+
+def truth_sensor(case: SynthCase):
+    """The :class:`drcpo.sensor.Sensor` whose ray cells are the rays of ``case``'s sweep."""
+    from drcpo.synth import LidarConfig
+
+    config = LidarConfig()
+    step = 2.0 * np.pi / config.num_columns
+    return config.sensor(float(case.sweep.grid.azimuth[0]) + np.pi - step / 2.0)
 
 
 def frame_ground_heights(
@@ -413,7 +444,7 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
     beams = np.radians(LidarConfig().elevations_deg)
     sets = {kind: out.points[new][(owner >= 0) & (kinds[owner.clip(0)] == kind)] for kind in
             (GT_SAMPLING, DRCPO_SOURCE)}  # fmt: skip
-    sets["truth"] = truth.returns
+    sets[TRUTH] = truth.returns
     for kind, points in sets.items():
         for suffix, tolerance in (("", BEAM_TOLERANCE_DEG), ("_fine", FINE_BEAM_TOLERANCE_DEG)):
             total = tally.beam.setdefault(kind + suffix, [0, 0])
@@ -429,6 +460,16 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
     survived_gt = match_rows(frame.points, after_gt.points)
     kept_by_gt[survived_gt[survived_gt >= 0]] = True
     deleted = {"all": ~kept, GT_SAMPLING: ~kept_by_gt, DRCPO_SOURCE: kept_by_gt & ~kept}
+    sensor = truth_sensor(case)
+    emptied = {
+        stage: [emptied_rays(sensor, frame.points[deleted[stage]], out.points),
+                int(deleted[stage].sum())]
+        for stage in ("all", DRCPO_SOURCE)
+    }  # fmt: skip
+    # the truth's own: of the points its objects hide, those whose ray returns from none of
+    # them (glass, dark paint and grazing rays lose returns too)
+    truly_seen = np.concatenate([frame.points[~hidden], truth.returns])
+    emptied[TRUTH] = [emptied_rays(sensor, frame.points[hidden], truly_seen), int(hidden.sum())]
     deletions = {}
     for stage, gone in deleted.items():
         visible = frame.points[gone & ~hidden]
@@ -447,6 +488,7 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
         {
             "frame": frame.frame_id,
             "deleted_visible": deletions,
+            "emptied": emptied,
             "hidden": int(hidden.sum()),
             "hidden_removed": int((hidden & ~kept).sum()),
             "hidden_by_source": by_source,
@@ -502,6 +544,21 @@ def count_figures(frames: list[dict[str, Any]], transform: str) -> dict[str, Any
     return out
 
 
+def emptied_figures(frames: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per stage (all deletions, DR.CPO's; with the truth, the points its objects hide):
+    original points deleted per frame whose ray is left without a return
+    (:func:`emptied_rays`) and their share of the points deleted."""
+    n = max(len(frames), 1)
+    out = {}
+    for stage in ("all", DRCPO_SOURCE, TRUTH):
+        if not all(stage in f["emptied"] for f in frames):
+            continue
+        empty = sum(f["emptied"][stage][0] for f in frames)
+        gone = sum(f["emptied"][stage][1] for f in frames)
+        out[stage] = {"per_frame": round(empty / n, 2), "share": _share(empty, gone)}
+    return out
+
+
 def summarise(tally: Tally) -> dict[str, Any]:
     """Every figure of the table for one preset."""
     frames = tally.frames
@@ -526,6 +583,7 @@ def summarise(tally: Tally) -> dict[str, Any]:
             }
             for stage in ("all", GT_SAMPLING, DRCPO_SOURCE)
         },
+        "emptied_rays": emptied_figures(frames),
         "hidden_removed": _share(removed, hidden),
         "hidden_per_frame": round(hidden / n, 1),
         "hidden_removed_by_source": by_source,
@@ -544,6 +602,12 @@ def _total_reasons(counts: dict[str, Any]) -> dict[str, float]:
         for reason, count in entry.get("rejected_per_frame", {}).items():
             total[reason] = total.get(reason, 0.0) + count
     return total
+
+
+def _emptied(result: dict[str, Any], stage: str) -> str:
+    """``per frame, share`` of a stage's deletions that leave their ray empty, or ``-``."""
+    figures = result.get("emptied_rays", {}).get(stage)
+    return "-" if figures is None else f"{figures['per_frame']}, {figures['share']}"
 
 
 def print_table(results: dict[str, dict[str, Any]]) -> None:
@@ -617,6 +681,13 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
                 for r in results.values()
             ],
         )
+    row(
+        "deleted points leaving their ray empty / frame, share: all (DR.CPO; truth)",
+        [
+            "{} ({}; {})".format(*(_emptied(r, stage) for stage in ("all", DRCPO_SOURCE, TRUTH)))
+            for r in results.values()
+        ],
+    )
     row(
         "truly hidden original points removed (behind GT s. / DR.CPO objects)",
         [
@@ -726,12 +797,21 @@ def kitti_frame_figures(
     the :class:`drcpo.sensor.Sensor` estimated from the frame's whole sweep, is given; with
     ``view_sensor``, the one estimated from the camera's view that ``sensor: auto`` renders
     through, DR.CPO's and the frame's points on its beams too: ``*_view``), counts."""
-    out, sources, _ = augment(stages, frame, np.random.default_rng(seed))
+    out, sources, after_gt = augment(stages, frame, np.random.default_rng(seed))
     inserted = sources != ORIGINAL
     boxes, kinds = out.boxes[inserted], sources[inserted]
     ground = frame_ground_heights(frame.points, boxes, frame.boxes)
     rows = match_rows(frame.points, out.points)
     new_points = out.points[rows < 0]
+    emptied = {}
+    if sensor is not None:
+        kept, kept_by_gt = np.zeros((2, len(frame.points)), dtype=bool)
+        kept[rows[rows >= 0]] = True
+        survived = match_rows(frame.points, after_gt.points)
+        kept_by_gt[survived[survived >= 0]] = True
+        for stage, gone in (("all", ~kept), (DRCPO_SOURCE, kept_by_gt & ~kept)):
+            empty = emptied_rays(sensor, frame.points[gone], out.points)
+            emptied[stage] = [empty, int(gone.sum())]
     owner = points_per_box(new_points, boxes)
     beam = {}
     if sensor is not None:
@@ -748,6 +828,7 @@ def kitti_frame_figures(
         "gaps": ground_gaps(boxes, ground).tolist(),
         "sources": kinds.tolist(),
         "beam": beam,
+        "emptied": emptied,
         "drcpo": stats.get("drcpo", {}),
         "gt_sampling": stats.get("gt_sampling", {}),
     }
@@ -823,6 +904,7 @@ def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             "on_beam": beam
             if estimate_sensor is not None
             else "drcpo.sensor_config.estimate_sensor missing",
+            "emptied_rays": emptied_figures(per_frame) if estimate_sensor is not None else None,
             "counts": count_figures(per_frame, "drcpo"),
         }
     return {"mode": "kitti", "root": str(root), "presets": results}

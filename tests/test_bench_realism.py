@@ -199,6 +199,10 @@ def test_scoring_a_frame_against_its_truth(perfect):
         assert summary["ground"]["above"] == 0.0 and abs(car["gap"]) < 1e-9
         assert frame["deleted_visible"]["all"]["visible"] == 0 and frame["hidden"] > 100
         assert summary["hidden_removed"] == 1.0
+        # the truth's returns in place of what it hides: its own rays left empty, no more
+        emptied = frame["emptied"]
+        assert emptied["all"] == emptied["drcpo"] == emptied["truth"]
+        assert emptied["truth"][1] == frame["hidden"] and 0 < emptied["truth"][0] < frame["hidden"]
     else:
         assert car["points"] == pytest.approx(car["true_points"] / 2, rel=0.01)
         assert summary["density"]["bins_within"] == 0
@@ -210,8 +214,33 @@ def test_scoring_a_frame_against_its_truth(perfect):
         }  # fmt: skip
         assert deleted["gt_sampling"]["visible"] == 0
         assert summary["hidden_removed"] == 0.0
+        # the 30 wall points deleted with nothing put on their rays
+        assert frame["emptied"]["all"] == frame["emptied"]["drcpo"] == [30, 30]
+        assert summary["emptied_rays"]["drcpo"] == {"per_frame": 30.0, "share": 1.0}
     assert summary["on_beam"]["truth"] == summary["on_beam"]["truth_fine"] == 1.0
     assert summary["solids"]["building"] == 0.0
+
+
+def test_emptied_rays_counts_deleted_points_whose_cell_holds_no_output_point():
+    """Points on known rays of a small sensor: a deleted point is counted unless some output
+    point (at any distance) lies in its ray cell; one outside every beam never is."""
+    from drcpo.sensor import Sensor
+
+    sensor = Sensor(
+        elevations=np.radians(np.linspace(4.0, -10.0, 8)), offsets=np.zeros(8),
+        azimuth_step=np.radians(1.0), phase=0.0, mount=(0.0, 0.0, 0.0),
+        range_noise=0.0, dropout=0.0,
+    )  # fmt: skip
+
+    def on(beam, column, distance):
+        b, c = np.array([beam]), np.array([column])
+        return (sensor.ray_origins(b) + distance * sensor.ray_directions(b, c))[0]
+
+    deleted = np.array([on(3, 10, 20.0), on(3, 11, 20.0), on(4, 10, 20.0), [20.0, 0.0, 15.0]])
+    output = np.array([on(3, 10, 8.0), on(5, 11, 30.0), on(4, 12, 20.0)])
+    assert bench.emptied_rays(sensor, deleted, output) == 2  # (3, 11) and (4, 10)
+    assert bench.emptied_rays(sensor, deleted, np.zeros((0, 3))) == 3
+    assert bench.emptied_rays(sensor, deleted[:0], output) == 0
 
 
 def test_solids_share_sees_a_box_in_a_building():
