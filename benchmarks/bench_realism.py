@@ -255,11 +255,25 @@ def nothing_nearer(
     return out
 
 
+def kept_rows(
+    points: np.ndarray, rows: np.ndarray, after_gt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``bool (N,)`` twice: the frame's ``points`` the output keeps (``rows``: each output
+    point's input row, -1 for inserted ones, :func:`match_rows`) and those left after
+    ground-truth sampling (``after_gt``: its points), which clears the points inside its boxes:
+    which deletions were whose."""
+    kept, kept_by_gt = np.zeros((2, len(points)), dtype=bool)
+    kept[rows[rows >= 0]] = True
+    survived = match_rows(points, after_gt)
+    kept_by_gt[survived[survived >= 0]] = True
+    return kept, kept_by_gt
+
+
 def emptied_rays(sensor, deleted: np.ndarray, output: np.ndarray) -> int:
     """Of the ``deleted`` original points ``(N, 3+)``, how many leave their ray cell of
     ``sensor`` (:meth:`drcpo.sensor.Sensor.cells`) without any point of ``output`` ``(M, 3+)``:
     a return gone with nothing recorded in its place, which a LiDAR gives only where the
-    occluder's own return is lost (its dropout)."""
+    occluder loses its own return (dropout, glass, dark paint, grazing rays)."""
     if len(deleted) == 0:
         return 0
     beam, column, _ = sensor.cells(deleted)
@@ -451,14 +465,9 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
             total[0] += int(on_beam(points, beams, tolerance).sum())
             total[1] += len(points)
 
-    kept = np.zeros(len(frame.points), dtype=bool)
-    kept[rows[~new]] = True
+    kept, kept_by_gt = kept_rows(frame.points, rows, after_gt.points)
     hidden_by = truth.hidden_by[case.sweep_rows]
     hidden = hidden_by >= 0
-    # GT sampling clears the points inside its boxes; which deletions were whose
-    kept_by_gt = np.zeros(len(frame.points), dtype=bool)
-    survived_gt = match_rows(frame.points, after_gt.points)
-    kept_by_gt[survived_gt[survived_gt >= 0]] = True
     deleted = {"all": ~kept, GT_SAMPLING: ~kept_by_gt, DRCPO_SOURCE: kept_by_gt & ~kept}
     sensor = truth_sensor(case)
     emptied = {
@@ -805,10 +814,7 @@ def kitti_frame_figures(
     new_points = out.points[rows < 0]
     emptied = {}
     if sensor is not None:
-        kept, kept_by_gt = np.zeros((2, len(frame.points)), dtype=bool)
-        kept[rows[rows >= 0]] = True
-        survived = match_rows(frame.points, after_gt.points)
-        kept_by_gt[survived[survived >= 0]] = True
+        kept, kept_by_gt = kept_rows(frame.points, rows, after_gt.points)
         for stage, gone in (("all", ~kept), (DRCPO_SOURCE, kept_by_gt & ~kept)):
             empty = emptied_rays(sensor, frame.points[gone], out.points)
             emptied[stage] = [empty, int(gone.sum())]
