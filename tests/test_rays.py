@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -471,6 +472,29 @@ def test_cells_given_or_found_alike() -> None:
     assert nearer.removed[owner == -1].sum() < found.removed[owner == -1].sum()
     with pytest.raises(DataError, match="cells' column"):
         RayOcclusion(points, owner, sensor, cells=(beam, column[:-1], distance))
+
+
+def test_verdicts_in_two_halves_on_a_pool_alike() -> None:
+    """With a pool, each verdict is taken in two interleaved halves (one on the pool's
+    thread when it is free): the same points removed as in one pass, with all the objects
+    and without one of them."""
+    rng = np.random.default_rng(22)
+    sensor = small_sensor()
+    frame = scene(rng, 2000, sensor)
+    parts, owners = [frame], [np.full(len(frame), -1)]
+    for k, centre in enumerate([(6.0, 1.0, -0.9), (7.0, 1.6, -0.8), (5.0, -1.5, -0.9)]):
+        local = rng.uniform(-0.5, 0.5, (250, 3)) * (3.0, 1.6, 1.4) + centre
+        parts.append(np.column_stack([local, rng.random(250)]).astype(np.float32))
+        owners.append(np.full(250, k))
+    points, owner = np.concatenate(parts), np.concatenate(owners)
+    radii = rng.uniform(0.05, 0.3, len(points))
+    alone = RayOcclusion(points, owner, sensor, radii=radii)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        halves = RayOcclusion(points, owner, sensor, radii=radii, pool=pool)
+        np.testing.assert_array_equal(halves.removed, alone.removed)
+        np.testing.assert_array_equal(halves.without([1]), alone.without([1]))
+    assert alone.removed[owner == -1].sum() > 10 and alone.removed[owner >= 0].any()
+    assert (alone.without([1]) != alone.removed)[owner != 1].any()
 
 
 # ----------------------------------------------------------------------------------------------

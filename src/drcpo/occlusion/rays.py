@@ -22,6 +22,7 @@ modules as private kernels.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 
 import numba
 import numpy as np
@@ -42,6 +43,7 @@ from drcpo.occlusion.render import (
     point_cells,
     sensor_tables,
 )
+from drcpo.occlusion.threads import _shared_chunks
 from drcpo.sensor import Sensor
 
 __all__ = ["PlacedView", "RangeImage", "RayOcclusion", "element_radii", "ray_occlusion"]
@@ -305,7 +307,9 @@ class RayOcclusion:
     little more (:meth:`without`).
 
     Args: as :func:`ray_occlusion`, and ``cells``: the points' ray cells and distances
-    (:func:`~drcpo.occlusion.render.point_cells` of them), when known; found here otherwise.
+    (:func:`~drcpo.occlusion.render.point_cells` of them), when known; found here otherwise;
+    ``pool``: a running one-thread pool whose thread takes half of each verdict's points
+    when it is free (the verdicts do not depend on it).
 
     Attributes:
         removed: ``bool (N,)`` :func:`ray_occlusion` of all the points (read-only).
@@ -319,7 +323,9 @@ class RayOcclusion:
         radii: np.ndarray | None = None,
         tolerance: float = 0.1,
         cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        pool: Executor | None = None,
     ) -> None:
+        self._pool = pool
         array = _frame_points(points)
         self._owner = owner = _check_owner(owner, len(array))
         self._tolerance = _check_tolerance(tolerance)
@@ -361,23 +367,33 @@ class RayOcclusion:
 
     def _decide(self, alive: np.ndarray, pending: np.ndarray | None) -> np.ndarray:
         """The verdict with the objects ``alive`` only, deciding the points of ``pending``
-        (``bool (N,)``; ``None``: all)."""
+        (``bool (N,)``; ``None``: all); in two interleaved halves, one on the pool's
+        thread when it is free."""
         removed = np.zeros(len(self._owner), dtype=bool)
         if pending is None:
             pending = np.ones(len(self._owner), dtype=bool)
-        tables = self._tables.geometry
-        _ray_decide(
-            self._inserted,
-            self._radii,
-            *self._index,
-            alive,
-            pending,
-            self._tolerance,
-            removed,
-            tables[4],  # offsets
-            tables[1],  # edge_lut
-            tables[-1],  # constants
-        )
+        tables, index = self._tables.geometry, self._index
+        nearest = _inserted_nearest(*index[:3], *index[4:5], *index[6:10], alive)
+        parts = 1 if self._pool is None else 2
+
+        def decide(part: int) -> None:
+            _ray_decide(
+                self._inserted,
+                self._radii,
+                *index,
+                *nearest,
+                alive,
+                pending,
+                part,
+                parts,
+                self._tolerance,
+                removed,
+                tables[4],  # offsets
+                tables[1],  # edge_lut
+                tables[-1],  # constants
+            )
+
+        _shared_chunks(decide, range(parts), self._pool)
         return removed
 
 
@@ -1117,6 +1133,30 @@ def _no_index(bad):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True)
+def _inserted_nearest(
+    own_beam, own_column, own_distance, element_owner, slot, used, top, bottom, alive
+):  # pragma: no cover - numba
+    # Per cell of the used columns: the nearest inserted return of the objects `alive`, its
+    # object, and the nearest of another object.
+    rows = max(bottom - top + 1, 0)
+    nearest = np.full(rows * used, np.inf)
+    nearest_owner = np.full(rows * used, -1, np.int64)
+    other = np.full(rows * used, np.inf)
+    for j in range(own_beam.shape[0]):
+        if own_beam[j] < 0 or not alive[element_owner[j]]:
+            continue
+        cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
+        distance_j, k = own_distance[j], element_owner[j]
+        if distance_j < nearest[cell]:
+            if nearest_owner[cell] != k:
+                other[cell] = nearest[cell]
+            nearest[cell], nearest_owner[cell] = distance_j, k
+        elif k != nearest_owner[cell] and distance_j < other[cell]:
+            other[cell] = distance_j
+    return nearest, nearest_owner, other
+
+
+@numba.njit(cache=True, nogil=True)
 def _ray_decide(
     inserted,
     radii,
@@ -1138,8 +1178,13 @@ def _ray_decide(
     distance,
     near,
     frame,
+    nearest,
+    nearest_owner,
+    other,
     alive,
     pending,
+    part,
+    parts,
     tolerance,
     removed,
     offsets,
@@ -1147,44 +1192,30 @@ def _ray_decide(
     constants,
 ):  # pragma: no cover - numba
     # Sets `removed` of the points of `pending` from _ray_index's work, with the objects
-    # `alive` only (the points of the others are removed). The windows and original points
-    # that _ray_index kept for all the objects cover those of any of them: a column's
-    # `covered` may name several objects where one is left, which only costs a look.
+    # `alive` only (the points of the others are removed), for every `parts`-th original
+    # candidate and inserted point from `part` on (the parts write disjoint entries, so
+    # threads may take them at once). The windows and original points that _ray_index kept
+    # for all the objects cover those of any of them: a column's `covered` may name several
+    # objects where one is left, which only costs a look. nearest, nearest_owner, other: per
+    # cell, _inserted_nearest of the objects alive.
     m = inserted.shape[0]
-    rows = max(bottom - top + 1, 0)
-    # Per cell of the used columns: the nearest inserted return, its object, and the nearest
-    # of another object.
-    nearest = np.full(rows * used, np.inf)
-    nearest_owner = np.full(rows * used, -1, np.int64)
-    other = np.full(rows * used, np.inf)
-    for j in range(m):
-        if own_beam[j] < 0 or not alive[element_owner[j]]:
-            continue
-        cell = (own_beam[j] + 1 - top) * used + slot[own_column[j]]
-        distance_j, k = own_distance[j], element_owner[j]
-        if distance_j < nearest[cell]:
-            if nearest_owner[cell] != k:
-                other[cell] = nearest[cell]
-            nearest[cell], nearest_owner[cell] = distance_j, k
-        elif k != nearest_owner[cell] and distance_j < other[cell]:
-            other[cell] = distance_j
     # The original points: behind an element along their own ray.
     found = candidates.shape[0]
-    ask = np.empty(found, np.bool_)
-    for q in range(found):
+    ask = np.zeros(found, np.bool_)
+    for q in range(part, found, parts):
         ask[q] = pending[candidates[q]]
     hidden = _behind_elements(
         near, beam, column, distance, np.full(found, -1, np.int64), ask, alive, covered, slot,
         used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
         edge_lut, constants,
     )  # fmt: skip
-    for q in range(found):
+    for q in range(part, found, parts):
         if ask[q]:
             removed[candidates[q]] = hidden[q]
     # The inserted returns: behind the frame or another object in their cell, or else behind
     # another object's elements along their ray.
     ask = np.zeros(m, np.bool_)
-    for j in range(m):
+    for j in range(part, m, parts):
         i = inserted[j]
         if not alive[element_owner[j]]:
             removed[i] = True
@@ -1204,7 +1235,7 @@ def _ray_decide(
         used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
         edge_lut, constants,
     )  # fmt: skip
-    for j in range(m):
+    for j in range(part, m, parts):
         if ask[j]:
             removed[inserted[j]] = hidden[j]
 

@@ -514,7 +514,8 @@ def sensor_occlusion(
             a box reaches it (:func:`~drcpo.occlusion.sightlines.sight_lines_cross`).
         frame_cells: the frame points' ray cells and distances, when known
             (:attr:`SensorFrame.cells`; found here otherwise).
-        pool: lends a thread for the surface elements' radii while the holes are found.
+        pool: lends a thread for the surface elements' radii while the holes are found, and
+            for half of each verdict's points.
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -529,7 +530,7 @@ def sensor_occlusion(
     if fill_holes:
         points, combined, radii = with_silhouette_gaps(points, combined, sensor, cells(), pool)
     rays = RayOcclusion(
-        points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor)
+        points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor), pool=pool
     )
     objects = int(combined.max(initial=-1)) + 1  # (those with points)
     if boxes is not None and len(boxes) < objects:
