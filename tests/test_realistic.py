@@ -9,6 +9,7 @@ frame, each of which fails without the step.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -265,7 +266,8 @@ def test_a_frame_without_some_added_objects_knows_their_points_as_a_fresh_one(
     """:meth:`SensorFrame.without_added` hands on the added objects' points (renumbered, not
     found again) and :meth:`SensorFrame.added_counts` counts from one pass: both as a
     SensorFrame built afresh on the pruned frame and a per-box count find them, also where
-    two added boxes overlap (a point's box is the last holding it)."""
+    two added boxes overlap (a point's box is the last holding it); the added objects'
+    holes and radii found on a pool are handed on too, those of the kept ones."""
     from drcpo.sensor_config import SensorConfig
     from drcpo.transforms.insertion import BoxQuery, take_rows
     from drcpo.transforms.sensor_steps import SensorFrame
@@ -290,17 +292,23 @@ def test_a_frame_without_some_added_objects_knows_their_points_as_a_fresh_one(
     keep = np.random.default_rng(2).random(len(made.points)) < 0.7
     expected = BoxQuery(take_rows(made.points, keep)).counts(made.boxes[seen.added])
     np.testing.assert_array_equal(seen.added_counts(keep), expected)
+    pool = ThreadPoolExecutor(max_workers=1)
+    seen.find_added_surfaces(pool)  # (handed on by without_added, of the kept objects)
     for drop in ([0], [added - 1], [0, added - 1], list(range(1, added, 2))):
         mask = np.isin(np.arange(added), drop)
         pruned, names = seen.without_added(mask)
         fresh = SensorFrame(pruned.frame, config)
         assert len(names) == len(drop)
         np.testing.assert_array_equal(pruned.added_owner, fresh.added_owner)
+        fresh.find_added_surfaces(pool)
+        for mine, theirs in zip(pruned.added_surfaces(), fresh.added_surfaces(), strict=True):
+            np.testing.assert_array_equal(mine, theirs)
         keep = np.random.default_rng(len(drop)).random(len(pruned.frame.points)) < 0.5
         np.testing.assert_array_equal(pruned.added_counts(keep), fresh.added_counts(keep))
         boxes = pruned.frame.boxes[pruned.added]
         reference = BoxQuery(take_rows(pruned.frame.points, keep)).counts(boxes)
         np.testing.assert_array_equal(pruned.added_counts(keep), reference)
+    pool.shutdown()
 
 
 def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811

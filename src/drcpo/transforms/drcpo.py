@@ -423,8 +423,10 @@ class DRCPO(Transform):
         ground = seen.ground if seen is not None else None
         rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
         if self._occlusion_along_rays:
-            minimum = self.config.external_occlusion.min_visible_rays
-            settings = (rng, self._placement[fov], minimum, 1.0 if limit is None else limit)
+            occluding = self.config.external_occlusion
+            holes = pool if occluding.fill_holes and self._two_threads() else None
+            settings = (rng, self._placement[fov], occluding.min_visible_rays)
+            settings += (1.0 if limit is None else limit, holes)
             seen.placing = sensor_steps.Placing(seen, rounds, dims, source, *settings)
             result, gone = seen.placing.first_pass()
             for name in gone:
@@ -648,19 +650,9 @@ class DRCPO(Transform):
         if self._occlusion_along_rays and len(points):
             first = int(np.count_nonzero(owner < 0))
             count = partial(self._dropped, points[first:], owner[first:], insertions)
-            return sensor_steps.sensor_occlusion(
-                points,
-                owner,
-                seen.added_owner,
-                seen.sensor,
-                count,
-                seen.added_counts,  # (the frame's points come first, all of them)
-                self.config.min_points_after,
-                settings.fill_holes,
-                seen.boxes_with([i.box for i in insertions]),
-                seen.cells,
-                pool,
-            )
+            boxes = [i.box for i in insertions]
+            minimum = self.config.min_points_after
+            return seen.occlusion(points, owner, count, minimum, settings.fill_holes, boxes, pool)
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()
         if settings.enabled and len(points) and settings.scope == "frame":
