@@ -29,7 +29,7 @@ from drcpo.placement import (
     place_objects,
     sample_poses,
 )
-from drcpo.poses import draw_poses, in_fov, observed_cells
+from drcpo.poses import CentreCells, draw_poses, in_fov, observed_cells
 
 AREA = PlacementConfig()
 SIZES = np.array([[3.9, 1.6, 1.5], [0.8, 0.6, 1.7], [1.8, 0.6, 1.7]])
@@ -1019,6 +1019,32 @@ def test_observed_placement_draws_on_observed_ground_only(rng, monkeypatch):
     assert len(result.accepted) >= len(whole.accepted)
 
 
+def test_rounds_take_the_centre_cells_of_an_earlier_pass(rng, monkeypatch):
+    """Rounds given the :attr:`PlacementRounds.cells` of an earlier pass on the same ground
+    and area place as those finding them again, without finding them; given cells are what
+    the centres are drawn over."""
+    frame = scene(rng, existing_boxes(), [wall(rng, 20, 40, 5, 30)])
+    ground = GroundModel.from_points(frame.points)
+    config = PlacementConfig(attempts=5, fov_only=True, **OBSERVED)
+
+    def run(cells=None):
+        rounds = PlacementRounds(frame, sizes(20), None, np.random.default_rng(4), config,
+                                 ground, cells)  # fmt: skip
+        while rounds.next_round() is not None:
+            rounds.settle()
+        return rounds
+
+    first = run()
+    assert len(first.cells.corners) > 10
+    monkeypatch.setattr(placement, "observed_cells", None)  # (not called again)
+    again = run(first.cells)
+    assert again.cells is first.cells
+    np.testing.assert_array_equal(again.result().boxes, first.result().boxes)
+    assert again.result().rejected == first.result().rejected
+    nowhere = run(CentreCells(np.zeros((0, 2)), first.cells.size)).result()
+    assert len(nowhere.accepted) == 0 and set(nowhere.reasons) == {"no_ground"}
+
+
 def test_observed_placement_without_observed_ground_rejects_no_ground(rng):
     frame = scene(rng)
     config = PlacementConfig(attempts=3, **OBSERVED)
@@ -1068,7 +1094,7 @@ def test_other_height_modes_keep_the_whole_area_draw(rng, height):
     source = np.column_stack([np.zeros((len(dims), 2)), np.full(len(dims), -0.9), dims])
     source = np.column_stack([source, np.zeros(len(dims))])
     rounds = PlacementRounds(frame, dims, source, np.random.default_rng(9), config)
-    assert rounds._cells is None
+    assert rounds.cells is None
     drawn = rounds.next_round()
     tried = rounds._open[1]
     np.testing.assert_array_equal(tried[:, :2], expected[:, :2])

@@ -370,7 +370,7 @@ class PlacementRounds:
     round is drawn; :meth:`result` gives the outcome. The random draws are those of
     :func:`place_objects`, in the same order, whatever the verdicts.
 
-    Args: as :func:`place_objects`.
+    Args: as :func:`place_objects`; ``cells``: :attr:`cells`, when known (same ground and area).
     """
 
     def __init__(
@@ -381,6 +381,7 @@ class PlacementRounds:
         rng: np.random.Generator,
         config: PlacementConfig | None = None,
         ground: GroundModel | None = None,
+        cells: CentreCells | None = None,
     ) -> None:
         self._config = config = config or PlacementConfig()
         frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
@@ -391,14 +392,13 @@ class PlacementRounds:
             ground = frame_ground(frame)
         observed = config.height == "observed"
         self._obstacles = _Obstacles(frame.points, ground, config.ground_tolerance, observed)
-        # With "observed", centres come from where the frame saw ground (once per call): drawn
-        # over the whole area, most poses of a street scene land behind buildings.
-        self._cells = None
-        if observed:
+        #: with "observed", the centres' cells: where the frame saw ground (drawn over the whole
+        #: area, most poses of a street scene land behind buildings); else ``None``
+        self.cells = cells if observed else None
+        if observed and cells is None:
             half_angle = float(config.fov_half_angle) if config.fov_only else None
-            self._cells = observed_cells(
-                ground, config.x_range, config.y_range, half_angle, config.ground_gap
-            )
+            area = (config.x_range, config.y_range, half_angle, config.ground_gap)
+            self.cells = observed_cells(ground, *area)
         self._placed = np.full((len(dims), 7), np.nan)
         # 0: placed, else 1 + REASONS index; "budget" until an object gets its first pose
         self._verdicts = np.full(len(dims), _BUDGET, dtype=np.int64)
@@ -433,7 +433,7 @@ class PlacementRounds:
         if cap is not None:
             tried = tried[: cap - self._attempts]
         self._attempts += len(tried)
-        boxes = sample_poses(self._room[tried], self._rng, config, self._cells)
+        boxes = sample_poses(self._room[tried], self._rng, config, self.cells)
         several = config.poses_per_round > 1
         verdict = _judge(
             boxes,
@@ -445,7 +445,7 @@ class PlacementRounds:
             config,
             first_come=not several,
         )
-        if self._cells is not None and len(self._cells.corners) == 0:
+        if self.cells is not None and len(self.cells.corners) == 0:
             verdict[verdict == _OUT_OF_RANGE] = _NO_GROUND  # no observed ground to stand on
         own = boxes.copy()  # the objects' own footprints, without the clearance
         own[:, 3:5] = self._dims[tried, :2]

@@ -45,6 +45,7 @@ from drcpo.placement import (
     bev_collisions,
     frame_ground,
 )
+from drcpo.poses import CentreCells
 from drcpo.sensor import Sensor
 from drcpo.sensor_config import SensorConfig
 from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows, update_box_metadata
@@ -355,7 +356,7 @@ class Placing:
         if self.config.displace_attempts:
             result, gone = displace_added(
                 self.seen, result, self.dims, self.source, self.rng, self.config,
-                self.min_rays, self.max_hidden,
+                self.min_rays, self.max_hidden, self.rounds.cells,
             )  # fmt: skip
         self.accepted = result.accepted
         return result, gone
@@ -400,7 +401,7 @@ class Placing:
         )
         dims, source = self.dims[objects], self.source[objects]
         return place_clear_of(seen, others, dims, source, self.rng, config, self.min_rays,
-                              self.max_hidden)  # fmt: skip
+                              self.max_hidden, self.rounds.cells)  # fmt: skip
 
 
 def visible_returns(
@@ -456,17 +457,20 @@ def place_clear_of(
     config: PlacementConfig,
     min_rays: int,
     max_hidden: float,
+    cells: CentreCells | None = None,
 ) -> PlacementResult:
     """A placement pass on ``seen`` for the objects of sizes ``dims`` ``(K, 3)`` from
     ``source`` ``(K, 7)`` under ``config``, with ``placed`` ``(P, 7)`` (grown by
-    ``config.clearance``) as boxes to avoid and as placed before (:func:`place_along_rays`)."""
+    ``config.clearance``) as boxes to avoid and as placed before (:func:`place_along_rays`);
+    ``cells``: the centre cells of an earlier pass on the same ground and area, when known
+    (:attr:`~drcpo.placement.PlacementRounds.cells`)."""
     room = placed.copy()
     room[:, 3:5] += 2.0 * config.clearance
     frame = seen.frame.replace(
         boxes=np.concatenate([seen.frame.boxes, room]),
         names=np.concatenate([seen.frame.names, np.full(len(room), "DontCare")]),
     )
-    rounds = PlacementRounds(frame, dims, source, rng, config, seen.ground)
+    rounds = PlacementRounds(frame, dims, source, rng, config, seen.ground, cells)
     return place_along_rays(rounds, seen, min_rays, max_hidden, placed)
 
 
@@ -479,6 +483,7 @@ def displace_added(
     config: PlacementConfig,
     min_rays: int,
     max_hidden: float,
+    cells: CentreCells | None = None,
 ) -> tuple[PlacementResult, np.ndarray]:
     """A second placement pass for the objects ``first`` left unplaced, through the objects
     earlier stages added (augmentation too, so they make way when no free spot is left).
@@ -491,7 +496,7 @@ def displace_added(
     avoid and as placed before. The added objects whose box meets a box placed there (with
     the clearance) are dropped: :attr:`SensorFrame.after_placing` is the frame without them
     (``seen`` when none). Returns the merged result (the second pass's verdicts for its
-    objects) and the names of the objects displaced."""
+    objects) and the names of the objects displaced. ``cells``: see :func:`place_clear_of`."""
     seen.after_placing = seen
     failed = np.flatnonzero(first.reasons != "")
     if len(failed) == 0 or not seen.added.any():
@@ -505,7 +510,7 @@ def displace_added(
         config, attempts=config.displace_attempts, max_attempts_per_frame=budget
     )
     second = place_clear_of(bare, first.boxes, dims[failed], source[failed], rng, config,
-                            min_rays, max_hidden)  # fmt: skip
+                            min_rays, max_hidden, cells)  # fmt: skip
     grown = second.boxes.copy()
     grown[:, 3:5] += 2.0 * config.clearance
     added = seen.frame.boxes[seen.added]
