@@ -22,7 +22,9 @@ frames with the same generator seeds):
   their ray first) that the pipeline removed, per frame, in all and per stage; of them
   ``nothing_in_front``: no inserted return of the output within 0.2 degree of their ray and
   nearer; ``in_box``: inside an inserted box (cleared room); ``no_box_on_ray``: neither inside
-  nor behind any inserted box.
+  nor behind any inserted box; ``behind_gt_sampling_only``: their sight line enters boxes of
+  ground-truth sampling only (so what removed them in DR.CPO's stage, which takes those
+  objects as inserted ones in mode ``sensor``, were ground-truth sampling's objects).
 * ``emptied_rays``: original points removed whose ray cell (the sweep's own rays) holds no
   point of the output: a return gone with nothing recorded in its place, per frame and as a
   share of the points removed (all stages; DR.CPO's; and ``truth``: of the points the truth's
@@ -89,6 +91,13 @@ SOLID_KINDS = ("building", "pole", "trunk")
 INSERTING_STAGES = ("gt_sampling", "drcpo")
 ORIGINAL, GT_SAMPLING, DRCPO_SOURCE = "", "gt_sampling", "drcpo"
 TRUTH = "truth"  # the truth's own figures, beside those of the stages
+DELETION_KEYS = (
+    "visible",
+    "in_box",
+    "nothing_in_front",
+    "no_box_on_ray",
+    "behind_gt_sampling_only",
+)
 KITTI_SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_sample"
 TRAIN_SEED, EVAL_SEEDS = 500, (501,)  # the tests use seeds 0-3, 11, 2024
 
@@ -230,6 +239,15 @@ def segments_cross_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         enter, leave = np.max(np.maximum(lo, 0.0), axis=1), np.min(np.minimum(hi, 1.0), axis=1)
         crossed |= enter < leave
     return crossed
+
+
+def behind_only(points: np.ndarray, boxes: np.ndarray, kinds: np.ndarray, kind: str) -> np.ndarray:
+    """``bool (N,)``: the sight line of each point ``(N, 3+)`` enters a box ``(K, 7)`` of
+    ``kind`` (``kinds``: ``(K,)``, the source of each box) and none of another source."""
+    kinds = np.asarray(kinds)
+    return segments_cross_boxes(points, boxes[kinds == kind]) & ~segments_cross_boxes(
+        points, boxes[kinds != kind]
+    )
 
 
 def nothing_nearer(
@@ -487,6 +505,7 @@ def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> N
             "in_box": int((points_per_box(visible, boxes, margin=0.0) >= 0).sum()),
             "nothing_in_front": int(nothing_nearer(visible, out.points[new]).sum()),
             "no_box_on_ray": int((~segments_cross_boxes(visible, boxes)).sum()),
+            "behind_gt_sampling_only": int(behind_only(visible, boxes, kinds, GT_SAMPLING).sum()),
         }
     by_source = {}
     for kind in (GT_SAMPLING, DRCPO_SOURCE):
@@ -588,7 +607,7 @@ def summarise(tally: Tally) -> dict[str, Any]:
         "deleted_visible_per_frame": {
             stage: {
                 key: round(sum(f["deleted_visible"][stage][key] for f in frames) / n, 2)
-                for key in ("visible", "in_box", "nothing_in_front", "no_box_on_ray")
+                for key in DELETION_KEYS
             }
             for stage in ("all", GT_SAMPLING, DRCPO_SOURCE)
         },
@@ -682,9 +701,10 @@ def print_table(results: dict[str, dict[str, Any]]) -> None:
     )
     for stage, label in (("all", "all"), (DRCPO_SOURCE, "by DR.CPO"), (GT_SAMPLING, "by GT s.")):
         row(
-            f"visible original points deleted / frame, {label} (none in front, in box)",
+            f"visible original points deleted / frame, {label} (none in front, in box, "
+            "behind GT s. only)",
             [
-                "{visible} ({nothing_in_front}, {in_box})".format(
+                "{visible} ({nothing_in_front}, {in_box}, {behind_gt_sampling_only})".format(
                     **r["deleted_visible_per_frame"][stage]
                 )
                 for r in results.values()

@@ -210,7 +210,8 @@ def test_scoring_a_frame_against_its_truth(perfect):
         assert summary["ground"]["above"] == 1.0 and car["gap"] == pytest.approx(0.5)
         deleted = frame["deleted_visible"]
         assert deleted["all"] == deleted["drcpo"] == {
-            "visible": 30, "in_box": 0, "nothing_in_front": 30, "no_box_on_ray": 30
+            "visible": 30, "in_box": 0, "nothing_in_front": 30, "no_box_on_ray": 30,
+            "behind_gt_sampling_only": 0,
         }  # fmt: skip
         assert deleted["gt_sampling"]["visible"] == 0
         assert summary["hidden_removed"] == 0.0
@@ -219,6 +220,34 @@ def test_scoring_a_frame_against_its_truth(perfect):
         assert summary["emptied_rays"]["drcpo"] == {"per_frame": 30.0, "share": 1.0}
     assert summary["on_beam"]["truth"] == summary["on_beam"]["truth_fine"] == 1.0
     assert summary["solids"]["building"] == 0.0
+
+
+def test_behind_only_takes_sight_lines_through_boxes_of_one_source_alone():
+    """A point behind a ground-truth-sampled box alone counts; behind one of each, behind a
+    DR.CPO box alone, or behind none, it does not; a box beside the sight line is no matter."""
+    boxes = np.array(
+        [
+            [10.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0],  # gt sampling's, on the +x axis
+            [20.0, 0.0, 0.0, 2.0, 2.0, 2.0, 0.0],  # DR.CPO's, further along it
+            [10.0, 10.0, 0.0, 2.0, 2.0, 2.0, 0.7],  # DR.CPO's, on the diagonal
+        ]
+    )
+    kinds = np.array(["gt_sampling", "drcpo", "drcpo"])
+    points = np.array(
+        [
+            [15.0, 0.0, 0.0],  # behind the first only
+            [30.0, 0.0, 0.0],  # behind the first and the second
+            [20.0, 20.0, 0.0],  # behind the third only
+            [0.0, 15.0, 0.0],  # behind none
+            [15.0, 0.5, 0.5],  # behind the first only, off its axis
+        ]
+    )
+    np.testing.assert_array_equal(
+        bench.behind_only(points, boxes, kinds, "gt_sampling"), [True, False, False, False, True]
+    )
+    np.testing.assert_array_equal(
+        bench.behind_only(points, boxes, kinds, "drcpo"), [False, False, True, False, False]
+    )
 
 
 def test_emptied_rays_counts_deleted_points_whose_cell_holds_no_output_point():
