@@ -266,8 +266,9 @@ def test_a_frame_without_some_added_objects_knows_their_points_as_a_fresh_one(
     """:meth:`SensorFrame.without_added` hands on the added objects' points (renumbered, not
     found again) and :meth:`SensorFrame.added_counts` counts from one pass: both as a
     SensorFrame built afresh on the pruned frame and a per-box count find them, also where
-    two added boxes overlap (a point's box is the last holding it); the added objects'
-    holes and radii found on a pool are handed on too, those of the kept ones."""
+    two added boxes overlap (a point's box is the last holding it); the parent's (point,
+    box) pairs, and the added objects' holes and radii found on a pool, are handed on too,
+    those of the kept ones."""
     from drcpo.sensor_config import SensorConfig
     from drcpo.transforms.insertion import BoxQuery, take_rows
     from drcpo.transforms.sensor_steps import SensorFrame

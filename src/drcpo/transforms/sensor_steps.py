@@ -258,6 +258,11 @@ class SensorFrame:
         out.__dict__["added_owner"] = np.where(owner >= 0, number[owner.clip(0)], -1)
         if "cells" in self.__dict__:
             out.__dict__["cells"] = tuple(a[points] for a in self.cells)
+        if "_added_members" in self.__dict__:  # the pairs of the points and boxes kept
+            point, box = self._added_members
+            pair = points[point] & ~drop[box]
+            row = np.cumsum(points) - 1
+            out.__dict__["_added_members"] = (row[point[pair]], number[box[pair]])
         if self._surfaces is not None:  # (per object: the kept ones' own)
             kept_points = ~drop[self.added_owner[self.added_owner >= 0]]
             out._surfaces = cache(partial(_kept_surfaces, self._surfaces, ~drop, kept_points))
