@@ -314,6 +314,32 @@ def test_ray_occlusion_matches_the_reference(seed: int) -> None:
     np.testing.assert_array_equal(again, removed)
 
 
+def test_ray_occlusion_matches_the_reference_across_the_column_seam() -> None:
+    """Objects whose elements reach past the last column into column 0 (straight ahead, the
+    small sensor's seam at -0.2 degrees) and one all around the mount hide as the reference
+    says."""
+    rng = np.random.default_rng(7)
+    sensor = small_sensor()
+    frame = scene(rng, 1500, sensor)
+    # the frame's points ahead: what the seam's objects may hide
+    ahead = np.column_stack(
+        [rng.uniform(12.0, 25.0, 400), rng.uniform(-1.5, 1.5, 400), rng.uniform(-1.7, 1.0, 400)]
+    )
+    parts = [frame, np.column_stack([ahead, rng.random(400)]).astype(np.float32)]
+    owners = [np.full(len(frame) + 400, -1)]
+    for k, (x, y, spread) in enumerate([(8.0, -0.03, 0.6), (5.0, 0.4, 1.2), (0.0, 0.0, 0.3)]):
+        local = rng.uniform(-spread, spread, (300, 3)) * (1.0, 1.0, 0.8) + (x, y, -0.4)
+        parts.append(np.column_stack([local, rng.random(300)]).astype(np.float32))
+        owners.append(np.full(300, k))
+    points, owner = np.concatenate(parts), np.concatenate(owners)
+    radii = rng.uniform(0.05, 0.3, len(points))
+    removed = ray_occlusion(points, owner, sensor, radii=radii, tolerance=0.1)
+    np.testing.assert_array_equal(removed, reference_occlusion(points, owner, sensor, radii, 0.1))
+    beam, column, _ = point_cells(points[owner == 0], sensor)
+    assert {0, sensor.num_columns - 1} <= set(column[beam >= 0].tolist())
+    assert removed[owner == -1].sum() > 20
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_without_objects_matches_the_reference_on_the_rest(seed: int) -> None:
     """RayOcclusion.without: the verdict of the points left once some objects are taken out

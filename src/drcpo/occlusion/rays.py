@@ -1005,16 +1005,30 @@ def _ray_index(
         if covered[c] != -1 or wanted[c]:
             slot[c] = used
             used += 1
-    # 3. The elements of each cell of the used columns in one array, cell by cell.
-    start = np.zeros(rows * used + 1, np.int64)
+    # 3. The elements of each cell of the used columns in one array, cell by cell. Each
+    #    window is a rectangle of slots (its columns are all used, so their slots run on,
+    #    but where it wraps past the last column): the counts per cell are the 2-d prefix
+    #    sums of its corners' +-1 (a pass over the windows and one over the cells).
+    corners = np.zeros((rows + 1, used + 1), np.int64)
     for j in range(m):
-        for r in range(window[j, 0] - top, window[j, 1] + 1 - top):
-            c = window[j, 2]
-            for _ in range(window[j, 3]):
-                start[r * used + slot[c] + 1] += 1
-                c = c + 1 if c + 1 < columns else 0
-    for b in range(1, start.shape[0]):
-        start[b] += start[b - 1]
+        r0, r1 = window[j, 0] - top, window[j, 1] + 1 - top
+        if r1 <= r0:
+            continue
+        c0, c1 = window[j, 2], window[j, 2] + window[j, 3] - 1
+        if c1 >= columns:  # wraps: from c0 to the last column, then from column 0
+            _add_rectangle(corners, r0, r1, slot[c0], slot[columns - 1] + 1)
+            c0, c1 = 0, c1 - columns
+        _add_rectangle(corners, r0, r1, slot[c0], slot[c1] + 1)
+    start = np.zeros(rows * used + 1, np.int64)
+    above = np.zeros(used, np.int64)  # per slot, the corners' sum over the rows so far
+    total = 0
+    for r in range(rows):
+        count = 0
+        for s in range(used):
+            above[s] += corners[r, s]
+            count += above[s]  # the windows holding cell (r, s)
+            total += count
+            start[r * used + s + 1] = total
     entries = np.empty(start[-1], np.int32)
     fill = start[:-1].copy()
     for j in range(m):
@@ -1097,6 +1111,15 @@ def _ray_index(
         -1, own_beam, own_column, own_distance, rel, element_owner, covered, slot, used, top,
         bottom, entries, start, candidates, beam, column, distance, near, frame,
     )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add_rectangle(corners, r0, r1, s0, s1):  # pragma: no cover - numba
+    # One window's corners, rows r0..r1 - 1 by slots s0..s1 - 1, in the 2-d difference array.
+    corners[r0, s0] += 1
+    corners[r0, s1] -= 1
+    corners[r1, s0] -= 1
+    corners[r1, s1] += 1
 
 
 @numba.njit(cache=True, nogil=True)
