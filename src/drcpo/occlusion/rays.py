@@ -334,12 +334,52 @@ class RayOcclusion:
         self._tables = tables = sensor_tables(sensor)
         self._objects = int(owner.max()) + 1 if len(inserted) else 0
         known = _known_cells(cells, len(array))
-        index = _ray_index(array, owner, inserted, self._radii, *known, *tables.geometry)
+        elements, columns = self._windows(array, owner, known)
+        index = _ray_index(array, owner, elements[0], elements[5], *columns, *known,
+                           *tables.geometry)  # fmt: skip
         if index[0] >= 0:
             raise DataError(f"points hold NaN/inf coordinates (first: row {index[0]})")
-        self._index = index[1:]
+        # (as _ray_decide takes them)
+        self._index = (*elements[:5], columns[0], *index[1:])
         self.removed = self._decide(np.ones(self._objects, dtype=bool), None)
         self.removed.setflags(write=False)
+
+    def _windows(
+        self, array: np.ndarray, owner: np.ndarray, known: tuple[np.ndarray, ...]
+    ) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """The inserted points' beams, columns, distances, offsets from the mount, objects and
+        windows of cells, and per column the object whose windows reach it (-2: several, -1:
+        none), whether it holds inserted returns and the elevation tangents that matter
+        there (:func:`_element_windows`): in two halves, one on the pool's thread when it is
+        free. Raises :class:`DataError` for a non-finite inserted point."""
+        inserted, radii, tables = self._inserted, self._radii, self._tables.geometry
+        m, columns = len(inserted), len(self._tables.column_cos)
+        elements = (
+            np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m), np.empty((m, 3)),
+            np.empty(m, np.int64), np.empty((m, 4), np.int64),
+        )  # fmt: skip
+        parts = 1 if self._pool is None or m < _SPLIT_ELEMENTS else 2
+        bounds = np.linspace(0, m, parts + 1).astype(np.int64)
+        per_part = [
+            (np.full(columns, -1, np.int64), np.zeros(columns, np.bool_),
+             np.full(columns, np.inf), np.full(columns, -np.inf))
+            for _ in range(parts)
+        ]  # fmt: skip
+
+        def part(k: int) -> int:
+            return _element_windows(array, owner, inserted, radii, *known, bounds[k],
+                                    bounds[k + 1], *elements, *per_part[k], *tables)  # fmt: skip
+
+        bad = [row for row in _shared_chunks(part, range(parts), self._pool) if row >= 0]
+        if bad:
+            raise DataError(f"points hold NaN/inf coordinates (first: row {bad[0]})")
+        covered, wanted, low, high = per_part[0]
+        for other, also, below, above in per_part[1:]:
+            covered = np.where(
+                (covered == -1) | (covered == other), other, np.where(other == -1, covered, -2)
+            )
+            wanted, low, high = wanted | also, np.minimum(low, below), np.maximum(high, above)
+        return elements, (covered, wanted, low, high)
 
     def without(self, objects: np.ndarray) -> np.ndarray:
         """``bool (N,)``: what :func:`ray_occlusion` removes of the points without those of
@@ -395,6 +435,9 @@ class RayOcclusion:
 
         _shared_chunks(decide, range(parts), self._pool)
         return removed
+
+
+_SPLIT_ELEMENTS = 2000  # inserted points from which their windows are found in two halves
 
 
 def element_radii(points: np.ndarray, owner: np.ndarray) -> np.ndarray:
@@ -874,7 +917,7 @@ def _paint(
 
 
 @numba.njit(cache=True, nogil=True)
-def _ray_index(
+def _element_windows(
     points,
     owner,
     inserted,
@@ -882,6 +925,18 @@ def _ray_index(
     known_beam,
     known_column,
     known_distance,
+    lo,
+    hi,
+    own_beam,
+    own_column,
+    own_distance,
+    rel,
+    element_owner,
+    window,
+    covered,
+    wanted,
+    slope_lo,
+    slope_hi,
     edge_slopes,
     edge_lut,
     beam_slopes,
@@ -898,23 +953,23 @@ def _ray_index(
     bound_sin,
     constants,
 ):  # pragma: no cover - numba
-    # The work of ray_occlusion that does not depend on which objects are kept: the inserted
-    # points' cells and their elements' windows of cells, the original points that may matter
-    # and the frame's nearest return per cell (see _ray_decide). First: the first row with a
-    # non-finite coordinate, or -1 (then the rest is empty).
+    # The first steps of _ray_index for the inserted points lo..hi - 1 (elements j): their
+    # cells, distances and offsets from the mount, and each element's window of cells, into
+    # the shared per-element arrays at j; per column, this part's own `covered`, `wanted`,
+    # `slope_lo` and `slope_hi` (see _ray_index; parts merge by _merge_columns). Returns the
+    # first row with a non-finite coordinate, or -1.
     beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
     step, phase, per_radian = constants[0], constants[1], constants[4]
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]
-    m = inserted.shape[0]
     # 1. The inserted points: their cells, distances and offsets from the mount.
     if known_beam.shape[0] == points.shape[0]:  # (_point_cells' answer, found before)
-        own_beam, own_column, own_distance, rel, bad = _known_cells_of(
-            points, inserted, known_beam, known_column, known_distance, mount
+        part_beam, part_column, part_distance, part_rel, bad = _known_cells_of(
+            points, inserted[lo:hi], known_beam, known_column, known_distance, mount
         )
     else:
-        own_beam, own_column, own_distance, rel, bad = _point_cells(
+        part_beam, part_column, part_distance, part_rel, bad = _point_cells(
             points,
-            inserted,
+            inserted[lo:hi],
             edge_slopes,
             edge_lut,
             beam_slopes,
@@ -932,21 +987,17 @@ def _ray_index(
             constants,
         )
     if bad >= 0:
-        return _no_index(bad)
+        return bad
     # 2. Each element's window of cells: rows 0..B + 1 (above, in and below the beams) of the
     #    edges' tangents its cone spans, columns from one end of its azimuths to the other.
     #    Per column: the object whose windows reach it (-2: several, -1: none), whether it
-    #    holds inserted returns; the columns that do either get consecutive slots, so the
-    #    per-cell arrays below cover them only.
-    element_owner = np.empty(m, np.int64)
-    window = np.empty((m, 4), np.int64)
-    covered = np.full(columns, -1, np.int64)
-    wanted = np.zeros(columns, np.bool_)
-    # per column, the elevation tangents (from any beam origin) an original point needs to
-    # matter: within some element's cone, or in the beam of an inserted return
-    slope_lo = np.full(columns, np.inf)
-    slope_hi = np.full(columns, -np.inf)
-    for j in range(m):
+    #    holds inserted returns, and the elevation tangents (from any beam origin) an
+    #    original point needs to matter: within some element's cone, or in the beam of an
+    #    inserted return.
+    for q in range(hi - lo):
+        j = lo + q
+        own_beam[j], own_column[j], own_distance[j] = part_beam[q], part_column[q], part_distance[q]
+        rel[j, 0], rel[j, 1], rel[j, 2] = part_rel[q, 0], part_rel[q, 1], part_rel[q, 2]
         owner_j = element_owner[j] = owner[inserted[j]]
         if own_beam[j] >= 0:
             c = own_column[j]
@@ -992,6 +1043,47 @@ def _ray_index(
             covered[c] = owner_j if covered[c] == -1 or covered[c] == owner_j else -2
             slope_lo[c], slope_hi[c] = min(slope_lo[c], low), max(slope_hi[c], high)
             c = c + 1 if c + 1 < columns else 0
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_index(
+    points,
+    owner,
+    own_beam,
+    window,
+    covered,
+    wanted,
+    slope_lo,
+    slope_hi,
+    known_beam,
+    known_column,
+    known_distance,
+    edge_slopes,
+    edge_lut,
+    beam_slopes,
+    beam_lut,
+    offsets,
+    mount,
+    beam_cos,
+    beam_sin,
+    column_cos,
+    column_sin,
+    first,
+    crosses,
+    bound_cos,
+    bound_sin,
+    constants,
+):  # pragma: no cover - numba
+    # The work of ray_occlusion that does not depend on which objects are kept, once the
+    # elements' windows and the columns' `covered`, `wanted`, `slope_lo` and `slope_hi` are
+    # known (_element_windows): the cells' slots, the elements of each cell, the original
+    # points that may matter and the frame's nearest return per cell (see _ray_decide).
+    # First: the first original row with a non-finite coordinate, or -1 (then the rest is
+    # empty). Then: slot, used, top, bottom, entries, start, candidates, their beam, column,
+    # distance and offset from the mount, and frame.
+    beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
+    m = own_beam.shape[0]
     # the rows any window or own cell reaches: the per-cell arrays cover those only
     top, bottom = beams + 1, 0
     for j in range(m):
@@ -1078,12 +1170,13 @@ def _ray_index(
             candidates[found] = i
             found += 1
     candidates = candidates[:found]
+    # (no row left is non-finite: every candidate was checked above)
     if known_beam.shape[0] == points.shape[0]:  # (_point_cells' answer, found before)
-        beam, column, distance, near, bad = _known_cells_of(
+        beam, column, distance, near, _ = _known_cells_of(
             points, candidates, known_beam, known_column, known_distance, mount
         )
     else:
-        beam, column, distance, near, bad = _point_cells(
+        beam, column, distance, near, _ = _point_cells(
             points,
             candidates,
             edge_slopes,
@@ -1108,8 +1201,8 @@ def _ray_index(
             cell = (beam[q] + 1 - top) * used + slot[column[q]]
             frame[cell] = min(frame[cell], distance[q])
     return (
-        -1, own_beam, own_column, own_distance, rel, element_owner, covered, slot, used, top,
-        bottom, entries, start, candidates, beam, column, distance, near, frame,
+        -1, slot, used, top, bottom, entries, start, candidates, beam, column, distance, near,
+        frame,
     )  # fmt: skip
 
 
@@ -1150,8 +1243,8 @@ def _no_index(bad):  # pragma: no cover - numba
     # _ray_index's answer for a non-finite row: the row, then empty arrays.
     none, empty = np.zeros(0, np.int64), np.zeros(0)
     return (
-        bad, none, none, empty, np.zeros((0, 3)), none, none, none, 0, 0, -1,
-        np.zeros(0, np.int32), none, none, none, none, empty, np.zeros((0, 3)), empty,
+        bad, none, 0, 0, -1, np.zeros(0, np.int32), none, none, none, none, empty,
+        np.zeros((0, 3)), empty,
     )  # fmt: skip
 
 
