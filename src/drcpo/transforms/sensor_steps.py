@@ -613,7 +613,9 @@ def sensor_occlusion(
     if boxes is not None and len(boxes) < objects:
         raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
     gone = np.zeros(objects if boxes is None else len(boxes), dtype=bool)  # per object
-    removed = _in_sight(rays.removed[:count], combined[:count], points, gone, boxes, cells, sensor)
+    sight = partial(_in_sight, owner=combined[:count], points=points, boxes=boxes, cells=cells,
+                    sensor=sensor, pool=pool)  # fmt: skip
+    removed = sight(rays.removed[:count], gone=gone)
     dropped = count_kept(~removed[first:])
     gone[:num_drcpo] = dropped
     if added_owner.max(initial=-1) >= 0:
@@ -621,7 +623,7 @@ def sensor_occlusion(
         gone[num_drcpo:] = sparse[: len(gone) - num_drcpo]
     if gone.any():
         removed = rays.without(np.flatnonzero(gone[:objects]))[:count]
-        removed = _in_sight(removed, combined[:count], points, gone, boxes, cells, sensor)
+        removed = sight(removed, gone=gone)
     return ~removed, dropped
 
 
@@ -663,12 +665,14 @@ def _in_sight(
     cells: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]],
     sensor: Sensor,
     tolerance: float = 0.1,
+    pool: Executor | None = None,
 ) -> np.ndarray:
     """``removed`` (``bool (N,)``, points of object ``owner``, -1: the frame's own) with the
     points restored whose sight line from the mount enters no box of an object not ``gone``
     but their own, unless (an object's point) its ray cell (``cells()``: beam, column and
     distance of each) holds a return of another owner (the frame's included) nearer by
-    more than ``tolerance`` metres; ``removed`` itself without ``boxes``."""
+    more than ``tolerance`` metres; ``removed`` itself without ``boxes``. ``pool``: lends a
+    thread for half of the sight lines."""
     if boxes is None:
         return removed
     alive = (owner < 0) | ~gone[owner.clip(0)]
@@ -676,7 +680,10 @@ def _in_sight(
     kept = np.flatnonzero(~gone)
     number = np.full(len(gone) + 1, -1, dtype=np.int64)  # (index -1: none)
     number[kept] = np.arange(len(kept))
-    free = rows[~sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[owner[rows]])]
+    crossed = sight_lines_cross(
+        points[rows], sensor.mount, boxes[kept], number[owner[rows]], pool=pool
+    )
+    free = rows[~crossed]
     if (owner[free] >= 0).any():
         beam, column, distance = cells()
         cell = np.where(alive & (beam >= 0), beam * sensor.num_columns + column, -1)
