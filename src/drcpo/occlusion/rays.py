@@ -308,8 +308,8 @@ class RayOcclusion:
 
     Args: as :func:`ray_occlusion`, and ``cells``: the points' ray cells and distances
     (:func:`~drcpo.occlusion.render.point_cells` of them), when known; found here otherwise;
-    ``pool``: a running one-thread pool whose thread takes half of each verdict's points
-    when it is free (the verdicts do not depend on it).
+    ``pool``: a running one-thread pool whose thread takes half of the elements' windows and
+    of each verdict's points when it is free (the verdicts do not depend on it).
 
     Attributes:
         removed: ``bool (N,)`` :func:`ray_occlusion` of all the points (read-only).
@@ -956,8 +956,8 @@ def _element_windows(
     # The first steps of _ray_index for the inserted points lo..hi - 1 (elements j): their
     # cells, distances and offsets from the mount, and each element's window of cells, into
     # the shared per-element arrays at j; per column, this part's own `covered`, `wanted`,
-    # `slope_lo` and `slope_hi` (see _ray_index; parts merge by _merge_columns). Returns the
-    # first row with a non-finite coordinate, or -1.
+    # `slope_lo` and `slope_hi` (see _ray_index; RayOcclusion._windows merges the parts).
+    # Returns the first row with a non-finite coordinate, or -1.
     beams, columns, bins = offsets.shape[0], column_cos.shape[0], first.shape[0]
     step, phase, per_radian = constants[0], constants[1], constants[4]
     lut_start, lut_scale, lut_bins = constants[5], constants[6], edge_lut.shape[0]

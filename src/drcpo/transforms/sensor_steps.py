@@ -280,7 +280,8 @@ class SensorFrame:
     ) -> tuple[np.ndarray, np.ndarray]:
         """:func:`sensor_occlusion` of this frame after insertion (``points``: its points
         first, all of them, then DR.CPO's objects', whose ``boxes`` these are), with what
-        it knows of its points: their cells, the added objects' and their surfaces."""
+        it knows: its points' cells, the added object holding each, the added objects'
+        boxes, counts and surfaces."""
         return sensor_occlusion(
             points,
             owner,
