@@ -396,12 +396,12 @@ def test_bad_input_is_a_data_error() -> None:
 
 
 def points_around(
-    rng: np.random.Generator, reach: float, heights: tuple[float, float], count: int = 5000
+    rng: np.random.Generator, reach: float, heights: tuple[float, float]
 ) -> np.ndarray:
-    """``count`` points 1 m to ``reach`` metres around the origin, at any azimuth and heights."""
-    radius = rng.uniform(1.0, reach, count)
-    angle = rng.uniform(-math.pi, math.pi, count)
-    height = rng.uniform(*heights, count)
+    """5,000 points 1 m to ``reach`` metres around the origin, at any azimuth and heights."""
+    radius = rng.uniform(1.0, reach, 5000)
+    angle = rng.uniform(-math.pi, math.pi, 5000)
+    height = rng.uniform(*heights, 5000)
     return np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height]).astype(
         np.float32
     )
@@ -437,27 +437,6 @@ def test_point_cells_where_several_beams_bands_hold_a_point() -> None:
     own = (relative[:, 2:3] - sensor.offsets) / np.hypot(relative[:, 0], relative[:, 1])[:, None]
     holders = ((edges[1:] < own) & (own <= edges[:-1])).sum(axis=1)
     assert (holders >= 2).sum() > 100 and (holders == 1).sum() > 100
-
-
-def test_point_cells_in_two_halves_on_a_pool_alike() -> None:
-    """With a pool, the points' cells are found in two halves (one on the pool's thread when
-    it is free): the same cells and distances; a bad row in the second half is named."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from drcpo.occlusion import render
-
-    sensor = sensor_preset("hdl64e")
-    points = points_around(np.random.default_rng(13), 80.0, (-4.0, 3.0), render._SPLIT_POINTS)
-    assert len(points) >= render._SPLIT_POINTS
-    alone = point_cells(points, sensor)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        halves = point_cells(points, sensor, pool)
-        for mine, theirs in zip(halves, alone, strict=True):
-            np.testing.assert_array_equal(mine, theirs)
-        broken = points.copy()
-        broken[-3, 0] = np.inf
-        with pytest.raises(DataError, match=f"row {len(points) - 3}"):
-            point_cells(broken, sensor, pool)
 
 
 def test_point_cells_name_the_bad_row() -> None:

@@ -9,21 +9,19 @@ distance, scan lines and self-occlusion come out of this one step.
 The sensor's ray cells are found without trigonometry (a pseudo-angle table for the azimuth
 column, the tangents of the beam edges for the beam) by the rule of :meth:`Sensor.cells`;
 :mod:`~drcpo.occlusion.rays` shares these kernels. Imports :mod:`drcpo.errors`,
-:mod:`drcpo.sensor`, :mod:`drcpo.occlusion.checks` and :mod:`drcpo.occlusion.threads` only.
+:mod:`drcpo.sensor` and :mod:`drcpo.occlusion.checks` only.
 """
 
 from __future__ import annotations
 
 import math
 import weakref
-from concurrent.futures import Executor
 
 import numba
 import numpy as np
 
 from drcpo.errors import ConfigError, DataError
 from drcpo.occlusion.checks import _check_points
-from drcpo.occlusion.threads import _shared_chunks
 from drcpo.sensor import Sensor
 
 __all__ = [
@@ -139,14 +137,11 @@ def render_object(
     return _returns(*hits, noise, lost, features, limits, *tables.geometry)
 
 
-def point_cells(
-    points: np.ndarray, sensor: Sensor, pool: Executor | None = None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def point_cells(points: np.ndarray, sensor: Sensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`Sensor.cells` of ``points`` ``(N, 3+)`` (metres) by the kernels' rule (the same
     cells, without trigonometry): ``beam int64 (N,)`` (-1 outside every beam), ``column int64
     (N,)`` (-1 straight above or below the mount) and ``distance float64 (N,)`` from the beam's
-    own origin (the mount's outside every beam), metres. ``pool``: a running one-thread pool
-    whose thread takes half of the points when it is free (the answer does not depend on it).
+    own origin (the mount's outside every beam), metres.
 
     Raises:
         DataError: a point holds NaN or inf.
@@ -154,24 +149,11 @@ def point_cells(
     xyz = np.asarray(points)
     if xyz.ndim != 2 or xyz.shape[1] < 3:
         raise DataError(f"points must have shape (N, 3 + C), got {xyz.shape}")
-    tables = sensor_tables(sensor).geometry
-    parts = 1 if pool is None or len(xyz) < _SPLIT_POINTS else 2
-    bounds = np.linspace(0, len(xyz), parts + 1).astype(np.int64)
-
-    def part(k: int) -> tuple:
-        return _point_cells(xyz, np.arange(bounds[k], bounds[k + 1]), *tables)
-
-    found = _shared_chunks(part, range(parts), pool)
-    for *_, bad in found:
-        if bad >= 0:
-            raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
-    if parts == 1:
-        return found[0][0], found[0][1], found[0][2]
-    beam, column, distance = (np.concatenate([f[k] for f in found]) for k in range(3))
+    rows = np.arange(len(xyz), dtype=np.int64)
+    beam, column, distance, _, bad = _point_cells(xyz, rows, *sensor_tables(sensor).geometry)
+    if bad >= 0:
+        raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
     return beam, column, distance
-
-
-_SPLIT_POINTS = 8000  # points from which their cells are found in two halves
 
 
 def _check_radii(radii: np.ndarray, count: int) -> np.ndarray:

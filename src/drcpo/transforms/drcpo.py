@@ -258,20 +258,7 @@ class DRCPO(Transform):
     def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            return self._steps(frame, rows, rng, stats, pool)
-
-    def _steps(
-        self,
-        frame: Frame,
-        rows: np.ndarray,
-        rng: np.random.Generator,
-        stats: Stats,
-        pool: ThreadPoolExecutor,
-    ) -> Frame:
-        """The steps after sampling ``rows``, with ``pool`` lending its thread."""
-        sensor, helper = self.config.sensor, pool if self._two_threads() else None
-        seen = sensor_steps.SensorFrame(frame, sensor, helper) if self._sensor_true else None
+        seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
         if self._occlusion_along_rays and self.config.placement.drop_hidden_added:
             with stats.stage("drcpo.placement", len(frame)):
                 seen, gone = seen.without_hidden_added(self.config.min_points_after)
@@ -281,63 +268,74 @@ class DRCPO(Transform):
         objects: list[Any] = []
         placed: Future | None = None  # of a Placed
         dim = frame.points.shape[1]
-        frame_grid = self._frame_grid(frame, rows, pool)
-        # s-HPR of each object, done by this thread and the pool's when it is free.
-        s_hpr = WorkQueue(helper)
-        if self.config.construction.mode == "partition":
-            with stats.stage("drcpo.placement", len(frame)):
-                boxes, accepted, owners = self._place(
-                    frame, rows, None, rng, stats, frame_grid, pool, seen
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            frame_grid = self._frame_grid(frame, rows, pool)
+            # s-HPR of each object, done by this thread and the pool's when it is free.
+            s_hpr = WorkQueue(pool if self._two_threads() else None)
+            if self.config.construction.mode == "partition":
+                with stats.stage("drcpo.placement", len(frame)):
+                    boxes, accepted, owners = self._place(
+                        frame, rows, None, rng, stats, frame_grid, pool, seen
+                    )
+                    rows = rows[accepted]
+                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
+                seeds = self._render_seeds(len(boxes), rng)
+                # With placement first, objects go to s-HPR chunk by chunk as they are built
+                # (the answers do not depend on it); the construction stage's time then
+                # includes the s-HPR work done meanwhile.
+                with stats.stage("drcpo.construction", 0) as record:
+                    queue = partial(self._queue_s_hpr, s_hpr, boxes, dim, seen, seeds)
+                    objects = self._construct(rows, rng, stats, queue)
+                    record["points_out"] = sum(len(o.points) for o in objects)
+            else:  # whole: the box grows while constructing, so place with the final size
+                with stats.stage("drcpo.construction", 0) as record:
+                    objects = self._construct(rows, rng, stats)
+                    record["points_out"] = sum(len(o.points) for o in objects)
+                with stats.stage("drcpo.placement", len(frame)):
+                    dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
+                    boxes, accepted, owners = self._place(
+                        frame, rows, dims, rng, stats, frame_grid, pool, seen
+                    )
+                    rows, objects = rows[accepted], [objects[i] for i in accepted]
+                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
+                seeds = self._render_seeds(len(boxes), rng)
+                self._queue_s_hpr(s_hpr, boxes, dim, seen, seeds, 0, objects)
+            if seen is not None and seen.after_placing is not None:  # (displace_attempts)
+                seen, frame = seen.after_placing, seen.after_placing.frame
+            points_in = sum(len(o.points) for o in objects)
+            with stats.stage("drcpo.self_occlusion", points_in) as record:
+                done = s_hpr.results()
+                visible = [done[k] for k in range(len(rows))]
+                if seen is not None and seen.placing is not None:  # (repose_attempts)
+                    boxes, visible = seen.placing.repose(seen, boxes, visible, lambda k, box: (
+                        self._object_s_hpr(objects[k].points, box, dim, seen.sensor, seeds[k])
+                    ), self.config.min_points_after)  # fmt: skip
+                insertions = self._insertions(rows, boxes, visible, stats)
+                record["points_out"] = sum(len(i.points) for i in insertions)
+            with stats.stage("drcpo.insert", len(frame)) as record:
+                points, owner, cleared_by = self._insert(
+                    frame, insertions, result_if_done(placed), clear=seen is None
                 )
-                rows = rows[accepted]
-                placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
-            seeds = self._render_seeds(len(boxes), rng)
-            # With placement first, objects go to s-HPR chunk by chunk as they are built
-            # (the answers do not depend on it); the construction stage's time then
-            # includes the s-HPR work done meanwhile.
-            with stats.stage("drcpo.construction", 0) as record:
-                queue = partial(self._queue_s_hpr, s_hpr, boxes, dim, seen, seeds)
-                objects = self._construct(rows, rng, stats, queue)
-                record["points_out"] = sum(len(o.points) for o in objects)
-        else:  # whole: the box grows while constructing, so place with the final size
-            with stats.stage("drcpo.construction", 0) as record:
-                objects = self._construct(rows, rng, stats)
-                record["points_out"] = sum(len(o.points) for o in objects)
-            with stats.stage("drcpo.placement", len(frame)):
-                dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
-                boxes, accepted, owners = self._place(
-                    frame, rows, dims, rng, stats, frame_grid, pool, seen
+                record["points_out"] = len(points)
+            with stats.stage("drcpo.external_occlusion", len(points)) as record:
+                grid = frame_grid() if frame_grid is not None and insertions else None
+                helper = pool if self._two_threads() else None
+                keep, dropped = self._external_occlusion(
+                    points,
+                    owner,
+                    insertions,
+                    grid,
+                    cleared_by,
+                    helper,
+                    result_if_done(placed),
+                    seen,
                 )
-                rows, objects = rows[accepted], [objects[i] for i in accepted]
-                placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
-            seeds = self._render_seeds(len(boxes), rng)
-            self._queue_s_hpr(s_hpr, boxes, dim, seen, seeds, 0, objects)
-        if seen is not None and seen.after_placing is not None:  # (displace_attempts)
-            seen, frame = seen.after_placing, seen.after_placing.frame
-        points_in = sum(len(o.points) for o in objects)
-        with stats.stage("drcpo.self_occlusion", points_in) as record:
-            done = s_hpr.results()
-            visible = [done[k] for k in range(len(rows))]
-            if seen is not None and seen.placing is not None:  # (repose_attempts)
-                boxes, visible = seen.placing.repose(seen, boxes, visible, lambda k, box: (
-                    self._object_s_hpr(objects[k].points, box, dim, seen.sensor, seeds[k])
-                ), self.config.min_points_after)  # fmt: skip
-            insertions = self._insertions(rows, boxes, visible, stats)
-            record["points_out"] = sum(len(i.points) for i in insertions)
-        with stats.stage("drcpo.insert", len(frame)) as record:
-            points, owner, cleared_by = self._insert(
-                frame, insertions, result_if_done(placed), clear=seen is None
-            )
-            record["points_out"] = len(points)
-        with stats.stage("drcpo.external_occlusion", len(points)) as record:
-            grid = frame_grid() if frame_grid is not None and insertions else None
-            keep, dropped = self._external_occlusion(
-                points, owner, insertions, grid, cleared_by, helper, result_if_done(placed), seen
-            )
-            record["points_out"] = int(keep.sum())
-        with stats.stage("drcpo.labels", int(keep.sum())) as record:
-            out = self._settle(frame, points, owner, keep, dropped, cleared_by, insertions, stats)
-            record["points_out"] = len(out)
+                record["points_out"] = int(keep.sum())
+            with stats.stage("drcpo.labels", int(keep.sum())) as record:
+                out = self._settle(
+                    frame, points, owner, keep, dropped, cleared_by, insertions, stats
+                )
+                record["points_out"] = len(out)
         if seen is not None and (used := seen.record()) is not None:
             stats.sensor_used(used)
         return out

@@ -87,13 +87,10 @@ class SensorFrame:
     Args:
         frame: the frame DR.CPO receives.
         config: its ``drcpo.sensor`` section.
-        pool: a running one-thread pool that lends its thread to the steps (half of the ray
-            cells); ``None``: none.
     """
 
     frame: Frame
     config: SensorConfig
-    pool: Executor | None = field(default=None, repr=False)
     fallback: str = field(default="", init=False)
     #: the frame placement left (:func:`displace_added`: without the objects displaced)
     after_placing: SensorFrame | None = field(default=None, init=False, repr=False)
@@ -177,7 +174,7 @@ class SensorFrame:
     def cells(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame point's ray cell and distance from its beam's origin
         (:func:`~drcpo.occlusion.render.point_cells`), found once for the steps that need them."""
-        return point_cells(self.frame.points, self.sensor, self.pool)
+        return point_cells(self.frame.points, self.sensor)
 
     @cached_property
     def range_image(self) -> RangeImage:
@@ -250,7 +247,7 @@ class SensorFrame:
             names=frame.names[keep],
             metadata=update_box_metadata(frame.metadata, len(frame.boxes), keep=keep),
         )
-        out = SensorFrame(pruned, self.config, self.pool)
+        out = SensorFrame(pruned, self.config)
         out.fallback, out.placing = self.fallback, self.placing
         out.__dict__["sensor"] = self.sensor  # (cached_property keeps its value there)
         out.__dict__["ground"] = self.ground
@@ -427,7 +424,7 @@ def visible_returns(
         return np.zeros(count, dtype=np.int64)
     owner = np.repeat(np.arange(count), sizes)
     points = np.concatenate([r[0][:, :3] for r in rendered])
-    beam, column, distance = point_cells(points, seen.sensor, seen.pool)
+    beam, column, distance = point_cells(points, seen.sensor)
     on = beam >= 0
     free = np.zeros(len(points), dtype=bool)
     free[on] = seen.solid_image.ranges[beam[on], column[on]] >= distance[on] - tolerance
@@ -604,19 +601,14 @@ def sensor_occlusion(
     combined = owner.copy()
     combined[:first] = np.where(added_owner >= 0, added_owner + num_drcpo, -1)
     count, radii = len(points), None
-    cells = cache(partial(_point_cell_arrays, points, first, sensor, frame_cells, pool))
+    cells = cache(partial(_point_cell_arrays, points, first, sensor, frame_cells))
     if fill_holes:
         known = None if added_surfaces is None else (first, added_surfaces)
         points, combined, radii = with_silhouette_gaps(
             points, combined, sensor, cells(), pool, known
         )
     rays = RayOcclusion(
-        points,
-        combined,
-        sensor,
-        radii,
-        cells=_with_cells_of(cells(), points, sensor, pool),
-        pool=pool,
+        points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor), pool=pool
     )
     objects = int(combined.max(initial=-1)) + 1  # (those with points)
     if boxes is not None and len(boxes) < objects:
@@ -641,31 +633,26 @@ def _point_cell_arrays(
     first: int,
     sensor: Sensor,
     frame_cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-    pool: Executor | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`~drcpo.occlusion.render.point_cells` of ``points`` (``pool``: see there); of the
-    first ``first`` (the frame's) from ``frame_cells`` when given."""
+    """:func:`~drcpo.occlusion.render.point_cells` of ``points``; of the first ``first`` (the
+    frame's) from ``frame_cells`` when given."""
     if frame_cells is None:
-        return point_cells(points, sensor, pool)
+        return point_cells(points, sensor)
     if len(frame_cells[0]) != first:
         raise DataError(f"frame_cells must hold {first} points, got {len(frame_cells[0])}")
-    return _with_cells_of(frame_cells, points, sensor, pool)
+    return _with_cells_of(frame_cells, points, sensor)
 
 
 def _with_cells_of(
-    cells: tuple[np.ndarray, np.ndarray, np.ndarray],
-    points: np.ndarray,
-    sensor: Sensor,
-    pool: Executor | None = None,
+    cells: tuple[np.ndarray, np.ndarray, np.ndarray], points: np.ndarray, sensor: Sensor
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``cells`` of the first points, then those of the rest of ``points`` (found here;
-    ``pool``: see :func:`~drcpo.occlusion.render.point_cells`)."""
+    """``cells`` of the first points, then those of the rest of ``points`` (found here)."""
     count = len(cells[0])
     if count == len(points):
         return cells
     beam, column, distance = (
         np.concatenate(pair)
-        for pair in zip(cells, point_cells(points[count:], sensor, pool), strict=True)
+        for pair in zip(cells, point_cells(points[count:], sensor), strict=True)
     )
     return beam, column, distance
 
