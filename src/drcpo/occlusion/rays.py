@@ -43,7 +43,7 @@ from drcpo.occlusion.render import (
     point_cells,
     sensor_tables,
 )
-from drcpo.occlusion.threads import _shared_chunks
+from drcpo.occlusion.threads import _halves, _shared_chunks
 from drcpo.sensor import Sensor
 
 __all__ = ["PlacedView", "RangeImage", "RayOcclusion", "element_radii", "ray_occlusion"]
@@ -358,23 +358,20 @@ class RayOcclusion:
             np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m), np.empty((m, 3)),
             np.empty(m, np.int64), np.empty((m, 4), np.int64),
         )  # fmt: skip
-        parts = 1 if self._pool is None or m < _SPLIT_ELEMENTS else 2
-        bounds = np.linspace(0, m, parts + 1).astype(np.int64)
-        per_part = [
-            (np.full(columns, -1, np.int64), np.zeros(columns, np.bool_),
-             np.full(columns, np.inf), np.full(columns, -np.inf))
-            for _ in range(parts)
-        ]  # fmt: skip
 
-        def part(k: int) -> int:
-            return _element_windows(array, owner, inserted, radii, *known, bounds[k],
-                                    bounds[k + 1], *elements, *per_part[k], *tables)  # fmt: skip
+        def part(start: int, stop: int) -> tuple[int, tuple[np.ndarray, ...]]:
+            own = (np.full(columns, -1, np.int64), np.zeros(columns, np.bool_),
+                   np.full(columns, np.inf), np.full(columns, -np.inf))  # fmt: skip
+            bad = _element_windows(array, owner, inserted, radii, *known, start, stop,
+                                   *elements, *own, *tables)  # fmt: skip
+            return bad, own
 
-        bad = [row for row in _shared_chunks(part, range(parts), self._pool) if row >= 0]
+        parts = _halves(part, m, self._pool, _SPLIT_ELEMENTS)
+        bad = [row for row, _ in parts if row >= 0]
         if bad:
             raise DataError(f"points hold NaN/inf coordinates (first: row {bad[0]})")
-        covered, wanted, low, high = per_part[0]
-        for other, also, below, above in per_part[1:]:
+        covered, wanted, low, high = parts[0][1]
+        for _, (other, also, below, above) in parts[1:]:
             covered = np.where(
                 (covered == -1) | (covered == other), other, np.where(other == -1, covered, -2)
             )

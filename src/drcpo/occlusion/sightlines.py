@@ -20,7 +20,7 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.geometry import heading_terms
 from drcpo.occlusion.rays import _slab
-from drcpo.occlusion.threads import _shared_chunks
+from drcpo.occlusion.threads import _halves
 
 __all__ = ["sight_lines_cross"]
 
@@ -68,14 +68,12 @@ def sight_lines_cross(
         raise DataError(f"margin must be a distance >= 0, got {margin!r}")
     crossed = np.zeros(len(xyz), dtype=bool)
     cos, sin = heading_terms(boxes)
-    parts = 1 if pool is None or len(xyz) < _SPLIT_POINTS else 2
-    bounds = np.linspace(0, len(xyz), parts + 1).astype(np.int64)
 
-    def part(k: int) -> None:
-        rows = slice(bounds[k], bounds[k + 1])
+    def part(start: int, stop: int) -> None:
+        rows = slice(start, stop)
         _cross(xyz[rows], origin, boxes, cos, sin, own[rows], float(margin), crossed[rows])
 
-    _shared_chunks(part, range(parts), pool)
+    _halves(part, len(xyz), pool, _SPLIT_POINTS)
     return crossed
 
 

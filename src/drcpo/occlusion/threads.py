@@ -57,3 +57,12 @@ def _shared_chunks(
         if own:
             pool.shutdown()
     return results
+
+
+def _halves(kernel, count: int, helper, minimum: int) -> list[Any]:
+    """``kernel(start, stop)`` over the rows ``0..count - 1``: in two contiguous halves, one
+    claimed by ``helper``'s thread when it is free (:func:`_shared_chunks`), given a helper
+    and at least ``minimum`` rows; else in one call. Results in row order."""
+    parts = 1 if helper is None or count < minimum else 2
+    bounds = np.linspace(0, count, parts + 1).astype(np.int64)
+    return _shared_chunks(lambda k: kernel(bounds[k], bounds[k + 1]), range(parts), helper)
