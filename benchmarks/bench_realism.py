@@ -34,6 +34,13 @@ frames with the same generator seeds):
   removed (``hidden_removed_by_source``: behind ground-truth sampling's / DR.CPO's objects).
 * ``counts``: DR.CPO objects tried / added per class per frame, and the rejection reasons.
 
+``floor:PRESET`` (e.g. ``floor:realistic``) is a column of its own: at the boxes ``PRESET`` places
+(the same boxes, names and counts), every inserted object replaced by another actor of its class
+fitted to its box, drawn apart from the one scored against and cast with the frame's own rays
+(:class:`AnotherActor`). A perfect inserter of real objects of the right class and size scores
+these figures: the truth is one random actor among many of a class and box (a person's stride,
+a cyclist's lean, a car's cabin), so they are the floor of each figure, not zero.
+
 "Inserted objects" are DR.CPO's in the per-object figures (``by_source`` gives ground-truth
 sampling's alongside); the truth world of the point figures holds every inserted object of
 either stage. Which output box came from which stage: ``metadata["box_source"]`` when the
@@ -50,7 +57,7 @@ and counts.
 Usage::
 
     python benchmarks/bench_realism.py [--quick] [--frames 40] [--seeds 501 ...] \
-        [--presets paper realistic] [--kitti [PATH]]
+        [--presets paper realistic floor:realistic] [--kitti [PATH]]
 
 The last stdout line is one JSON object with every figure.
 """
@@ -91,6 +98,7 @@ SOLID_KINDS = ("building", "pole", "trunk")
 INSERTING_STAGES = ("gt_sampling", "drcpo")
 ORIGINAL, GT_SAMPLING, DRCPO_SOURCE = "", "gt_sampling", "drcpo"
 TRUTH = "truth"  # the truth's own figures, beside those of the stages
+FLOOR_PREFIX = "floor:"  # a column of another true actor at a preset's boxes (AnotherActor)
 DELETION_KEYS = (
     "visible",
     "in_box",
@@ -413,6 +421,57 @@ def augment(
     if recorded is not None:
         return out, np.asarray(recorded, dtype=str), after_gt
     return out, box_sources(frame.boxes, after_gt.boxes, out.boxes), after_gt
+
+
+def floor_base(preset: str) -> str:
+    """The preset whose boxes a ``floor:`` column takes (``floor:realistic`` -> ``realistic``);
+    any other name unchanged."""
+    if not preset.startswith(FLOOR_PREFIX):
+        return preset
+    base = preset[len(FLOOR_PREFIX) :]
+    if not base or base.startswith(FLOOR_PREFIX):
+        raise SystemExit(f"--presets {preset}: expected floor:PRESET, e.g. floor:realistic")
+    return base
+
+
+class AnotherActor:
+    """The inserting stages of a preset with every object they insert replaced by its truth:
+    the returns of another actor of its class fitted to its box (a draw of its own, not the
+    one :func:`score_frame` scores against), cast with the frame's own rays; the original
+    points that actor hides removed, every other one kept. What a perfect inserter scores
+    when the truth is one random actor among many of the same class and box (a ``floor:``
+    column, see :func:`floor_base`).
+
+    Required keys: ``points``, ``boxes``, ``names`` of ``case.frame``. Modified: ``points``
+    (hidden ones removed, the other actor's returns added), ``boxes``, ``names`` and
+    ``metadata`` as the preset's stages leave them (``box_source`` recorded).
+    """
+
+    name = DRCPO_SOURCE  # (every deletion is the column's own: no ground-truth sampling split)
+
+    def __init__(self, stages: Sequence, case: SynthCase, seed: int) -> None:
+        self.stages, self.case, self.seed = list(stages), case, seed
+
+    def __call__(self, frame: Frame, rng: np.random.Generator) -> Frame:
+        from drcpo.datasets.kitti import fov_mask
+        from drcpo.synth.truth import true_inserted_returns
+
+        if frame is not self.case.frame:
+            raise ValueError("AnotherActor augments its own case's frame only")
+        out, sources, _ = augment(self.stages, frame, rng)
+        inserted = sources != ORIGINAL
+        other = true_inserted_returns(
+            self.case.world,
+            self.case.sweep,
+            out.names[inserted].tolist(),
+            out.boxes[inserted],
+            np.random.default_rng([self.seed, 2]),  # score_frame's truth draws [seed, 1]
+        )
+        hidden = other.hidden_by[self.case.sweep_rows] >= 0
+        returns = other.returns[fov_mask(other.returns, frame.metadata["calib"])]
+        points = np.concatenate([frame.points[~hidden], returns.astype(frame.points.dtype)])
+        metadata = {**out.metadata, "box_source": sources.tolist()}
+        return out.replace(points=points, metadata=metadata)
 
 
 # --------------------------------------------------------------------------------------------
@@ -768,7 +827,8 @@ def _init_worker(db_path: str, presets: Sequence[str]) -> None:
     database = GroundTruthDatabase.open(db_path)
     index = load_index(database)
     _WORKER["stages"] = {
-        p: inserting_stages(build_pipeline(resolve_preset(p), database, index)) for p in presets
+        p: inserting_stages(build_pipeline(resolve_preset(floor_base(p)), database, index))
+        for p in presets
     }
 
 
@@ -779,7 +839,10 @@ def _score_job(job: tuple[int, int]) -> dict[str, Tally]:
     for preset, stages in _WORKER["stages"].items():
         tally = Tally()
         # Every preset gets the same generator seed for the same frame.
-        score_frame(case, stages, seed * 100_003 + index, tally)
+        frame_seed = seed * 100_003 + index
+        if preset.startswith(FLOOR_PREFIX):
+            stages = [AnotherActor(stages, case, frame_seed)]
+        score_frame(case, stages, frame_seed, tally)
         out[preset] = tally
     return out
 

@@ -222,6 +222,67 @@ def test_scoring_a_frame_against_its_truth(perfect):
     assert summary["solids"]["building"] == 0.0
 
 
+class BoxesOnly:
+    """A stand-in DR.CPO stage that only adds labels: two people in front of the wall (the
+    hand world's sweep returns from the wall only)."""
+
+    name = "drcpo"
+    boxes = np.array(
+        [
+            [34.0, 0.5, -MOUNT + 0.87, 0.8, 0.6, 1.74, 0.4],
+            [36.0, -1.5, -MOUNT + 0.87, 0.9, 0.6, 1.74, 2.0],
+        ]
+    )
+
+    def __call__(self, frame: Frame, rng: np.random.Generator) -> Frame:
+        return frame.replace(boxes=self.boxes, names=np.array(["Pedestrian"] * 2))
+
+
+def test_another_actor_inserts_a_second_truth_at_the_stages_boxes():
+    from drcpo.datasets.kitti import fov_mask
+    from drcpo.synth.truth import true_inserted_returns
+
+    case = hand_case()
+    seed = 12
+    floor = bench.AnotherActor([BoxesOnly()], case, seed)
+    out = floor(case.frame, np.random.default_rng(seed))
+    np.testing.assert_array_equal(out.boxes, BoxesOnly.boxes)
+    assert list(out.metadata["box_source"]) == ["drcpo", "drcpo"]
+    names = ["Pedestrian"] * 2
+    scored, other = (
+        true_inserted_returns(
+            case.world, case.sweep, names, BoxesOnly.boxes, np.random.default_rng([seed, k])
+        )
+        for k in (1, 2)
+    )
+    hidden = other.hidden_by[case.sweep_rows] >= 0
+    # the frame's points the other actors do not hide, bit for bit, then their returns in view
+    returns = other.returns[fov_mask(other.returns, case.frame.metadata["calib"])]
+    np.testing.assert_array_equal(out.points, np.concatenate([case.frame.points[~hidden], returns]))
+
+    tally = bench.Tally()
+    bench.score_frame(case, [floor], seed, tally)
+    frame = tally.frames[0]
+    # scored against a draw of its own (a person's stride and arms differ): points one hides
+    # the other does not, most hidden by both
+    truly_hidden = scored.hidden_by[case.sweep_rows] >= 0
+    assert frame["deleted_visible"]["all"]["visible"] == int((hidden & ~truly_hidden).sum()) > 0
+    assert frame["hidden"] == int(truly_hidden.sum())
+    assert frame["hidden"] / 2 < frame["hidden_removed"] == int((hidden & truly_hidden).sum())
+    assert frame["deleted_visible"]["gt_sampling"]["visible"] == 0
+
+
+def test_floor_base_names_the_preset_whose_boxes_it_takes():
+    assert bench.floor_base("floor:realistic") == "realistic"
+    assert bench.floor_base("paper") == "paper"
+    for bad in ("floor:", "floor:floor:paper"):
+        with pytest.raises(SystemExit, match="floor:PRESET"):
+            bench.floor_base(bad)
+    case = hand_case()
+    with pytest.raises(ValueError, match="its own case"):
+        bench.AnotherActor([], case, 1)(case.frame.replace(), np.random.default_rng(0))
+
+
 def test_behind_only_takes_sight_lines_through_boxes_of_one_source_alone():
     """A point behind a ground-truth-sampled box alone counts; behind one of each, behind a
     DR.CPO box alone, or behind none, it does not; a box beside the sight line is no matter."""
