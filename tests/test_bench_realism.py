@@ -349,7 +349,7 @@ def test_solids_share_sees_a_box_in_a_building():
 def test_quick_run_prints_the_figures_as_json(tmp_path):
     done = subprocess.run(
         [sys.executable, str(SCRIPT), "--quick", "--presets", "paper", "default",
-         "--work", str(tmp_path)],
+         "floor:default", "--work", str(tmp_path)],
         capture_output=True, text=True, timeout=1200,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-3000:]
@@ -362,6 +362,12 @@ def test_quick_run_prints_the_figures_as_json(tmp_path):
     assert figures["frames"] == 3 and figures["density"]["bins"] == 21
     assert figures["on_beam"]["truth"] == 1.0
     assert set(figures["counts"]) == {"Car", "Pedestrian", "Cyclist"}
+    # the floor: the default preset's boxes, each object another true actor of its box
+    floor = report["presets"]["floor:default"]
+    assert floor["objects"] == figures["objects"] > 0 and floor["counts"] == figures["counts"]
+    assert floor["ground"] == figures["ground"] and floor["solids"] == figures["solids"]
+    assert floor["on_beam"]["drcpo"] == 1.0 and floor["truly_unseen_kept"] == 0
+    assert floor["deleted_visible_per_frame"]["gt_sampling"]["visible"] == 0
 
 
 @pytest.mark.slow
