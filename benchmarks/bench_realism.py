@@ -39,7 +39,9 @@ frames with the same generator seeds):
 fitted to its box, drawn apart from the one scored against and cast with the frame's own rays
 (:class:`AnotherActor`). A perfect inserter of real objects of the right class and size scores
 these figures: the truth is one random actor among many of a class and box (a person's stride,
-a cyclist's lean, a car's cabin), so they are the floor of each figure, not zero.
+a cyclist's lean, a car's cabin), so they are the floor of each figure, not zero. The JSON's
+``against_floor`` (and a line after the table) gives, per preset run beside its floor, its
+visible points deleted over the floor's and the share of hidden points it removes below it.
 
 "Inserted objects" are DR.CPO's in the per-object figures (``by_source`` gives ground-truth
 sampling's alongside); the truth world of the point figures holds every inserted object of
@@ -683,6 +685,29 @@ def summarise(tally: Tally) -> dict[str, Any]:
     }
 
 
+def against_floor(presets: dict[str, dict[str, Any]]) -> dict[str, dict[str, float | None]]:
+    """Per preset ``P`` run beside its ``floor:P`` column, on the same frames: the truly visible
+    original points ``P`` deleted per frame (every stage) over the floor's, and the truly hidden
+    points the floor removed less the share ``P`` removed."""
+    out = {}
+    for name, floor in presets.items():
+        base = name[len(FLOOR_PREFIX) :]
+        if not name.startswith(FLOOR_PREFIX) or base not in presets:
+            continue
+        deleted = presets[base]["deleted_visible_per_frame"]["all"]["visible"]
+        floor_deleted = floor["deleted_visible_per_frame"]["all"]["visible"]
+        hidden, floor_hidden = presets[base]["hidden_removed"], floor["hidden_removed"]
+        out[base] = {
+            "deleted_visible_over_floor": round(deleted / floor_deleted, 2)
+            if floor_deleted
+            else None,
+            "hidden_removed_below_floor": round(floor_hidden - hidden, 4)
+            if hidden is not None and floor_hidden is not None
+            else None,
+        }
+    return out
+
+
 def _total_reasons(counts: dict[str, Any]) -> dict[str, float]:
     total: dict[str, float] = {}
     for entry in counts.values():
@@ -878,7 +903,8 @@ def run_synthetic(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         "database_s": round(db_seconds, 1),
         "seeds": list(args.seeds),
         "frames_per_seed": args.frames,
-        "presets": {p: summarise(t) for p, t in tallies.items()},
+        "presets": (presets := {p: summarise(t) for p, t in tallies.items()}),
+        "against_floor": against_floor(presets),
     }
 
 
@@ -1033,6 +1059,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     report["wall_s"] = round(time.perf_counter() - start, 1)
     if report["mode"] == "synthetic":
         print_table(report["presets"])
+        for name, gap in report["against_floor"].items():
+            over, below = gap["deleted_visible_over_floor"], gap["hidden_removed_below_floor"]
+            print(
+                f"{name} against its floor: visible points deleted {over} x the floor's, "
+                f"hidden points removed {below} below"
+            )
     else:
         print(json.dumps(report["presets"], indent=2))
     print(json.dumps(report))

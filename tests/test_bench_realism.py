@@ -272,6 +272,29 @@ def test_another_actor_inserts_a_second_truth_at_the_stages_boxes():
     assert frame["deleted_visible"]["gt_sampling"]["visible"] == 0
 
 
+def test_against_floor_compares_each_preset_with_its_own_floor_only():
+    def figures(deleted, hidden):
+        return {
+            "deleted_visible_per_frame": {"all": {"visible": deleted}},
+            "hidden_removed": hidden,
+        }
+
+    presets = {
+        "realistic": figures(2000.0, 0.96),
+        "floor:realistic": figures(160.0, 0.97),
+        "paper": figures(250.0, 0.15),
+        "floor:other": figures(1.0, 1.0),
+    }
+    assert bench.against_floor(presets) == {
+        "realistic": {"deleted_visible_over_floor": 12.5, "hidden_removed_below_floor": 0.01}
+    }
+    presets["floor:realistic"] = figures(0.0, None)
+    assert bench.against_floor(presets)["realistic"] == {
+        "deleted_visible_over_floor": None,
+        "hidden_removed_below_floor": None,
+    }
+
+
 def test_floor_base_names_the_preset_whose_boxes_it_takes():
     assert bench.floor_base("floor:realistic") == "realistic"
     assert bench.floor_base("paper") == "paper"
@@ -368,6 +391,8 @@ def test_quick_run_prints_the_figures_as_json(tmp_path):
     assert floor["ground"] == figures["ground"] and floor["solids"] == figures["solids"]
     assert floor["on_beam"]["drcpo"] == 1.0 and floor["truly_unseen_kept"] == 0
     assert floor["deleted_visible_per_frame"]["gt_sampling"]["visible"] == 0
+    assert set(report["against_floor"]) == {"default"}
+    assert "default against its floor" in done.stdout
 
 
 @pytest.mark.slow
