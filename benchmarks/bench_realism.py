@@ -691,8 +691,8 @@ def against_floor(presets: dict[str, dict[str, Any]]) -> dict[str, dict[str, flo
     points the floor removed less the share ``P`` removed."""
     out = {}
     for name, floor in presets.items():
-        base = name[len(FLOOR_PREFIX) :]
-        if not name.startswith(FLOOR_PREFIX) or base not in presets:
+        base = floor_base(name)
+        if base == name or base not in presets:
             continue
         deleted = presets[base]["deleted_visible_per_frame"]["all"]["visible"]
         floor_deleted = floor["deleted_visible_per_frame"]["all"]["visible"]
@@ -895,6 +895,7 @@ def run_synthetic(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     for result in results:
         for preset, tally in result.items():
             tallies[preset].extend(tally)
+    presets = {p: summarise(t) for p, t in tallies.items()}
     return {
         "mode": "synthetic",
         "train_seed": args.train_seed,
@@ -903,7 +904,7 @@ def run_synthetic(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         "database_s": round(db_seconds, 1),
         "seeds": list(args.seeds),
         "frames_per_seed": args.frames,
-        "presets": (presets := {p: summarise(t) for p, t in tallies.items()}),
+        "presets": presets,
         "against_floor": against_floor(presets),
     }
 
