@@ -137,6 +137,39 @@ def test_work_comes_back_in_item_order_and_a_lost_worker_is_named(cluster):
         kill_actors(actors)
 
 
+def test_stopping_the_work_finishes_what_workers_started_and_drops_the_rest(cluster, tmp_path):
+    """A consumer that stops early (Ctrl-C, an error) returns only when no worker is still in
+    the middle of an item (a frame half-written after the call would race the rerun's), and no
+    item beyond those already handed out starts."""
+    from contextlib import closing
+
+    import ray
+
+    from drcpo.distributed.cluster import kill_actors, run_on_actors
+    from drcpo.distributed.index import BlockRanker
+
+    def logged(item):  # a start and an end mark around half a second of work
+        (tmp_path / f"start-{item}").touch()
+        time.sleep(0.5 if item else 0.05)
+        (tmp_path / f"end-{item}").touch()
+        return item
+
+    actor_class = ray.remote(num_cpus=1)(BlockRanker)
+    actors = [actor_class.remote() for _ in range(2)]
+    try:
+        ray.get([a.load.remote(logged) for a in actors])
+        with closing(run_on_actors(actors, lambda a, i: a.rank.remote(i), range(20))) as work:
+            assert next(work)[1] == 0  # the other worker is in the middle of item 1 now
+    finally:
+        kill_actors(actors)
+    marks = lambda kind: {p.name.split("-")[1] for p in tmp_path.glob(f"{kind}-*")}  # noqa: E731
+    started = marks("start")
+    assert "1" in started and marks("end") == started
+    assert started <= {str(i) for i in range(5)}  # 2 handed to each worker, 1 more after item 0
+    time.sleep(1.0)
+    assert marks("start") == started
+
+
 # augment --------------------------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["global", "drcpo"])
 def test_cluster_augment_equals_one_process(cluster, kitti, database, reference, tmp_path, kind):
@@ -169,6 +202,8 @@ def test_a_stopped_cluster_run_resumes_on_either_engine(cluster, kitti, referenc
         summary = resume(kitti, "train", random_transform(), out, seed=9, **extra)
         assert summary["resumed"] >= 3
         assert tree_bytes(out) == tree_bytes(reference / "global")
+        time.sleep(0.5)  # a worker of the stopped run still writing would show by now
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
 def test_a_bad_frame_on_a_worker_raises_its_own_error(cluster, kitti, tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import closing
 from pathlib import Path
 from typing import Any
 
@@ -118,8 +119,9 @@ def augment_kitti_cluster(
             report["startup_s"] = time.perf_counter() - start
             ready_at = time.perf_counter()
             work = run_on_actors(actors, lambda a, n: a.augment.remote(str(staging), n), numbers)
-            for _, number in work:
-                yield number
+            with closing(work):  # frames being written end before the actors are killed
+                for _, number in work:
+                    yield number
             report["frames_s"] = time.perf_counter() - ready_at
             final = ray.get([actor.info.remote() for actor in actors])
             report["workers"] = [

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import closing
 from typing import Any
 
 from drcpo.database import GroundTruthDatabase, ObjectRecord
@@ -64,12 +65,13 @@ def cluster_frames(connection: Cluster, workers: int) -> Callable[..., Iterator]
         try:
             done = 0
             results = run_on_actors(actors, lambda a, chunk: a.records.remote(chunk), chunks)
-            for chunk in in_order(results):
-                for frame_objects in chunk:
-                    done += 1
-                    if progress is not None:
-                        progress(done, len(ids))
-                    yield frame_objects
+            with closing(results):
+                for chunk in in_order(results):
+                    for frame_objects in chunk:
+                        done += 1
+                        if progress is not None:
+                            progress(done, len(ids))
+                        yield frame_objects
         finally:
             kill_actors(actors)
 

@@ -37,6 +37,8 @@ RAY_MISSING = "the cluster needs Ray, which is not installed: pip install drcpo[
 #: Object store of a local cluster, MB: the workers read the database and index memory-mapped
 #: from disk, so the store holds only small results.
 LOCAL_OBJECT_STORE_MB = 200
+#: Longest wait, seconds, for the items workers have started when the work stops early.
+SETTLE_TIMEOUT_S = 60.0
 
 
 class WorkerLost(DrcpoError):
@@ -142,7 +144,13 @@ def run_on_actors(
     to whichever actor is free, ``ahead`` queued per actor so none waits between items; yields
     ``(position of the item, result)`` as results arrive (completion order; :func:`in_order`
     restores item order). An error raised by the work is raised here as itself (not Ray's
-    wrapper); a lost actor raises :class:`WorkerLost`."""
+    wrapper); a lost actor raises :class:`WorkerLost`.
+
+    When the generator ends early (an error, or the caller closes it: use
+    :func:`contextlib.closing` so that happens before :func:`kill_actors`), it waits for the
+    items already handed out (at most ``ahead`` per actor) to end: a killed worker may outlive
+    :func:`kill_actors` for a moment, and one still writing a frame would race the rerun that
+    resumes it."""
     ray = require_ray()
     from ray.exceptions import RayActorError, RayTaskError
 
@@ -157,24 +165,36 @@ def run_on_actors(
         for _ in range(ahead):
             if queue:
                 submit(actor)
-    while pending:
-        (ready,), _ = ray.wait(list(pending), num_returns=1)
-        actor, position = pending.pop(ready)
-        try:
-            result = ray.get(ready)
-        except RayTaskError as exc:
-            cause = getattr(exc, "cause", None)
-            if isinstance(cause, Exception):
-                raise cause from None
-            raise
-        except RayActorError as exc:
-            raise WorkerLost(
-                f"a cluster worker died ({type(exc).__name__}); rerun the same command to "
-                "continue from what was written"
-            ) from exc
-        if queue:
-            submit(actor)
-        yield position, result
+    try:
+        while pending:
+            (ready,), _ = ray.wait(list(pending), num_returns=1)
+            actor, position = pending.pop(ready)
+            try:
+                result = ray.get(ready)
+            except RayTaskError as exc:
+                cause = getattr(exc, "cause", None)
+                if isinstance(cause, Exception):
+                    raise cause from None
+                raise
+            except RayActorError as exc:
+                raise WorkerLost(
+                    f"a cluster worker died ({type(exc).__name__}); rerun the same command to "
+                    "continue from what was written"
+                ) from exc
+            if queue:
+                submit(actor)
+            yield position, result
+    finally:
+        _settle(list(pending))
+
+
+def _settle(refs: list[Any]) -> None:
+    """Wait (up to :data:`SETTLE_TIMEOUT_S`) for the tasks of ``refs`` to end, failed or not.
+
+    Not ``ray.cancel``: Ray 2.60 still runs a cancelled task already queued on its actor (it
+    only reports it cancelled), so waiting is what tells when the workers are idle."""
+    if refs:
+        require_ray().wait(refs, num_returns=len(refs), timeout=SETTLE_TIMEOUT_S)
 
 
 def in_order(results: Iterable[tuple[int, Any]]) -> Iterator[Any]:

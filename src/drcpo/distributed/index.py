@@ -6,6 +6,7 @@ block order, so the index is the one a single process builds (the exact first st
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import closing
 from typing import Any
 
 from drcpo.database import GroundTruthDatabase
@@ -62,11 +63,12 @@ class _ClusterBlocks:
         ray.get([actor.load.remote(shared) for actor in self.actors])
         done = 0
         results = run_on_actors(self.actors, lambda a, item: a.rank.remote(item), items)
-        for result in in_order(results):
-            done = min(done + config.block_size, total)
-            if progress is not None:
-                progress(done, total)
-            yield result
+        with closing(results):  # blocks being ranked end before the actors are reused or killed
+            for result in in_order(results):
+                done = min(done + config.block_size, total)
+                if progress is not None:
+                    progress(done, total)
+                yield result
 
     def close(self) -> None:
         if self.actors:
