@@ -159,7 +159,7 @@ def test_stopping_the_work_finishes_what_workers_started_and_drops_the_rest(clus
     try:
         ray.get([a.load.remote(logged) for a in actors])
         with closing(run_on_actors(actors, lambda a, i: a.rank.remote(i), range(20))) as work:
-            assert next(work)[1] == 0  # the other worker is in the middle of item 1 now
+            assert next(work)[1] == 0  # item 1 starts after it; item 2 is half done
     finally:
         kill_actors(actors)
     marks = lambda kind: {p.name.split("-")[1] for p in tmp_path.glob(f"{kind}-*")}  # noqa: E731
