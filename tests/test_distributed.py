@@ -162,7 +162,10 @@ def test_stopping_the_work_finishes_what_workers_started_and_drops_the_rest(clus
             assert next(work)[1] == 0  # item 1 starts after it; item 2 is half done
     finally:
         kill_actors(actors)
-    marks = lambda kind: {p.name.split("-")[1] for p in tmp_path.glob(f"{kind}-*")}  # noqa: E731
+
+    def marks(kind: str) -> set[str]:
+        return {p.name.split("-")[1] for p in tmp_path.glob(f"{kind}-*")}
+
     started = marks("start")
     assert "1" in started and marks("end") == started
     assert started <= {str(i) for i in range(5)}  # 2 handed to each worker, 1 more after item 0
