@@ -38,11 +38,15 @@ few steps; its AP means nothing.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import importlib.util
 import json
 import multiprocessing
 import os
+import platform
+import re
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -51,6 +55,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
+
+from drcpo.frame import Frame
+from drcpo.transforms.base import Stats, Transform
 
 TRAIN_SEED = 1000  # synthetic worlds of the training pool: frame i uses (TRAIN_SEED, i)
 VAL_SEED = 2000  # validation worlds: other seeds, so no validation object is in a database
@@ -67,16 +75,22 @@ class Plan:
     fractions: tuple[float, ...] = (0.1, 0.25, 0.5, 1.0)
     arms: tuple[str, ...] = ("none", "cda", "paper")
     seeds: tuple[int, ...] = (0, 1, 2)
-    steps: int = 360
+    steps: int = 1200
     batch_size: int = 4
     workers: int = 2
     street_angle: float = 45.0
+    curve_every: int = 0
+    replicates: int = 1000
+    device: str = "cpu"
 
     def subset_size(self, fraction: float) -> int:
         return max(1, round(fraction * self.frames))
 
 
-QUICK = Plan(frames=12, val_frames=8, fractions=(0.5, 1.0), seeds=(0,), steps=3, batch_size=2)
+QUICK = Plan(
+    frames=12, val_frames=8, fractions=(0.5, 1.0), arms=("none", "cda", "paper", "broken"),
+    seeds=(0, 1), steps=3, batch_size=2, replicates=50,
+)  # fmt: skip
 
 
 # Data -----------------------------------------------------------------------------------------
@@ -126,7 +140,7 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
     write_image_sets(val_root, {"val": read_split(val_root, "train")})
     pool_ids = read_split(train_root, "train")
     needs_db = any(arm != "none" for arm in plan.arms)
-    needs_index = any(arm not in ("none", "cda") for arm in plan.arms)
+    needs_index = any(parse_arm(arm).kind == "drcpo" for arm in plan.arms)
     subsets: dict[float, dict[str, Any]] = {}
     for fraction in plan.fractions:
         size = plan.subset_size(fraction)
@@ -151,36 +165,216 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
     return {"train": str(train_root), "val": str(val_root), "subsets": subsets, **timings}
 
 
-def make_augment(arm: str, db: str | None):
+# Arms -----------------------------------------------------------------------------------------
+#: The built-in arms; any other name is a DR.CPO configuration (see :func:`parse_arm`).
+BUILT_IN = {
+    "none": "no augmentation",
+    "cda": "ground-truth sampling and global flip, rotation, scaling (the conventional baseline)",
+    "paper": "DR.CPO as the paper configures it (drcpo's default config) on top of cda",
+    "broken": "negative control: cda with every inserted label moved 0.5 m along its heading",
+}
+BROKEN_SHIFT_M = 0.5
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One augmentation arm: the spec as given, its pipeline kind (``none``, ``cda``,
+    ``broken`` or ``drcpo``) and the full config (``None`` for ``none``)."""
+
+    spec: str
+    kind: str
+    config: dict[str, Any] | None
+
+    @property
+    def slug(self) -> str:
+        """A file name for the arm: the spec's letters, and a hash when it has overrides."""
+        plain = re.sub(r"[^A-Za-z0-9_.-]+", "_", self.spec)[:40]
+        if plain == self.spec:
+            return plain
+        return f"{plain}_{hashlib.sha1(self.spec.encode()).hexdigest()[:8]}"
+
+
+def parse_arm(spec: str) -> Arm:
+    """An arm from ``NAME`` or ``NAME:KEY=VALUE,KEY=VALUE...``.
+
+    ``NAME`` is a built-in arm (:data:`BUILT_IN`), a drcpo preset or a YAML config path (DR.CPO
+    with that config). Overrides set config keys by their dotted path (a path that does not
+    start at the config's top, such as ``placement.attempts``, is taken inside ``drcpo``);
+    values are YAML (``false``, ``12``, ``[0.5, 1.0]``). The result is validated as a config
+    file would be. Raises :class:`~drcpo.errors.ConfigError` naming the arm and the bad key.
+    """
+    from drcpo.config import load_config
+    from drcpo.errors import ConfigError
+
+    base, _, rest = spec.partition(":")
+    if not base or (":" in spec and not rest):
+        raise ConfigError(f"arm {spec!r}: expected NAME or NAME:KEY=VALUE,...")
+    if base == "none":
+        if rest:
+            raise ConfigError(f"arm {spec!r}: 'none' takes no overrides")
+        return Arm(spec, "none", None)
+    kind = base if base in ("cda", "broken") else "drcpo"
+    source = "default" if base in BUILT_IN else base
+    try:
+        config = load_config(source).to_dict()
+        for item in rest.split(",") if rest else []:
+            key, equals, text = item.partition("=")
+            if not equals or not key.strip():
+                raise ConfigError(f"override {item!r} is not KEY=VALUE")
+            _set(config, key.strip(), yaml.safe_load(text))
+        config = load_config(config).to_dict()
+    except (ConfigError, yaml.YAMLError) as exc:
+        raise ConfigError(f"arm {spec!r}: {exc}") from None
+    return Arm(spec, kind, config)
+
+
+def _set(config: dict[str, Any], key: str, value: Any) -> None:
+    from drcpo.errors import ConfigError
+
+    path = key.split(".")
+    if path[0] not in config:
+        path = ["drcpo", *path]
+    node = config
+    for part in path[:-1]:
+        if not isinstance(node.get(part), dict):
+            raise ConfigError(f"unknown key {key!r} ({'.'.join(path)} is not a section)")
+        node = node[part]
+    if path[-1] not in node and not _open_mapping(path):
+        known = ", ".join(sorted(node))
+        raise ConfigError(f"unknown key {key!r} (known in {'.'.join(path[:-1])}: {known})")
+    node[path[-1]] = value
+
+
+def _open_mapping(path: list[str]) -> bool:
+    """Whether the last key of ``path`` may be new: a class in a per-class mapping."""
+    return len(path) >= 2 and path[-2] in ("sample_groups", "min_points", "max_counts", "grids")
+
+
+class ShiftInsertedLabels(Transform):
+    """Negative control: the wrapped transform's inserted objects keep their points but their
+    labels move ``shift`` metres along the heading, as a careless inserter would misplace them."""
+
+    name = "broken"
+
+    def __init__(self, inner: Transform, shift: float) -> None:
+        self.inner, self.shift = inner, shift
+
+    def apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
+        before = len(frame.boxes)
+        frame = self.inner.apply(frame, rng, stats)
+        boxes = frame.boxes.copy()
+        heading = boxes[before:, 6]
+        boxes[before:, 0] += self.shift * np.cos(heading)
+        boxes[before:, 1] += self.shift * np.sin(heading)
+        return frame.replace(boxes=boxes)
+
+    def to_config(self) -> dict[str, Any]:
+        return {"type": "ShiftInsertedLabels", "shift": self.shift}
+
+
+def make_augment(arm: Arm, db: str | None):
     """The augmentation callable of an arm (``None`` for ``none``)."""
-    if arm == "none":
+    if arm.kind == "none":
         return None
     from drcpo.database import GroundTruthDatabase
     from drcpo.pipeline import build_pipeline
+    from drcpo.transforms import Compose
 
     database = GroundTruthDatabase.open(db)
-    if arm == "cda":
-        return build_pipeline("default", database, kind="cda")
-    config = "default" if arm == "paper" else arm
-    return build_pipeline(config, database, kind="drcpo")
+    pipeline = build_pipeline(arm.config, database, kind="drcpo" if arm.kind == "drcpo" else "cda")
+    if arm.kind != "broken":
+        return pipeline
+    sampling, *rest = pipeline.transforms
+    return Compose([ShiftInsertedLabels(sampling, BROKEN_SHIFT_M), *rest])
 
 
 # Runs -----------------------------------------------------------------------------------------
-_VAL_FRAMES: dict[str, Any] = {}
+_VAL: dict[str, Any] = {}
+CODE_FILES = ("src/drcpo", "benchmarks/detection", "benchmarks/bench_detection.py")
+
+
+def code_revision() -> dict[str, Any]:
+    """The git commit (when in a checkout) and a hash of the code a run depends on: drcpo's
+    sources and configs and the benchmark's own, so a finished run is reused only by the
+    same code."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for entry in CODE_FILES:
+        path = root / entry
+        files = sorted(path.rglob("*")) if path.is_dir() else [path]
+        for file in files:
+            if file.suffix in (".py", ".yaml") and file.is_file():
+                digest.update(str(file.relative_to(root)).encode() + b"\0" + file.read_bytes())
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--", *CODE_FILES],
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    except OSError:
+        head, dirty = "", ""
+    return {"commit": head or None, "dirty": bool(dirty), "code": digest.hexdigest()[:16]}
+
+
+def environment(device: str) -> dict[str, Any]:
+    """What a result depends on beyond the code: library versions, threads, device, load."""
+    import numba
+    import torch
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "numba": numba.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "device": device if device == "cpu" else torch.cuda.get_device_name(0),
+        "cpus": os.cpu_count(),
+        "load_average": [round(x, 2) for x in os.getloadavg()],
+    }
 
 
 def _pin(cores) -> None:
     """Pool initializer: pin this worker to one core (DR.CPO then keeps to one thread too)."""
     core = cores.get()
-    if hasattr(os, "sched_setaffinity"):
+    if core is not None and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {core})
 
 
-def run_one(task: dict[str, Any]) -> dict[str, Any]:
-    """Train one (subset, arm, seed) run, detect on the validation frames, score them."""
-    from detection.scoring import heading_errors, kitti_ap, write_results
-    from detection.train import TrainConfig, load_frames, predict, train
+def _val_frames(root: str) -> list[Frame]:
+    from detection.train import load_frames
 
+    if root not in _VAL:
+        _VAL.clear()
+        _VAL[root] = load_frames(root, "val")
+    return _VAL[root]
+
+
+def _score(model, task: dict[str, Any], directory: Path) -> tuple[dict, list]:
+    """Detect on the validation frames, write the result files, score them."""
+    from detection.scoring import kitti_ap, write_results
+    from detection.train import predict
+
+    val_frames = _val_frames(task["val"])
+    detections = predict(model, val_frames, device=task["device"])
+    lines = [d.kitti_lines(f) for d, f in zip(detections, val_frames, strict=True)]
+    write_results(directory, [f.frame_id for f in val_frames], lines)
+    return kitti_ap(task["val"], "val", directory), detections
+
+
+def run_one(task: dict[str, Any]) -> dict[str, Any]:
+    """Train one (subset, arm, seed) run, detect on the validation frames, score them; a run
+    finished before by the same code (``run.json`` in its directory) is read back instead."""
+    from detection.scoring import heading_errors
+    from detection.train import TrainConfig, load_frames, train
+
+    directory = Path(task["directory"])
+    record = directory / "run.json"
+    if record.is_file():
+        return {**json.loads(record.read_text()), "cached": True}
+    shutil.rmtree(directory, ignore_errors=True)  # an unfinished run's files
     wall = time.perf_counter()
     clock = [time.process_time()]
 
@@ -189,160 +383,273 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
         return clock[-1] - clock[-2]
 
     frames = load_frames(task["train"], task["split"])
-    augment = make_augment(task["arm"], task["db"])
-    config = TrainConfig(steps=task["steps"], batch_size=task["batch_size"], seed=task["seed"])
+    augment = make_augment(parse_arm(task["arm"]), task["db"])
+    config = TrainConfig(
+        steps=task["steps"], batch_size=task["batch_size"], seed=task["seed"],
+        device=task["device"],
+    )  # fmt: skip
+    curve: list[dict[str, Any]] = []
+
+    def progress(step: int, loss: float, model) -> None:
+        every = task["curve_every"]
+        if every and step % every == 0 and step < config.steps:
+            ap, _ = _score(model, task, directory / "curve")
+            curve.append({"step": step, "ap": ap})
+            model.train()
+
     setup = lap()
-    result = train(frames, augment, config)
+    result = train(frames, augment, config, progress=progress)
     trained = lap()
-    if task["val"] not in _VAL_FRAMES:
-        _VAL_FRAMES.clear()
-        _VAL_FRAMES[task["val"]] = load_frames(task["val"], "val")
-    val_frames = _VAL_FRAMES[task["val"]]
-    detections = predict(result.model, val_frames)
-    results_dir = Path(task["results"])
-    lines = [d.kitti_lines(f) for d, f in zip(detections, val_frames, strict=True)]
-    write_results(results_dir, [f.frame_id for f in val_frames], lines)
-    predicted = lap()
-    ap = kitti_ap(task["val"], "val", results_dir)
+    ap, detections = _score(result.model, task, directory / "detections")
+    curve.append({"step": config.steps, "ap": ap})
     evaluated = lap()
     samples = max(result.samples, 1)
-    return {
-        **{k: task[k] for k in ("arm", "fraction", "seed", "split")},
+    run = {
+        **{k: task[k] for k in ("arm", "fraction", "seed", "split", "key")},
         "frames": len(frames),
         "ap": ap,
-        "heading": heading_errors(val_frames, detections),
+        "curve": curve if task["curve_every"] else [],
+        "heading": heading_errors(_val_frames(task["val"]), detections),
         "added_per_frame": {
             transform: {name: count / samples for name, count in per_class.items()}
             for transform, per_class in result.added.items()
         },
         "labels_per_frame": {name: count / samples for name, count in result.labels.items()},
+        "labels_with_points_per_frame": {
+            name: count / samples for name, count in result.labels_with_points.items()
+        },
+        "empty_label_share": {
+            name: result.empty_labels.get(name, 0) / count
+            for name, count in result.labels.items()
+            if count
+        },
+        "median_range_m": {
+            name: round(float(np.median(values)), 2) for name, values in result.ranges.items()
+        },
+        "points_per_frame": result.points / samples,
+        "augment_ms_per_frame": 1000 * float(np.median(result.augment_seconds or [0.0])),
         "final_loss": float(np.mean(result.losses[-20:])),
         "seconds": {  # CPU seconds of this single-threaded process, except wall
             "setup": setup,
             **{f"{k}_per_step": v / config.steps for k, v in result.seconds.items()},
             "train": trained,
-            "predict": predicted,
             "evaluate": evaluated,
             "cpu": clock[-1] - clock[0],
             "wall": time.perf_counter() - wall,
         },
+        "revision": task["revision"],
+        "environment": environment(task["device"]),
     }
+    tmp = directory / ".run.json.tmp"
+    tmp.write_text(json.dumps(run, indent=1) + "\n")
+    os.replace(tmp, record)  # its presence marks the run finished
+    return {**run, "cached": False}
+
+
+def run_key(plan: Plan, arm: str, frames: int, seed: int, code: str) -> str:
+    """What a finished run depends on, hashed: the arm, subset, seed, the data and training
+    settings of the plan, and the code."""
+    settings = {
+        "arm": arm, "frames": frames, "seed": seed, "pool": plan.frames,
+        "val_frames": plan.val_frames, "street_angle": plan.street_angle, "steps": plan.steps,
+        "batch_size": plan.batch_size, "curve_every": plan.curve_every,
+        "code": code,
+    }  # fmt: skip
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def run_grid(work: Path, plan: Plan, data: dict[str, Any]) -> list[dict[str, Any]]:
-    tasks = [
-        {
-            "train": data["train"],
-            "val": data["val"],
-            "split": data["subsets"][fraction]["split"],
-            "db": data["subsets"][fraction]["db"],
-            "arm": arm,
-            "fraction": fraction,
-            "seed": seed,
-            "steps": plan.steps,
-            "batch_size": plan.batch_size,
-            "results": str(work / "results" / f"{arm}-{fraction:g}-{seed}"),
-        }
-        for seed in plan.seeds
-        for fraction in plan.fractions
-        for arm in plan.arms
-    ]
+    revision = code_revision()
+    tasks = []
+    for seed in plan.seeds:
+        for fraction in plan.fractions:
+            subset = data["subsets"][fraction]
+            for arm in plan.arms:
+                key = run_key(plan, arm, subset["frames"], seed, revision["code"])
+                slug = parse_arm(arm).slug
+                tasks.append(
+                    {
+                        "train": data["train"], "val": data["val"], "split": subset["split"],
+                        "db": subset["db"], "arm": arm, "fraction": fraction, "seed": seed,
+                        "steps": plan.steps, "batch_size": plan.batch_size,
+                        "curve_every": plan.curve_every, "device": plan.device, "key": key,
+                        "revision": revision,
+                        "directory": str(
+                            work / "runs" / f"{slug}-{subset['frames']}-s{seed}-{key}"
+                        ),
+                    }
+                )  # fmt: skip
     context = multiprocessing.get_context("spawn")
     cores = context.Queue()
-    available = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
-    for k in range(plan.workers):
-        cores.put(available[k % len(available)])
+    available = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [None]
+    workers = 1 if plan.device != "cpu" else plan.workers
+    for k in range(workers):
+        cores.put(available[k % len(available)] if plan.device == "cpu" else None)
     runs = []
-    with context.Pool(plan.workers, initializer=_pin, initargs=(cores,)) as pool:
+    with context.Pool(workers, initializer=_pin, initargs=(cores,)) as pool:
         for run in pool.imap_unordered(run_one, tasks):
             ap = run["ap"]
+            how = "cached" if run["cached"] else f"{run['seconds']['cpu']:.0f} CPU-s"
             print(
-                f"  {run['arm']:>8} {run['frames']:4d} frames seed {run['seed']}: moderate AP_R40 "
-                f"3D {ap['3d']['mean']:5.1f} BEV {ap['bev']['mean']:5.1f} "
-                f"({run['seconds']['cpu']:.0f} CPU-s, {run['seconds']['wall']:.0f} s)",
+                f"  {run['arm']:>12} {run['frames']:4d} frames seed {run['seed']}: moderate "
+                f"AP_R40 3D {ap['3d']['mean']:5.1f} BEV {ap['bev']['mean']:5.1f} ({how})",
                 file=sys.stderr,
             )
             runs.append(run)
-    return sorted(runs, key=lambda r: (r["fraction"], r["arm"], r["seed"]))
+    order = {arm: i for i, arm in enumerate(plan.arms)}
+    return sorted(runs, key=lambda r: (r["fraction"], order[r["arm"]], r["seed"]))
 
 
 # Summary --------------------------------------------------------------------------------------
-def _references(arm: str, arms: tuple[str, ...]) -> list[str]:
-    """The reference arms ``arm`` is paired with (each pair of references once: cda - none)."""
-    rank = {name: i for i, name in enumerate(REFERENCE_ARMS)}
-    return [
-        ref
-        for ref in REFERENCE_ARMS
-        if ref in arms and ref != arm and rank.get(arm, -1) < rank[ref]
-    ]
+METRIC_NAMES = ("3d", "bev")
+#: Paired comparisons that the report must find as expected, or say it cannot judge.
+CONTROLS = (("cda", "none", "better"), ("broken", "cda", "worse"))
 
 
-def _difference(pairs: list[tuple[dict, dict]], metric: str, name: str) -> dict[str, Any]:
-    """Paired AP differences (first minus second run of each seed): per seed, mean, spread,
-    and how many seeds the first won."""
-    from detection.scoring import mean_and_spread
+def _quantities() -> list[tuple[str, str]]:
+    from detection.heads import CLASSES
 
-    delta = [a["ap"][metric][name] - b["ap"][metric][name] for a, b in pairs]
-    return {
-        "per_seed": [round(d, 2) for d in delta],
-        "wins": sum(d > 0 for d in delta),
-        **mean_and_spread(delta),
-    }
+    return [(metric, name) for metric in METRIC_NAMES for name in (*CLASSES, "mean")]
 
 
-def summarise(runs: list[dict[str, Any]], plan: Plan) -> dict[str, Any]:
-    """Mean and spread over seeds, paired differences, objects added, heading errors."""
+def _tables_of(run: dict[str, Any], val: str, work: Path, cache: dict[str, Any]):
+    """The per-frame evaluation tables of a run's detections (moderate, strict overlaps)."""
+    from detection.heads import CLASSES
+
+    from drcpo.datasets.kitti import read_split
+    from drcpo.evaluation import read_frames
+    from drcpo.evaluation.resampling import frame_tables
+
+    if "gt" not in cache:
+        cache["ids"] = read_split(val, "val")
+        cache["gt"] = read_frames(Path(val) / "training" / "label_2", cache["ids"])
+    if run["key"] not in cache:
+        directory = next((work / "runs").glob(f"*-{run['key']}")) / "detections"
+        detections = read_frames(directory, cache["ids"], results=True)
+        cache[run["key"]] = frame_tables(cache["gt"], detections, CLASSES, "strict")
+    return cache[run["key"]]
+
+
+def _scorer(tables: list) -> Any:
+    from detection.heads import CLASSES
+
+    def score(seed: int, weights: np.ndarray) -> np.ndarray:
+        out = []
+        for metric in METRIC_NAMES:
+            per_class = [tables[seed].ap_r40(metric, name, weights) for name in CLASSES]
+            out += [*per_class, float(np.mean(per_class))]
+        return np.array(out)
+
+    return score
+
+
+def comparisons(arms: tuple[str, ...]) -> list[tuple[str, str]]:
+    """The (arm, reference) pairs the report holds: every arm against ``cda``, every DR.CPO
+    arm against ``paper`` too, and ``cda`` against ``none``."""
+    pairs = [(arm, "cda") for arm in arms if "cda" in arms and arm not in ("cda", "none")]
+    if "paper" in arms:
+        pairs += [
+            (arm, "paper") for arm in arms if arm != "paper" and parse_arm(arm).kind == "drcpo"
+        ]
+    if "cda" in arms and "none" in arms:
+        pairs.append(("cda", "none"))
+    return pairs
+
+
+def summarise(
+    runs: list[dict[str, Any]], plan: Plan, work: Path, val: str, replicates: int
+) -> dict[str, Any]:
+    """Per subset and arm: AP mean and spread over seeds, the paired differences with their
+    bootstrap intervals, what the augmentation gave per frame, heading errors, timings."""
     from detection.heads import CLASSES
     from detection.scoring import mean_and_spread
+    from detection.stats import paired_bootstrap
 
     names = (*CLASSES, "mean")
     by_key = {(r["arm"], r["fraction"], r["seed"]): r for r in runs}
     ap: dict[str, Any] = {}
-    paired: dict[str, Any] = {}
     for arm in plan.arms:
         ap[arm] = {}
         for fraction in plan.fractions:
             seeds = [by_key[(arm, fraction, s)] for s in plan.seeds]
             ap[arm][str(seeds[0]["frames"])] = {
                 metric: {n: mean_and_spread([r["ap"][metric][n] for r in seeds]) for n in names}
-                for metric in ("3d", "bev")
+                for metric in METRIC_NAMES
             }
-        for reference in _references(arm, plan.arms):
-            rows = {}
-            for fraction in plan.fractions:
-                pairs = [
-                    (by_key[(arm, fraction, s)], by_key[(reference, fraction, s)])
-                    for s in plan.seeds
-                ]
-                rows[str(pairs[0][0]["frames"])] = {
-                    metric: {n: _difference(pairs, metric, n) for n in names}
-                    for metric in ("3d", "bev")
-                }
-            paired[f"{arm}-{reference}"] = rows
-    added, heading, seconds = {}, {}, {}
+    cache: dict[str, Any] = {}
+    paired: dict[str, Any] = {}
+    quantities = _quantities()
+    for arm, reference in comparisons(plan.arms):
+        rows = {}
+        for fraction in plan.fractions:
+            mine = [by_key[(arm, fraction, s)] for s in plan.seeds]
+            theirs = [by_key[(reference, fraction, s)] for s in plan.seeds]
+            a = [_tables_of(r, val, work, cache) for r in mine]
+            b = [_tables_of(r, val, work, cache) for r in theirs]
+            rng = np.random.default_rng([len(plan.seeds), a[0].frames, 7])
+            found = paired_bootstrap(
+                _scorer(a), _scorer(b), len(plan.seeds), a[0].frames, rng, replicates
+            )
+            row: dict[str, Any] = {metric: {} for metric in METRIC_NAMES}
+            for (metric, name), difference in zip(quantities, found, strict=True):
+                row[metric][name] = difference.to_dict()
+            rows[str(mine[0]["frames"])] = row
+        paired[f"{arm} - {reference}"] = rows
+    controls = []
+    for arm, reference, expected in CONTROLS:
+        pair = paired.get(f"{arm} - {reference}")
+        for size, row in (pair or {}).items():
+            got = row["3d"]["mean"]["verdict"]
+            controls.append(
+                {"pair": f"{arm} - {reference}", "frames": int(size), "expected": expected,
+                 "verdict": got, "passed": got == expected}
+            )  # fmt: skip
+    per_arm: dict[str, Any] = {}
     for arm in plan.arms:
-        mine = [r for r in runs if r["arm"] == arm]
-        totals: dict[str, dict[str, float]] = {}
-        for r in mine:
-            for transform, per_class in r["added_per_frame"].items():
-                row = totals.setdefault(transform, {})
-                for name, value in per_class.items():
-                    row[name] = row.get(name, 0.0) + value / len(mine)
-        added[arm] = {t: {n: round(v, 2) for n, v in row.items()} for t, row in totals.items()}
-        heading[arm] = {}
-        for name in CLASSES:
-            values = [r["heading"][name]["mean_deg"] for r in mine if r["heading"][name]["matched"]]
-            heading[arm][name] = round(float(np.mean(values)), 2) if values else None
-        seconds[arm] = {
-            key: round(float(np.mean([r["seconds"][key] for r in mine])), 4)
-            for key in mine[0]["seconds"]
-        }
+        per_arm[arm] = {}
+        for fraction in plan.fractions:
+            mine = [by_key[(arm, fraction, s)] for s in plan.seeds]
+
+            def mean_of(field: str, rows=mine) -> dict[str, float]:
+                keys = sorted({k for r in rows for k in r[field]})
+                return {
+                    k: round(float(np.mean([r[field].get(k, 0.0) for r in rows])), 3) for k in keys
+                }
+
+            heading = {}
+            for name in CLASSES:
+                values = [
+                    r["heading"][name]["mean_deg"] for r in mine if r["heading"][name]["matched"]
+                ]
+                heading[name] = round(float(np.mean(values)), 1) if values else None
+            per_arm[arm][str(mine[0]["frames"])] = {
+                "labels_per_frame": mean_of("labels_per_frame"),
+                "labels_with_points_per_frame": mean_of("labels_with_points_per_frame"),
+                "empty_label_share": mean_of("empty_label_share"),
+                "median_range_m": mean_of("median_range_m"),
+                "added_per_frame": {
+                    transform: mean_of_added(mine, transform)
+                    for transform in sorted({t for r in mine for t in r["added_per_frame"]})
+                },
+                "points_per_frame": round(float(np.mean([r["points_per_frame"] for r in mine])), 1),
+                "augment_ms_per_frame": round(
+                    float(np.mean([r["augment_ms_per_frame"] for r in mine])), 2
+                ),
+                "heading_error_deg": heading,
+                "cpu_seconds_per_run": round(
+                    float(np.mean([r["seconds"]["cpu"] for r in mine])), 1
+                ),
+            }
+    return {"ap": ap, "paired": paired, "controls": controls, "per_arm": per_arm}
+
+
+def mean_of_added(rows: list[dict[str, Any]], transform: str) -> dict[str, float]:
+    keys = sorted({k for r in rows for k in r["added_per_frame"].get(transform, {})})
     return {
-        "ap": ap,
-        "paired": paired,
-        "added_per_frame": added,
-        "heading_error_deg": heading,
-        "seconds": seconds,
+        k: round(
+            float(np.mean([r["added_per_frame"].get(transform, {}).get(k, 0.0) for r in rows])), 2
+        )
+        for k in keys
     }
 
 
@@ -350,25 +657,43 @@ def print_table(summary: dict[str, Any], plan: Plan) -> None:
     from detection.heads import CLASSES
 
     names = (*CLASSES, "mean")
-    for metric in ("3d", "bev"):
+    for metric in METRIC_NAMES:
         print(f"moderate AP_R40 {metric.upper()} (mean +- sd over {len(plan.seeds)} seeds)")
-        print(f"{'arm':>10} {'frames':>6} " + " ".join(f"{n:>14}" for n in names))
+        print(f"{'arm':>24} {'frames':>6} " + " ".join(f"{n:>14}" for n in names))
         for arm, per_size in summary["ap"].items():
             for size, row in per_size.items():
                 cells = " ".join(
                     f"{row[metric][n]['mean']:8.1f} +-{row[metric][n]['sd']:4.1f}" for n in names
                 )
-                print(f"{arm:>10} {size:>6} {cells}")
+                print(f"{arm:>24} {size:>6} {cells}")
+    print("paired difference, mean [95 % interval over seeds and validation frames] verdict")
     for pair, per_size in summary["paired"].items():
-        print(f"paired difference {pair} (mean +- sd, wins of {len(plan.seeds)})")
         for size, row in per_size.items():
-            for metric in ("3d", "bev"):
-                cells = " ".join(
-                    "{mean:+6.1f} +-{sd:4.1f} ({wins})".format(**row[metric][n]) for n in names
+            for metric in METRIC_NAMES:
+                cells = "  ".join(
+                    "{n} {mean:+.1f} [{low:+.1f}, {high:+.1f}] {verdict}".format(
+                        n=n, **row[metric][n]
+                    )
+                    for n in names
                 )
-                print(f"{metric:>10} {size:>6} {cells}")
-    print("objects added per frame:", json.dumps(summary["added_per_frame"]))
-    print("heading error of matched detections, degrees:", json.dumps(summary["heading_error_deg"]))
+                print(f"{pair:>28} {size:>4} {metric:>3}: {cells}")
+    for control in summary["controls"]:
+        mark = "ok" if control["passed"] else "FAILED"
+        print(
+            f"control {control['pair']} at {control['frames']} frames: expected "
+            f"{control['expected']}, got {control['verdict']} ({mark})"
+        )
+    print("per training frame the detector saw (labels with >= 5 points; points; augmentation ms):")
+    for arm, per_size in summary["per_arm"].items():
+        for size, row in per_size.items():
+            labels = " ".join(
+                f"{n} {row['labels_with_points_per_frame'].get(n, 0.0):5.1f}" for n in CLASSES
+            )
+            ranges = " ".join(f"{row['median_range_m'].get(n, float('nan')):4.1f}" for n in CLASSES)
+            print(
+                f"{arm:>24} {size:>6}: {labels}  median range m {ranges}  points "
+                f"{row['points_per_frame']:8.0f}  {row['augment_ms_per_frame']:6.1f} ms"
+            )
 
 
 def plot(summary: dict[str, Any], path: Path) -> None:
@@ -382,7 +707,7 @@ def plot(summary: dict[str, Any], path: Path) -> None:
 
     names = (*CLASSES, "mean")
     figure, axes = plt.subplots(2, len(names), figsize=(4 * len(names), 7), squeeze=False)
-    for row, metric in enumerate(("3d", "bev")):
+    for row, metric in enumerate(METRIC_NAMES):
         for col, name in enumerate(names):
             ax = axes[row, col]
             for arm, per_size in summary["ap"].items():
@@ -409,54 +734,74 @@ def plot(summary: dict[str, Any], path: Path) -> None:
 def parse_plan(argv: list[str] | None) -> tuple[Plan, argparse.Namespace]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="a few frames and steps (CI)")
-    parser.add_argument("--work", type=Path, help="keep data and databases here between runs")
+    parser.add_argument("--work", type=Path, help="keep data, databases and runs here")
     parser.add_argument("--out", type=Path, default=Path("bench_detection"), help="png and json")
     parser.add_argument("--frames", type=int, help="training pool size")
     parser.add_argument("--val-frames", type=int, help="validation frames (other seeds)")
     parser.add_argument("--fractions", type=float, nargs="+", help="training subsets")
-    parser.add_argument("--arms", nargs="+", help="none, cda, paper, or drcpo preset names")
-    parser.add_argument("--seeds", type=int, help="seeds per subset and arm")
+    parser.add_argument(
+        "--arms", nargs="+", help="none, cda, paper, broken, or a drcpo preset / YAML path, "
+        "each optionally with overrides: NAME:KEY=VALUE,KEY=VALUE"
+    )  # fmt: skip
+    parser.add_argument("--seeds", type=int, nargs="+", help="seeds (default 0 1 2)")
     parser.add_argument("--steps", type=int, help="optimiser steps per run")
     parser.add_argument("--batch-size", type=int)
     parser.add_argument("--workers", type=int, help="processes, one core each")
     parser.add_argument("--street-angle", type=float, help="max |street yaw|, degrees")
+    parser.add_argument("--curve-every", type=int, help="validation AP every N steps (a curve)")
+    parser.add_argument("--replicates", type=int, help="bootstrap replicates")
+    parser.add_argument("--device", choices=("cpu", "cuda"), help="where the detector trains")
     args = parser.parse_args(argv)
     plan = QUICK if args.quick else Plan()
     changes = {
         key: getattr(args, key)
-        for key in ("frames", "val_frames", "steps", "batch_size", "workers", "street_angle")
+        for key in (
+            "frames",
+            "val_frames",
+            "steps",
+            "batch_size",
+            "workers",
+            "street_angle",
+            "curve_every",
+            "replicates",
+            "device",
+        )
         if getattr(args, key) is not None
     }
     if args.fractions:
         changes["fractions"] = tuple(args.fractions)
     if args.arms:
-        changes["arms"] = tuple(args.arms)
+        changes["arms"] = tuple(dict.fromkeys(args.arms))
     if args.seeds is not None:
-        changes["seeds"] = tuple(range(args.seeds))
+        changes["seeds"] = tuple(dict.fromkeys(args.seeds))
     plan = replace(plan, **changes)
     if not all(0 < f <= 1 for f in plan.fractions) or min(plan.frames, plan.val_frames) < 1:
         parser.error("fractions must be in (0, 1] and frame counts positive")
-    if min(plan.steps, plan.batch_size, plan.workers, len(plan.seeds)) < 1:
-        parser.error("steps, batch size, workers and seeds must be positive")
+    if min(plan.steps, plan.batch_size, plan.workers, plan.replicates, len(plan.seeds)) < 1:
+        parser.error("steps, batch size, workers, replicates and seeds must be positive")
+    if plan.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            parser.error("--device cuda: torch sees no GPU here")
     return plan, args
 
 
 def main(argv: list[str] | None = None) -> int:
     plan, args = parse_plan(argv)
-    from drcpo.config import load_config
     from drcpo.errors import DrcpoError
 
-    try:  # an unknown preset fails now, not after the data are made
+    try:  # a bad arm fails now, not after the data are made
         for arm in plan.arms:
-            if arm not in ("none", "cda", "paper"):
-                load_config(arm)
+            parse_arm(arm)
     except DrcpoError as exc:
-        print(f"error: arm {arm!r}: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 1
     if importlib.util.find_spec("torch") is None:
         print('error: bench_detection needs torch: pip install -e ".[detection]"', file=sys.stderr)
         return 1
     start = time.perf_counter()
+    load = [round(x, 2) for x in os.getloadavg()]
     with tempfile.TemporaryDirectory(prefix="bench_detection_") as scratch:
         work = args.work or Path(scratch)
         work.mkdir(parents=True, exist_ok=True)
@@ -464,10 +809,10 @@ def main(argv: list[str] | None = None) -> int:
             data = prepare_data(work, plan)
             prepared = time.perf_counter()
             runs = run_grid(work, plan, data)
+            summary = summarise(runs, plan, work, data["val"], plan.replicates)
         except DrcpoError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
-    summary = summarise(runs, plan)
     print_table(summary, plan)
     png = args.out / "detection.png"
     plot(summary, png)
@@ -478,6 +823,9 @@ def main(argv: list[str] | None = None) -> int:
         "quick": args.quick,
         "plan": asdict(plan),
         **summary,
+        "revision": code_revision(),
+        "environment": {**environment(plan.device), "load_average_at_start": load},
+        "runs_cached": sum(r["cached"] for r in runs),
         "prepare_seconds": {
             "total": round(prepared - start, 1),
             "synth_train": round(data["synth_train_s"], 1),
@@ -487,6 +835,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_seconds": round(time.perf_counter() - start, 1),
         "png": str(png),
     }
+    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "detection.json").write_text(json.dumps({**payload, "runs": runs}, indent=1) + "\n")
     print(json.dumps(payload))
     return 0

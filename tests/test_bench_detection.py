@@ -1,5 +1,6 @@
-"""benchmarks/bench_detection.py --quick: the data-efficiency grid end to end on a few frames
-(synthetic data, databases and indexes per subset, training, detection, KITTI evaluation)."""
+"""benchmarks/bench_detection.py: arms and their overrides, the run cache's key, and --quick:
+the grid end to end on a few frames (synthetic data, databases and indexes per subset,
+training, detection, KITTI evaluation, paired statistics and controls)."""
 
 from __future__ import annotations
 
@@ -8,13 +9,102 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_detection.py"
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+SCRIPT = BENCHMARKS / "bench_detection.py"
+sys.path.insert(0, str(BENCHMARKS))
+
+import bench_detection as bench  # noqa: E402
+
+from drcpo.errors import ConfigError  # noqa: E402
+from drcpo.frame import Frame  # noqa: E402
+from drcpo.transforms import Compose  # noqa: E402
+
+
+def test_arms_are_built_in_names_presets_files_and_overrides(tmp_path):
+    assert bench.parse_arm("none").kind == "none" and bench.parse_arm("none").config is None
+    cda, paper = bench.parse_arm("cda"), bench.parse_arm("paper")
+    assert (cda.kind, paper.kind) == ("cda", "drcpo") and cda.config == paper.config
+    realistic = bench.parse_arm("realistic")
+    assert realistic.kind == "drcpo" and realistic.config["drcpo"]["placement"]["height"] == (
+        "observed"
+    )
+    changed = bench.parse_arm("realistic:placement.drop_hidden_added=false,placement.attempts=7")
+    placement = changed.config["drcpo"]["placement"]
+    assert placement["drop_hidden_added"] is False and placement["attempts"] == 7
+    assert placement["height"] == "observed"  # the rest of the preset stays
+    full_path = bench.parse_arm("paper:drcpo.placement.attempts=9")
+    assert full_path.config["drcpo"]["placement"]["attempts"] == 9
+    assert changed.slug != realistic.slug and "/" not in changed.slug and ":" not in changed.slug
+    yaml_file = tmp_path / "mine.yaml"
+    yaml_file.write_text("drcpo:\n  placement:\n    attempts: 3\n")
+    assert bench.parse_arm(str(yaml_file)).config["drcpo"]["placement"]["attempts"] == 3
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("realistic:placement.drop_hiden_added=false", "unknown key 'placement.drop_hiden_added'"),
+        ("realistic:placement.attempts=-3", "attempts"),
+        ("realistic:placement.attempts", "is not KEY=VALUE"),
+        ("realistic:", "expected NAME or NAME:KEY=VALUE"),
+        ("none:placement.attempts=3", "'none' takes no overrides"),
+        ("realistic_typo", "realistic_typo"),
+        ("paper:placement.attempts=[1", "arm 'paper:placement.attempts=[1'"),
+    ],
+)
+def test_a_bad_arm_is_refused_naming_it_and_the_key(spec, message):
+    with pytest.raises(ConfigError, match=message.replace("[", r"\[")) as caught:
+        bench.parse_arm(spec)
+    assert spec in str(caught.value)
+
+
+def test_the_broken_control_moves_only_inserted_labels_along_their_heading():
+    class Insert(bench.Transform):
+        name = "insert"
+
+        def apply(self, frame, rng, stats):
+            box = np.array([[10.0, 2.0, -1.0, 4.0, 1.7, 1.5, np.pi / 2]])
+            return frame.replace(
+                boxes=np.concatenate([frame.boxes, box]), names=np.array([*frame.names, "Car"])
+            )
+
+        def to_config(self):
+            return {"type": "Insert"}
+
+    original = np.array([[5.0, 0.0, -1.0, 4.0, 1.7, 1.5, 0.0]])
+    frame = Frame(points=np.zeros((3, 4), np.float32), boxes=original, names=np.array(["Car"]))
+    out = Compose([bench.ShiftInsertedLabels(Insert(), 0.5)])(frame, np.random.default_rng(0))
+    np.testing.assert_array_equal(out.boxes[0], original[0])
+    np.testing.assert_allclose(out.boxes[1, :2], [10.0, 2.5], atol=1e-12)
+
+
+def test_a_run_key_changes_with_what_the_run_depends_on():
+    plan = bench.Plan()
+    key = bench.run_key(plan, "cda", 60, 0, "abc")
+    assert key == bench.run_key(plan, "cda", 60, 0, "abc")
+    others = [
+        bench.run_key(plan, "paper", 60, 0, "abc"),
+        bench.run_key(plan, "cda", 240, 0, "abc"),
+        bench.run_key(plan, "cda", 60, 1, "abc"),
+        bench.run_key(plan, "cda", 60, 0, "abd"),
+        bench.run_key(bench.Plan(steps=7), "cda", 60, 0, "abc"),
+    ]
+    assert key not in others and len(set(others)) == len(others)
+
+
+def test_comparisons_pair_each_arm_with_cda_and_drcpo_arms_with_paper():
+    pairs = bench.comparisons(("none", "cda", "paper", "broken", "realistic"))
+    assert pairs == [
+        ("paper", "cda"), ("broken", "cda"), ("realistic", "cda"), ("realistic", "paper"),
+        ("cda", "none"),
+    ]  # fmt: skip
 
 
 @pytest.mark.slow
-def test_quick_grid_runs_end_to_end(tmp_path):
+def test_quick_grid_runs_end_to_end_and_reuses_finished_runs(tmp_path):
     pytest.importorskip("torch", reason="the detector needs torch (pip install -e '.[detection]')")
     out = tmp_path / "out"
     command = [sys.executable, str(SCRIPT), "--quick", "--work", str(tmp_path / "work")]
@@ -23,22 +113,47 @@ def test_quick_grid_runs_end_to_end(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
-    assert result["quick"] and set(result["ap"]) == {"none", "cda", "paper"}
-    for arm in ("none", "cda", "paper"):
+    arms = {"none", "cda", "paper", "broken"}
+    assert result["quick"] and set(result["ap"]) == arms
+    for arm in arms:
         assert set(result["ap"][arm]) == {"6", "12"}  # the two subsets of the 12-frame pool
         ap = result["ap"][arm]["12"]["3d"]
         assert set(ap) == {"Car", "Pedestrian", "Cyclist", "mean"}
         assert all(0.0 <= ap[name]["mean"] <= 100.0 for name in ap)
-    assert set(result["paired"]) == {"cda-none", "paper-cda", "paper-none"}
-    added = result["added_per_frame"]
-    assert added["none"] == {} and set(added["cda"]) == {"gt_sampling"}
-    assert sum(added["paper"]["drcpo"].values()) > 0
+    assert set(result["paired"]) == {"paper - cda", "broken - cda", "cda - none"}
+    difference = result["paired"]["paper - cda"]["12"]["3d"]["mean"]
+    assert difference["low"] <= difference["mean"] <= difference["high"]
+    assert difference["verdict"] in ("better", "no difference", "worse")
+    assert {(c["pair"], c["expected"]) for c in result["controls"]} == {
+        ("cda - none", "better"), ("broken - cda", "worse")
+    }  # fmt: skip
+    per_arm = result["per_arm"]
+    assert per_arm["none"]["12"]["added_per_frame"] == {}
+    assert set(per_arm["cda"]["12"]["added_per_frame"]) == {"gt_sampling"}
+    assert sum(per_arm["paper"]["12"]["added_per_frame"]["drcpo"].values()) > 0
+    assert (
+        per_arm["cda"]["12"]["labels_per_frame"]["Car"]
+        > per_arm["none"]["12"]["labels_per_frame"]["Car"]
+    )
+    assert per_arm["cda"]["12"]["points_per_frame"] > 0
+    assert set(result["environment"]) >= {"torch", "numpy", "numba", "torch_threads"}
+    assert result["revision"]["code"] and result["runs_cached"] == 0
     assert (out / "detection.png").stat().st_size > 0
     runs = json.loads((out / "detection.json").read_text())["runs"]
-    assert len(runs) == 6 and all(r["seconds"]["step_per_step"] > 0 for r in runs)
+    assert len(runs) == 16 and all(r["seconds"]["step_per_step"] > 0 for r in runs)
+    assert all(r["environment"]["torch_threads"] == 1 for r in runs)
     # the results the evaluator scored are KITTI result files, one per validation frame
-    results = sorted((tmp_path / "work" / "results" / "paper-1-0").glob("*.txt"))
+    [paper_run] = (tmp_path / "work" / "runs").glob("paper-12-s0-*")
+    results = sorted((paper_run / "detections").glob("*.txt"))
     assert len(results) == result["plan"]["val_frames"]
+    # a rerun takes every finished run from the cache and reports the same figures
+    again = subprocess.run(
+        [*command, "--out", str(tmp_path / "again")], capture_output=True, text=True, timeout=600
+    )
+    assert again.returncode == 0, again.stderr[-3000:]
+    second = json.loads(again.stdout.strip().splitlines()[-1])
+    assert second["runs_cached"] == 16 and second["ap"] == result["ap"]
+    assert second["paired"] == result["paired"]
 
 
 def test_an_unknown_arm_fails_at_once_naming_it(tmp_path):

@@ -10,6 +10,7 @@ make a run repeat exactly for a seed.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ import torch
 
 from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, KittiDataset, fov_mask
 from drcpo.frame import Frame
+from drcpo.geometry import box_members
 from drcpo.transforms import STATS_KEY
 
 from .bev import Grid, bev_features
@@ -40,6 +42,7 @@ class TrainConfig:
     weight_decay: float = 1e-2
     code_weight: float = 0.5
     seed: int = 0
+    device: str = "cpu"
 
 
 @dataclass
@@ -47,7 +50,11 @@ class TrainResult:
     """A trained model, its loss per step, and what the augmentation did per sample.
 
     ``added`` counts, per transform and class, the objects the augmentation reports it added
-    (drcpo's statistics); ``labels`` counts the labelled objects the model trained on per class;
+    (drcpo's statistics); ``labels`` counts the labelled objects the model trained on per class,
+    ``labels_with_points`` those holding at least :data:`MIN_LABEL_POINTS` points and
+    ``empty_labels`` those holding none; ``ranges`` lists their distances from the sensor
+    (BEV, metres); ``points`` sums the samples' points; ``augment_seconds`` is each sample's
+    augmentation time (CPU seconds; its median leaves out the first calls' kernel loading);
     ``seconds`` is the CPU time of this process spent augmenting, encoding (BEV features and
     targets) and in the optimiser steps (forward, backward, update): on a shared machine, what
     an idle core would take.
@@ -58,13 +65,24 @@ class TrainResult:
     samples: int
     added: dict[str, dict[str, int]] = field(default_factory=dict)
     labels: dict[str, int] = field(default_factory=dict)
+    labels_with_points: dict[str, int] = field(default_factory=dict)
+    empty_labels: dict[str, int] = field(default_factory=dict)
+    ranges: dict[str, list[float]] = field(default_factory=dict)
+    points: int = 0
     seconds: dict[str, float] = field(default_factory=dict)
+    augment_seconds: list[float] = field(default_factory=list)
 
 
-def configure_torch(seed: int) -> None:
-    """One thread (the benchmark runs one process per core), deterministic kernels, the seed."""
+MIN_LABEL_POINTS = 5  # a label with fewer points is hardly evidence of an object
+
+
+def configure_torch(seed: int, device: str = "cpu") -> None:
+    """One thread (the benchmark runs one process per core), deterministic kernels, the seed.
+    On a GPU, the kernels without a deterministic version warn instead of failing."""
     torch.set_num_threads(1)
-    torch.use_deterministic_algorithms(True)
+    if device != "cpu":
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True, warn_only=device != "cpu")
     torch.manual_seed(seed)
 
 
@@ -92,6 +110,23 @@ def sample_order(count: int, steps: int, batch_size: int, seed: int) -> np.ndarr
     return np.concatenate(order)[:needed].reshape(steps, batch_size, 2)
 
 
+def _tally_labels(result: TrainResult, frame: Frame) -> None:
+    names = frame.names.astype(str)
+    inside = np.zeros(len(names), dtype=np.int64)
+    if len(names):
+        _, box = box_members(frame.points[:, :3], frame.boxes)
+        inside = np.bincount(box, minlength=len(names))
+    distance = np.hypot(frame.boxes[:, 0], frame.boxes[:, 1])
+    for name, count, far in zip(names.tolist(), inside.tolist(), distance.tolist(), strict=True):
+        result.labels[name] = result.labels.get(name, 0) + 1
+        result.ranges.setdefault(name, []).append(far)
+        if count >= MIN_LABEL_POINTS:
+            result.labels_with_points[name] = result.labels_with_points.get(name, 0) + 1
+        if count == 0:
+            result.empty_labels[name] = result.empty_labels.get(name, 0) + 1
+    result.points += len(frame.points)
+
+
 def _tally_added(added: dict[str, dict[str, int]], frame: Frame) -> None:
     for transform, per_class in frame.metadata.get(STATS_KEY, {}).get("objects", {}).items():
         row = added.setdefault(transform, {})
@@ -111,19 +146,20 @@ def train(
     augment: Augment | None,
     config: TrainConfig | None = None,
     grid: Grid | None = None,
-    progress: Callable[[int, float], None] | None = None,
+    progress: Callable[[int, float, BevDetector], None] | None = None,
 ) -> TrainResult:
     """Train a fresh detector on ``frames`` (cut to the camera view), each sample passed through
     ``augment(frame, rng)`` first (``None``: no augmentation).
 
-    ``progress(step, loss)`` is called after each step.
+    ``progress(step, loss, model)`` is called after each step (a validation curve can
+    evaluate the model there; it must leave it in training mode).
     """
     config = config or TrainConfig()
     grid = grid or Grid()
     if not frames:
         raise ValueError("train: no training frames")
-    configure_torch(config.seed)
-    model = BevDetector(grid.channels)
+    configure_torch(config.seed, config.device)
+    model = BevDetector(grid.channels).to(config.device)
     optimiser = torch.optim.AdamW(
         model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
     )
@@ -139,14 +175,18 @@ def train(
         for epoch, index in batch:
             frame = frames[int(index)]
             if augment is not None:
+                begun = time.process_time()
                 frame = augment(frame, np.random.default_rng([config.seed, int(epoch), int(index)]))
+                result.augment_seconds.append(time.process_time() - begun)
                 _tally_added(result.added, frame)
             samples.append(frame)
-            for name in frame.names.tolist():
-                result.labels[name] = result.labels.get(name, 0) + 1
         encoded = time.process_time()
+        for frame in samples:  # not timed: the benchmark's own bookkeeping
+            _tally_labels(result, frame)
+        tallied = time.process_time()
         features, heat, code, mask = _batch(samples, grid)
         stepping = time.process_time()
+        features, heat, code, mask = (t.to(config.device) for t in (features, heat, code, mask))
         heat_logits, code_out = model(features)
         loss, _ = detection_loss(heat_logits, code_out, heat, code, mask, config.code_weight)
         optimiser.zero_grad(set_to_none=True)
@@ -156,12 +196,12 @@ def train(
         schedule.step()
         done = time.process_time()
         result.seconds["augment"] += encoded - start
-        result.seconds["encode"] += stepping - encoded
+        result.seconds["encode"] += stepping - tallied
         result.seconds["step"] += done - stepping
         result.losses.append(float(loss.detach()))
         result.samples += len(samples)
         if progress is not None:
-            progress(step + 1, result.losses[-1])
+            progress(step + 1, result.losses[-1], model)
     return result
 
 
@@ -171,6 +211,7 @@ def predict(
     frames: Sequence[Frame],
     grid: Grid | None = None,
     batch_size: int = 8,
+    device: str = "cpu",
     **decode_options: Any,
 ) -> list[Detections]:
     """Detections of ``model`` on each frame (options go to :func:`~.heads.decode`)."""
@@ -180,8 +221,8 @@ def predict(
     for start in range(0, len(frames), batch_size):
         chunk = frames[start : start + batch_size]
         features = torch.from_numpy(np.stack([bev_features(f.points, grid) for f in chunk]))
-        heat_logits, code = model(features)
-        heat, code = torch.sigmoid(heat_logits).numpy(), code.numpy()
+        heat_logits, code = model(features.to(device))
+        heat, code = torch.sigmoid(heat_logits).cpu().numpy(), code.cpu().numpy()
         for k in range(len(chunk)):
             out.append(Detections(*decode(heat[k], code[k], grid, **decode_options)))
     return out
