@@ -17,6 +17,7 @@ SCRIPT = BENCHMARKS / "bench_detection.py"
 sys.path.insert(0, str(BENCHMARKS))
 
 import bench_detection as bench  # noqa: E402
+from detection import arms  # noqa: E402
 
 from drcpo.errors import ConfigError  # noqa: E402
 from drcpo.frame import Frame  # noqa: E402
@@ -24,23 +25,23 @@ from drcpo.transforms import Compose  # noqa: E402
 
 
 def test_arms_are_built_in_names_presets_files_and_overrides(tmp_path):
-    assert bench.parse_arm("none").kind == "none" and bench.parse_arm("none").config is None
-    cda, paper = bench.parse_arm("cda"), bench.parse_arm("paper")
+    assert arms.parse_arm("none").kind == "none" and arms.parse_arm("none").config is None
+    cda, paper = arms.parse_arm("cda"), arms.parse_arm("paper")
     assert (cda.kind, paper.kind) == ("cda", "drcpo") and cda.config == paper.config
-    realistic = bench.parse_arm("realistic")
+    realistic = arms.parse_arm("realistic")
     assert realistic.kind == "drcpo" and realistic.config["drcpo"]["placement"]["height"] == (
         "observed"
     )
-    changed = bench.parse_arm("realistic:placement.drop_hidden_added=false,placement.attempts=7")
+    changed = arms.parse_arm("realistic:placement.drop_hidden_added=false,placement.attempts=7")
     placement = changed.config["drcpo"]["placement"]
     assert placement["drop_hidden_added"] is False and placement["attempts"] == 7
     assert placement["height"] == "observed"  # the rest of the preset stays
-    full_path = bench.parse_arm("paper:drcpo.placement.attempts=9")
+    full_path = arms.parse_arm("paper:drcpo.placement.attempts=9")
     assert full_path.config["drcpo"]["placement"]["attempts"] == 9
     assert changed.slug != realistic.slug and "/" not in changed.slug and ":" not in changed.slug
     yaml_file = tmp_path / "mine.yaml"
     yaml_file.write_text("drcpo:\n  placement:\n    attempts: 3\n")
-    assert bench.parse_arm(str(yaml_file)).config["drcpo"]["placement"]["attempts"] == 3
+    assert arms.parse_arm(str(yaml_file)).config["drcpo"]["placement"]["attempts"] == 3
 
 
 @pytest.mark.parametrize(
@@ -57,12 +58,12 @@ def test_arms_are_built_in_names_presets_files_and_overrides(tmp_path):
 )
 def test_a_bad_arm_is_refused_naming_it_and_the_key(spec, message):
     with pytest.raises(ConfigError, match=message.replace("[", r"\[")) as caught:
-        bench.parse_arm(spec)
+        arms.parse_arm(spec)
     assert spec in str(caught.value)
 
 
 def test_the_broken_control_moves_only_inserted_labels_along_their_heading():
-    class Insert(bench.Transform):
+    class Insert(arms.Transform):
         name = "insert"
 
         def apply(self, frame, rng, stats):
@@ -76,7 +77,7 @@ def test_the_broken_control_moves_only_inserted_labels_along_their_heading():
 
     original = np.array([[5.0, 0.0, -1.0, 4.0, 1.7, 1.5, 0.0]])
     frame = Frame(points=np.zeros((3, 4), np.float32), boxes=original, names=np.array(["Car"]))
-    out = Compose([bench.ShiftInsertedLabels(Insert(), 0.5)])(frame, np.random.default_rng(0))
+    out = Compose([arms.ShiftInsertedLabels(Insert(), 0.5)])(frame, np.random.default_rng(0))
     np.testing.assert_array_equal(out.boxes[0], original[0])
     np.testing.assert_allclose(out.boxes[1, :2], [10.0, 2.5], atol=1e-12)
 
@@ -113,9 +114,9 @@ def test_quick_grid_runs_end_to_end_and_reuses_finished_runs(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
-    arms = {"none", "cda", "paper", "broken"}
-    assert result["quick"] and set(result["ap"]) == arms
-    for arm in arms:
+    expected = {"none", "cda", "paper", "broken"}
+    assert result["quick"] and set(result["ap"]) == expected
+    for arm in expected:
         assert set(result["ap"][arm]) == {"6", "12"}  # the two subsets of the 12-frame pool
         ap = result["ap"][arm]["12"]["3d"]
         assert set(ap) == {"Car", "Pedestrian", "Cyclist", "mean"}
