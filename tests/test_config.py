@@ -289,6 +289,7 @@ BAD_VALUES = {
     "gt_sampling.exclude_difficulty": [3],
     "gt_sampling.use_road_plane": 1,
     "drcpo.enabled": 0,
+    "drcpo.before_gt_sampling": "first",
     "drcpo.sample": {"Car": 1.5},
     "drcpo.min_points": 1e7,
     "drcpo.exclude_difficulty": "-1",

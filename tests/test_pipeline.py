@@ -1094,3 +1094,34 @@ def test_box_source_says_which_stage_added_each_box(synthetic_world):
     assert counts["drcpo"] == sum(c["added"] for c in stats["drcpo"].values())
     # each stage appends its boxes after the earlier ones
     assert list(sources) == sorted(sources, key=["", "gt_sampling", "drcpo"].index)
+
+
+def test_drcpo_before_gt_sampling_takes_a_share_of_the_sample_groups(synthetic_world):
+    """With ``drcpo.before_gt_sampling`` DR.CPO runs first and ground-truth sampling tops each
+    class up to its targets, counting DR.CPO's objects: the frame ends with CDA's counts."""
+    from drcpo.config import load_config
+    from drcpo.pipeline import build_pipeline
+
+    db, index, frames = synthetic_world
+    config = load_config({"drcpo": {"before_gt_sampling": True, "placement": {"attempts": 10}}})
+    first = build_pipeline(config, db, index=index)
+    assert [t.name for t in first.transforms[:2]] == ["drcpo", "gt_sampling"]
+    after = build_pipeline("default", db, index=index)
+    assert [t.name for t in after.transforms[:2]] == ["gt_sampling", "drcpo"]
+    cda = build_pipeline("default", db, index=index, kind="cda")
+    targets = config.gt_sampling.targets
+    shared = 0
+    for i, frame in enumerate(frames):
+        for seed in range(2):
+            out = first(frame, np.random.default_rng([seed, i]))
+            objects = out.metadata["augment_stats"]["objects"]
+            baseline = cda(frame, np.random.default_rng([seed, i]))
+            for name, target in targets.items():
+                count = int((out.names == name).sum())
+                drcpo = objects.get("drcpo", {}).get(name, {}).get("added", 0)
+                sampled = objects.get("gt_sampling", {}).get(name, {}).get("added", 0)
+                # the groups hold DR.CPO's objects: sampling only tops them up to the target
+                assert sampled == 0 or count <= target
+                assert count >= int((baseline.names == name).sum()) - 3  # collisions aside
+                shared += drcpo
+    assert shared > 0  # DR.CPO did take part of the groups
