@@ -238,3 +238,53 @@ def test_index_help_says_an_explicit_option_wins_over_the_config():
     text = " ".join(result.output.split())
     assert "--config" in text and "an option given explicitly wins over the config" in text
     assert "default: index.k of --config, 400" in text
+
+
+# Reliability: a split is a name, never a path; a frame listed twice is refused ----------------
+def _tree(root: Path) -> dict[str, bytes]:
+    return {
+        str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()
+    }
+
+
+@pytest.mark.parametrize("command", ["augment", "build-db", "evaluate"])
+def test_a_split_given_as_a_path_is_refused_and_nothing_is_written(tmp_path, command):
+    kitti = _kitti(tmp_path / "kitti")
+    (kitti / "ImageSets" / "train.txt").write_text("000000\n000001\n")
+    db = _database(tmp_path / "db")
+    before = _tree(tmp_path)
+    split = str(kitti / "ImageSets" / "train")
+    args = {
+        "augment": ["augment", "--kitti", str(kitti), "--db", str(db), "--out",
+                    str(tmp_path / "out"), "--pipeline", "cda", "--frames", "1"],
+        "build-db": ["build-db", "--kitti", str(kitti), "--out", str(tmp_path / "out")],
+        "evaluate": ["evaluate", "--gt", str(kitti), "--pred", str(kitti / "training" / "label_2")],
+    }[command]  # fmt: skip
+    for bad in (split, "../train", "ImageSets/train"):
+        result = runner.invoke(app, [*args, "--split", bad])
+        assert result.exit_code == 1, result.output
+        _one_line_error(result, "is not a split name")
+        assert _tree(tmp_path) == before  # the input's train.txt untouched, no output
+
+
+def test_a_frame_listed_twice_in_a_split_is_refused_naming_both_lines(tmp_path):
+    from drcpo.datasets.kitti import read_split
+    from drcpo.datasets.kitti_writer import write_image_sets
+
+    kitti = _kitti(tmp_path / "kitti")
+    (kitti / "ImageSets" / "train.txt").write_text("000000\n000001\n\n000000\n")
+    with pytest.raises(
+        DataError, match=r"train\.txt:4: frame id '000000' listed twice \(first on line 1\)"
+    ):
+        read_split(kitti, "train")
+    db = _database(tmp_path / "db")
+    args = ["--kitti", str(kitti), "--db", str(db), "--out", str(tmp_path / "out")]
+    result = runner.invoke(app, ["augment", *args, "--pipeline", "cda"])
+    assert result.exit_code == 1
+    _one_line_error(result, "listed twice")
+    result = runner.invoke(app, ["build-db", "--kitti", str(kitti), "--out", str(tmp_path / "db2")])
+    assert result.exit_code == 1
+    _one_line_error(result, "listed twice")
+    with pytest.raises(DataError, match="is not a split name"):
+        write_image_sets(tmp_path / "x", {"../escape": ["000000"]})
+    assert not (tmp_path / "x").exists()

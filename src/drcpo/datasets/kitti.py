@@ -388,19 +388,28 @@ def kitti_difficulty(
 def read_split(root: str | os.PathLike, split: str) -> list[str]:
     """Frame ids of ``root/ImageSets/<split>.txt`` in file order.
 
-    Raises :class:`DataError` listing the available splits when ``split`` is unknown.
+    Raises :class:`DataError` listing the available splits when ``split`` is unknown, naming
+    the split when it is not a plain name (a path would reach outside ``ImageSets``), and naming
+    both lines when an id is listed twice (its frame would be augmented or stored twice).
     """
+    check_split_name(split)
     image_sets = Path(root) / "ImageSets"
     path = image_sets / f"{split}.txt"
     if not path.is_file():
         available = sorted(p.stem for p in image_sets.glob("*.txt")) if image_sets.is_dir() else []
         listing = ", ".join(available) if available else f"none: no {image_sets}/*.txt"
         raise DataError(f"{path}: unknown split {split!r} (available: {listing})")
-    ids = []
+    ids: dict[str, int] = {}
     for number, line in enumerate(_read_lines(path, "split"), start=1):
         if line.strip():
-            ids.append(check_frame_id(line.strip(), f"{path}:{number}"))
-    return ids
+            frame_id = check_frame_id(line.strip(), f"{path}:{number}")
+            if frame_id in ids:
+                raise DataError(
+                    f"{path}:{number}: frame id {frame_id!r} listed twice (first on line "
+                    f"{ids[frame_id]})"
+                )
+            ids[frame_id] = number
+    return list(ids)
 
 
 # A frame id names files (velodyne/ID.bin, label_2/ID.txt, ...): letters, digits, "_", "-", "."
@@ -416,6 +425,17 @@ def check_frame_id(frame_id: Any, where: str) -> str:
             "not first; no path separators)"
         )
     return frame_id
+
+
+def check_split_name(split: Any) -> str:
+    """``split`` if it is a plain split name (as a frame id: no path separators, no ``..``),
+    else :class:`DataError`: a split names ``ImageSets/<split>.txt`` and nothing else."""
+    if not isinstance(split, str) or not FRAME_ID.fullmatch(split):
+        raise DataError(
+            f"split {split!r} is not a split name (letters, digits, '_', '-' and '.' not first; "
+            "no path separators): give the name of a file in ImageSets/, not its path"
+        )
+    return split
 
 
 def split_directory(root: str | os.PathLike, split: str) -> Path:

@@ -21,7 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, Calibration, lidar_boxes_to_camera
+from drcpo.datasets.kitti import (
+    DEFAULT_IMAGE_SHAPE,
+    Calibration,
+    check_split_name,
+    lidar_boxes_to_camera,
+)
 from drcpo.errors import DataError
 from drcpo.geometry import rotation_matrix_z, wrap_angle
 from drcpo.outputs import atomic_write_bytes
@@ -233,7 +238,10 @@ def write_labels(path: str | os.PathLike, lines: Sequence[str]) -> Path:
 
 
 def write_image_sets(root: str | os.PathLike, splits: Mapping[str, Sequence[str]]) -> None:
-    """Write ``ROOT/ImageSets/<split>.txt`` (one frame id per line) for each split."""
+    """Write ``ROOT/ImageSets/<split>.txt`` (one frame id per line) for each split; a split that
+    is not a plain name is refused before anything is written."""
+    for split in splits:
+        check_split_name(split)
     for split, ids in splits.items():
         text = "".join(f"{frame_id}\n" for frame_id in ids)
         atomic_write_bytes(Path(root) / "ImageSets" / f"{split}.txt", text.encode())
