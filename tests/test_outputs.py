@@ -548,3 +548,18 @@ def test_sigterm_in_a_c_callback_prints_no_traceback(tmp_path, capfd, monkeypatc
     assert sys.unraisablehook is before
     err = capfd.readouterr().err
     assert "Traceback" not in err and "Exception ignored" not in err
+
+
+def test_a_lock_that_is_a_symbolic_link_is_refused_and_its_target_untouched(tmp_path):
+    precious = tmp_path / "elsewhere" / "precious.txt"
+    precious.parent.mkdir()
+    precious.write_text("keep me")
+    (tmp_path / ".out.lock").symlink_to(precious)
+    with pytest.raises(OutputError, match=r"its lock .*\.out\.lock is a symbolic link"):
+        write_directory(tmp_path / "out", fill("one"), KIND)
+    assert precious.read_text() == "keep me" and not (tmp_path / "out").exists()
+    dangling = tmp_path / ".out2.lock"
+    dangling.symlink_to(tmp_path / "elsewhere" / "created.txt")
+    with pytest.raises(OutputError, match="is a symbolic link"):
+        write_directory(tmp_path / "out2", fill("one"), KIND)
+    assert not (tmp_path / "elsewhere" / "created.txt").exists()

@@ -430,10 +430,20 @@ def _locked(target: Path, shown: Path) -> Iterator[None]:
     """Hold an exclusive ``flock`` on ``.NAME.lock`` beside ``target``; fail if another has it.
 
     The kernel drops the lock when its holder dies, so a killed run never blocks the next one.
+    The lock is never opened through a symbolic link: a link of that name (planted, or left
+    by anything) would have us write our pid over whatever it points at.
     """
     lock = target.with_name(f".{target.name}.lock")
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o666)
+        except OSError as exc:
+            if exc.errno != errno.ELOOP:
+                raise
+            raise OutputError(
+                f"{shown}: its lock {lock} is a symbolic link; drcpo never writes through one "
+                "(remove it if no drcpo run is using this output)"
+            ) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -458,7 +468,7 @@ def _locked(target: Path, shown: Path) -> Iterator[None]:
 
 def _same_file(fd: int, path: Path) -> bool:
     try:
-        on_disk = os.stat(path)
+        on_disk = os.lstat(path)
     except FileNotFoundError:
         return False
     held = os.fstat(fd)
