@@ -172,7 +172,7 @@ def _not_owned(path: Path, kind: OutputKind) -> str | None:
         return f"is not a {kind.description} (it has no {kind.marker})"
     except OSError as exc:
         return f"cannot be checked ({_describe(exc)})"
-    except ValueError:
+    except (ValueError, RecursionError):
         return f"is not a {kind.description} ({marker} is not drcpo's JSON)"
     if not isinstance(found, dict) or found.get("format") != kind.format:
         shown = found.get("format") if isinstance(found, dict) else found
@@ -385,7 +385,7 @@ def _staging_run(staging: Path) -> dict | None:
     """The ``run`` parameters in a staging directory's marker; ``None`` if it is not drcpo's."""
     try:
         found = json.loads((staging / _STAGING_MARKER).read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
     if not isinstance(found, dict) or found.get("format") != STAGING_FORMAT:
         return None

@@ -459,6 +459,8 @@ def read_manifest(
         manifest = json.loads(manifest_path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"{manifest_path}: unreadable manifest ({exc})") from exc
+    except RecursionError:
+        raise DataError(f"{manifest_path}: unreadable manifest (nested too deeply)") from None
     except OSError as exc:
         raise DataError(f"{manifest_path}: cannot read the manifest ({exc.strerror})") from exc
     if not isinstance(manifest, dict) or manifest.get("format") != format_name:

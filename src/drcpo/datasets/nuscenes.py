@@ -279,6 +279,8 @@ class NuScenesTables:
             raise DataError(f"{path}: table {table!r} missing") from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise DataError(f"{path}: cannot read table {table!r} ({exc})") from exc
+        except RecursionError:
+            raise DataError(f"{path}: cannot read table {table!r} (nested too deeply)") from None
         if not isinstance(rows, list):
             raise DataError(f"{path}: expected a JSON list of records, got {type(rows).__name__}")
         records: dict[str, dict[str, Any]] = {}

@@ -1,0 +1,49 @@
+"""How drcpo treats what it reads and writes (docs/your_files.md): what it reads back is verified
+and a bad file gives one clear error naming it, never a traceback."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drcpo.database import GroundTruthDatabase
+from drcpo.errors import DataError, OutputError
+from drcpo.outputs import OutputKind, write_directory
+
+DEEP = "[" * 100_000 + "]" * 100_000  # json's recursion limit, far beyond any real file
+
+
+def _database(path: Path) -> Path:
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.5, 0.5, (12, 4)).astype(np.float32)
+    boxes = np.column_stack([rng.normal(size=(2, 3)), [[3.9, 1.6, 1.5]] * 2, np.zeros(2)])
+    GroundTruthDatabase.from_arrays(points, np.array([0, 6, 12]), ["Car", "Car"], boxes).save(path)
+    return path
+
+
+def test_deeply_nested_json_is_an_unreadable_file_not_a_traceback(tmp_path):
+    from drcpo.datasets.nuscenes import NuScenesTables
+    from drcpo.index import load_index
+
+    db = _database(tmp_path / "db")
+    (db / "manifest.json").write_text(DEEP)
+    with pytest.raises(DataError, match=r"db/manifest\.json: unreadable manifest"):
+        GroundTruthDatabase.open(db)
+    (tmp_path / "db2").mkdir()
+    (tmp_path / "db2" / "index").mkdir()
+    (tmp_path / "db2" / "index" / "manifest.json").write_text(DEEP)
+    with pytest.raises(DataError, match=r"index/manifest\.json: unreadable manifest"):
+        load_index(_database(tmp_path / "db3"), tmp_path / "db2" / "index")
+    tables = tmp_path / "nuscenes" / "v1.0-mini"
+    tables.mkdir(parents=True)
+    (tables / "scene.json").write_text(DEEP)
+    with pytest.raises(DataError, match="nested too deeply|cannot read table"):
+        NuScenesTables(tmp_path / "nuscenes", "v1.0-mini")
+    # a marker or a staging record nested so deep is not drcpo's: refused, never a traceback
+    kind = OutputKind("test output", "marker.json", "drcpo-test")
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "marker.json").write_text(DEEP)
+    with pytest.raises(OutputError, match="is not drcpo's JSON"):
+        write_directory(tmp_path / "out", lambda p: None, kind, overwrite=True)
