@@ -43,3 +43,15 @@ def tree_bytes(root: Path, timings: bool = False) -> dict[str, bytes]:
     if not timings:
         files.pop(TIMINGS_FILE, None)
     return files
+
+
+def drcpo_world(tmp_path: Path):
+    """A small KITTI root, a database built from it and its saved candidate index."""
+    from drcpo.database.build import build_database
+    from drcpo.index import IndexConfig, build_index
+
+    root = small_kitti(tmp_path / "kitti")
+    db = build_database(root, "train", tmp_path / "db")
+    index = build_index(db, IndexConfig(k=5, workers=1))
+    index.save(db.path)
+    return root, db, index

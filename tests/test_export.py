@@ -194,3 +194,89 @@ def test_overwrite_replaces_the_output_resumably(kitti, reference, tmp_path):
     assert summary["resumed"] == 3
     assert tree_bytes(out) == tree_bytes(reference)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# Reliability: a resumed run equals a clean run or is refused ----------------------------------
+def _stopped(kitti, out, k: int = 3):
+    with pytest.raises(RuntimeError):
+        augment_kitti(
+            kitti, "train", random_transform(), out, seed=5,
+            progress=stop_after(k, RuntimeError("power cut")),
+        )  # fmt: skip
+    return staging_path(out)
+
+
+@pytest.mark.parametrize("damage", ["bin deleted", "label deleted", "label truncated", "record"])
+def test_a_finished_frame_whose_files_are_damaged_is_done_again(kitti, reference, tmp_path, damage):
+    out = tmp_path / "out"
+    staging = _stopped(kitti, out)
+    training = staging / "output" / "training"
+    if damage == "bin deleted":
+        (training / "velodyne" / "000001.bin").unlink()
+    elif damage == "label deleted":
+        (training / "label_2" / "000001.txt").unlink()
+    elif damage == "label truncated":
+        path = training / "label_2" / "000001.txt"
+        path.write_bytes(path.read_bytes()[:5])
+    else:
+        (staging / "frames" / "00000001.json").write_text("{not json")
+    summary = augment_kitti(kitti, "train", random_transform(), out, seed=5)
+    assert summary["resumed"] == 2  # frames 0 and 2; frame 1 done again
+    assert tree_bytes(out) == tree_bytes(reference)
+
+
+def test_a_source_frame_edited_before_the_resume_is_done_again(kitti, tmp_path):
+    import shutil
+
+    source = tmp_path / "kitti"
+    shutil.copytree(kitti, source)
+    out = tmp_path / "out"
+    _stopped(source, out)
+    label = source / "training" / "label_2" / "000001.txt"
+    label.write_text(label.read_text().replace("Car", "Van", 1))
+    summary = augment_kitti(source, "train", random_transform(), out, seed=5)
+    assert summary["resumed"] == 2
+    fresh = tmp_path / "fresh"
+    augment_kitti(source, "train", random_transform(), fresh, seed=5)
+    assert tree_bytes(out) == tree_bytes(fresh)  # the edit is in, as a clean run has it
+
+
+def test_a_symbolic_link_inside_the_staging_directory_is_refused(kitti, tmp_path):
+    out = tmp_path / "out"
+    staging = _stopped(kitti, out)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "000004.bin").write_bytes(b"mine")
+    velodyne = staging / "output" / "training" / "velodyne"
+    for path in velodyne.iterdir():
+        path.rename(foreign / path.name)
+    velodyne.rmdir()
+    velodyne.symlink_to(foreign, target_is_directory=True)
+    with pytest.raises(OutputError, match="velodyne is a symbolic link inside drcpo's staging"):
+        augment_kitti(kitti, "train", random_transform(), out, seed=5)
+    with pytest.raises(OutputError, match="is a symbolic link"):  # --overwrite resumes too
+        augment_kitti(kitti, "train", random_transform(), out, seed=5, overwrite=True)
+    assert (foreign / "000004.bin").read_bytes() == b"mine" and not out.exists()
+    assert len(list(foreign.iterdir())) == 4
+    velodyne.unlink()  # the user removes the link: the frames it held are done again
+    summary = augment_kitti(kitti, "train", random_transform(), out, seed=5)
+    assert summary["resumed"] == 0 and (foreign / "000004.bin").read_bytes() == b"mine"
+
+
+def test_a_resume_with_another_candidate_index_is_refused(tmp_path):
+    """The staging record names the index's checksum: after `drcpo index --overwrite` between
+    a crash and the resume, frames of the old index are not mixed with the new one's."""
+    from export_support import drcpo_world
+
+    root, db, _ = drcpo_world(tmp_path)
+    from drcpo.index import IndexConfig, build_index, load_index
+    from drcpo.pipeline import build_pipeline
+
+    out = tmp_path / "out"
+    pipeline = build_pipeline("default", db, load_index(db))
+    with pytest.raises(RuntimeError):
+        augment_kitti(root, "train", pipeline, out, progress=stop_after(1, RuntimeError("cut")))
+    build_index(db, IndexConfig(k=3, workers=1)).save(db.path, overwrite=True)
+    pipeline = build_pipeline("default", db, load_index(db))
+    with pytest.raises(OutputError, match="differing in: index"):
+        augment_kitti(root, "train", pipeline, out)

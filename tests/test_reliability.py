@@ -3,6 +3,7 @@ and a bad file gives one clear error naming it, never a traceback."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -47,3 +48,39 @@ def test_deeply_nested_json_is_an_unreadable_file_not_a_traceback(tmp_path):
     (tmp_path / "out" / "marker.json").write_text(DEEP)
     with pytest.raises(OutputError, match="is not drcpo's JSON"):
         write_directory(tmp_path / "out", lambda p: None, kind, overwrite=True)
+
+
+def test_an_edited_index_is_refused_on_load(tmp_path):
+    from drcpo.index import IndexConfig, build_index, load_index
+
+    rng = np.random.default_rng(1)
+    sizes = rng.integers(6, 30, 12)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    points = rng.uniform(-0.5, 0.5, (offsets[-1], 4)).astype(np.float32)
+    names = ["Car"] * 6 + ["Pedestrian"] * 6
+    dims = [[3.9, 1.6, 1.5]] * 6 + [[0.8, 0.6, 1.7]] * 6
+    boxes = np.column_stack([rng.normal(size=(12, 3)), dims, np.zeros(12)])
+    GroundTruthDatabase.from_arrays(points, offsets, names, boxes).save(tmp_path / "db")
+    db = GroundTruthDatabase.open(tmp_path / "db")
+    build_index(db, IndexConfig(k=4, workers=1)).save(db.path)
+    load_index(db)  # as saved: fine
+    index = tmp_path / "db" / "index"
+    manifest = json.loads((index / "manifest.json").read_text())
+    edited = json.loads(json.dumps(manifest))
+    first = next(iter(edited["classes"].values()))
+    first["max_counts"][0] += 1
+    (index / "manifest.json").write_text(json.dumps(edited))
+    with pytest.raises(DataError, match="the index changed since it was saved"):
+        load_index(db)
+    # a Car's candidate pointing at a Pedestrian
+    (index / "manifest.json").write_text(json.dumps(manifest))
+    candidates = np.load(index / "candidates.npy")
+    candidates[0, 0] = 7
+    np.save(index / "candidates.npy", candidates)
+    with pytest.raises(DataError, match="the index changed since it was saved"):
+        load_index(db)
+    # an index saved before drcpo recorded checksums: the classes are still checked
+    unchecked = {k: v for k, v in manifest.items() if k != "checksum"}
+    (index / "manifest.json").write_text(json.dumps(unchecked))
+    with pytest.raises(DataError, match=r"object 0 \(Car\) has candidate 7 \(Pedestrian\)"):
+        load_index(db)

@@ -53,6 +53,7 @@ On disk (``DB/index/``, written atomically)::
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -276,12 +277,21 @@ class CandidateIndex:
             },
         }
 
+    def checksum(self) -> str:
+        """SHA-256 (16 hex digits) of what decides DR.CPO's draws: the manifest (parameters,
+        grids, maxima) and both arrays. Saved in the manifest, checked on load, and recorded
+        by a resumable augment run, so that a changed index is never mixed in."""
+        digest = hashlib.sha256(json.dumps(self.manifest(), sort_keys=True).encode())
+        digest.update(np.ascontiguousarray(self.candidates, np.int32).tobytes())
+        digest.update(np.ascontiguousarray(self.densities, np.float32).tobytes())
+        return digest.hexdigest()[:16]
+
     def save(self, db_dir: str | os.PathLike, overwrite: bool = False) -> Path:
         """Write ``db_dir/index/`` atomically (temporary directory, then rename).
 
         ``overwrite`` replaces only a drcpo index (see :mod:`drcpo.outputs`).
         """
-        manifest = self.manifest()
+        manifest = {**self.manifest(), "checksum": self.checksum()}
 
         def write(tmp: Path) -> None:
             np.save(tmp / "candidates.npy", np.ascontiguousarray(self.candidates, np.int32))
@@ -299,8 +309,9 @@ class CandidateIndex:
     ) -> CandidateIndex:
         """Load the index of ``database`` (default ``database.path / "index"``).
 
-        Raises :class:`DataError` when the index is missing, malformed, or was built from a
-        different database (checksum mismatch).
+        Raises :class:`DataError` when the index is missing, malformed, was built from a
+        different database (checksum mismatch), was changed since it was saved (its own
+        checksum), or pairs an object with a candidate of another class.
         """
         if path is None:
             if database.path is None:
@@ -341,7 +352,15 @@ class CandidateIndex:
             }
         except (KeyError, TypeError, ValueError) as exc:
             raise DataError(f"{path / 'manifest.json'}: malformed manifest ({exc!r})") from exc
-        return cls(candidates, densities, grids, max_counts, config, expected, stats)
+        index = cls(candidates, densities, grids, max_counts, config, expected, stats)
+        saved = manifest.get("checksum")  # indexes saved before drcpo recorded one have none
+        if saved is not None and index.checksum() != saved:
+            raise DataError(
+                f"{path}: the index changed since it was saved (checksum {index.checksum()!r}, "
+                f"its manifest says {saved!r}); rebuild it with `drcpo index DB --overwrite`"
+            )
+        _check_candidate_classes(path, database, candidates)
+        return index
 
 
 def load_index(
@@ -349,6 +368,28 @@ def load_index(
 ) -> CandidateIndex:
     """Shorthand for :meth:`CandidateIndex.load`."""
     return CandidateIndex.load(database, path, mmap=mmap)
+
+
+def _check_candidate_classes(
+    path: Path, database: GroundTruthDatabase, candidates: np.ndarray
+) -> None:
+    """Every candidate a database row of the same class as its object (DR.CPO builds an object
+    from its candidates' points: a Pedestrian's among a Car's would be pasted as a Car)."""
+    names = np.asarray(database.names).astype(str)
+    if candidates.shape[1] == 0 or not len(names):
+        return
+    rows, slots = np.nonzero(candidates >= 0)
+    if (candidates[rows, slots] >= len(names)).any():
+        raise DataError(
+            f"{path / 'candidates.npy'}: candidates past the database's {len(names)} rows"
+        )
+    wrong = np.flatnonzero(names[candidates[rows, slots]] != names[rows])
+    if len(wrong):
+        row, other = int(rows[wrong[0]]), int(candidates[rows[wrong[0]], slots[wrong[0]]])
+        raise DataError(
+            f"{path / 'candidates.npy'}: object {row} ({names[row]}) has candidate {other} "
+            f"({names[other]}) among {len(wrong)} candidates of another class"
+        )
 
 
 def _read_manifest(path: Path) -> dict[str, Any]:

@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -23,6 +24,7 @@ import numpy as np
 
 from drcpo.datasets import kitti_writer
 from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.errors import OutputError
 from drcpo.frame import Frame
 from drcpo.outputs import OutputKind, atomic_write_bytes, write_staged
 from drcpo.transforms.base import STATS_KEY, Transform, without_timings
@@ -78,6 +80,7 @@ def augment_frame(
     process may call it; the bytes written depend only on the arguments."""
     staging = Path(staging)
     frame_id = dataset.frame_ids[number]
+    source = source_fingerprint(dataset, frame_id)  # before reading: an edit meanwhile shows
     frame = dataset.frame(frame_id)
     if fov_only:
         keep = fov_mask(frame.points, frame.metadata["calib"], dataset.image_shape(frame_id))
@@ -110,8 +113,58 @@ def augment_frame(
         **without_timings(stats),
     }
     timing = {"frame_id": frame_id, "ms": elapsed, "stages": _stage_ms(stats)}
-    payload = json.dumps({"stats": record, "timing": timing}).encode()
-    atomic_write_bytes(_record_path(staging, number), payload)
+    files = {name: (base / name).stat().st_size for name in _frame_files(frame_id)}
+    payload = json.dumps({"stats": record, "timing": timing, "source": source, "files": files})
+    atomic_write_bytes(_record_path(staging, number), payload.encode())
+
+
+SOURCE_KINDS = ("velodyne", "label_2", "calib", "planes", "image_2")
+
+
+def source_fingerprint(dataset: KittiDataset, frame_id: str) -> dict[str, list[int] | None]:
+    """Size and modification time (ns) of each source file a frame is read from (``None``: no
+    such file): a resumed run redoes a frame whose source changed since it was written."""
+    out: dict[str, list[int] | None] = {}
+    for kind in SOURCE_KINDS:
+        try:
+            info = os.stat(dataset.path(kind, frame_id))
+        except FileNotFoundError:
+            out[kind] = None
+        else:
+            out[kind] = [info.st_size, info.st_mtime_ns]
+    return out
+
+
+def _frame_files(frame_id: str) -> tuple[str, ...]:
+    return (f"velodyne/{frame_id}.bin", f"label_2/{frame_id}.txt", f"calib/{frame_id}.txt")
+
+
+def _finished(staging: Path, number: int, dataset: KittiDataset) -> dict[str, Any] | None:
+    """Frame ``number``'s record when the frame is finished as a clean run would leave it: its
+    record readable, each of its files a regular file of the size recorded, its source files
+    unchanged since; else ``None`` (the frame is done again)."""
+    try:
+        record = json.loads(_record_path(staging, number).read_bytes())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, RecursionError):
+        return None  # a torn or foreign record: the frame is redone, the record replaced
+    frame_id = dataset.frame_ids[number]
+    if not isinstance(record, dict) or not isinstance(record.get("files"), dict):
+        return None
+    if record.get("stats", {}).get("frame_id") != frame_id:
+        return None
+    base = staging / _OUTPUT / "training"
+    for name in _frame_files(frame_id):
+        try:
+            info = os.lstat(base / name)
+        except OSError:
+            return None
+        if not stat.S_ISREG(info.st_mode) or info.st_size != record["files"].get(name):
+            return None
+    if record.get("source") != source_fingerprint(dataset, frame_id):
+        return None
+    return record
 
 
 def _record_path(staging: Path, number: int) -> Path:
@@ -133,7 +186,7 @@ def run_parameters(
 ) -> dict[str, Any]:
     """What decides a run's output bytes, recorded in its staging directory: a rerun resumes
     only a staging directory of equal parameters. The transform counts by a hash of its config
-    and the checksum of the database it draws from."""
+    and the checksums of the database and of the candidate index it draws from."""
     config = json.dumps(transform.to_config(), sort_keys=True, default=str)
     database = _database_of(transform)
     return {
@@ -145,7 +198,17 @@ def run_parameters(
         "fov_only": bool(fov_only),
         "transform": hashlib.sha256(config.encode()).hexdigest()[:16],
         "database": None if database is None else database.checksum,
+        "index": _index_checksum(transform),
     }
+
+
+def _index_checksum(transform: Transform) -> str | None:
+    """The checksum of the candidate index the transform draws from (DR.CPO's), if any."""
+    for t in getattr(transform, "transforms", (transform,)):
+        index = getattr(t, "index", None)
+        if index is not None and hasattr(index, "checksum"):
+            return index.checksum()
+    return None
 
 
 def _database_of(transform: Transform) -> Any:
@@ -215,7 +278,7 @@ def augment_kitti(
             yield number
 
     def write(staging: Path) -> None:
-        todo = _prepare_staging(staging, len(ids))
+        todo = _prepare_staging(staging, dataset, len(ids))
         summary["resumed"] = done = len(ids) - len(todo)
         if progress is not None and done:
             progress(done, len(ids))
@@ -223,32 +286,48 @@ def augment_kitti(
             done += 1
             if progress is not None:
                 progress(done, len(ids))
-        missing = [n for n in todo if not _record_path(staging, n).is_file()]
+        records = [_finished(staging, n, dataset) for n in range(len(ids))]
+        missing = [n for n, record in enumerate(records) if record is None]
         if missing:
             raise RuntimeError(f"drcpo bug: frames {missing[:5]} were not written")
-        summary.update(_assemble(staging, split, ids, seed, fov_only, run["source"]))
+        summary.update(_assemble(staging, split, ids, seed, fov_only, run["source"], records))
 
     write_staged(out, write, AUGMENT_OUTPUT, run, overwrite, [root, *inputs])
     return summary
 
 
-def _prepare_staging(staging: Path, total: int) -> list[int]:
-    """Make the staging layout; the numbers of the frames still to do, in order."""
+def _prepare_staging(staging: Path, dataset: KittiDataset, total: int) -> list[int]:
+    """Make the staging layout; the numbers of the frames still to do, in order (those not
+    :func:`_finished`). A symbolic link anywhere in the staging directory is refused: drcpo
+    made every entry there, and never writes through a link."""
+    for directory, subdirectories, files in os.walk(staging):
+        for name in [*subdirectories, *files]:
+            if os.path.islink(os.path.join(directory, name)):
+                raise OutputError(
+                    f"{os.path.join(directory, name)} is a symbolic link inside drcpo's staging "
+                    f"directory; drcpo never writes through one (remove it, or remove {staging} "
+                    "to start the run over)"
+                )
     output = staging / _OUTPUT
     if not output.is_dir():  # new, or an earlier run moved it into place: nothing is done
         shutil.rmtree(staging / _FRAMES, ignore_errors=True)
     for sub in ("velodyne", "label_2", "calib"):
         (output / "training" / sub).mkdir(parents=True, exist_ok=True)
     (staging / _FRAMES).mkdir(exist_ok=True)
-    return [n for n in range(total) if not _record_path(staging, n).is_file()]
+    return [n for n in range(total) if _finished(staging, n, dataset) is None]
 
 
 def _assemble(
-    staging: Path, split: str, ids: Sequence[str], seed: int, fov_only: bool, source: str
+    staging: Path,
+    split: str,
+    ids: Sequence[str],
+    seed: int,
+    fov_only: bool,
+    source: str,
+    records: Sequence[dict[str, Any]],
 ) -> dict[str, Any]:
     """Write the run-wide files from the frames' records, in frame order, the marker last;
     returns the summary's totals."""
-    records = [json.loads(_record_path(staging, n).read_bytes()) for n in range(len(ids))]
     output = staging / _OUTPUT
     lines = "".join(f"{i}\n" for i in ids)
     atomic_write_bytes(output / "ImageSets" / f"{split}.txt", lines.encode())
