@@ -288,3 +288,15 @@ def test_a_frame_listed_twice_in_a_split_is_refused_naming_both_lines(tmp_path):
     with pytest.raises(DataError, match="is not a split name"):
         write_image_sets(tmp_path / "x", {"../escape": ["000000"]})
     assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("version", ["/abs/v1.0", "../x", "v1.0/../../y", ""])
+def test_synth_nuscenes_refuses_a_version_that_is_a_path(tmp_path, version):
+    (tmp_path / "neighbour").mkdir()
+    (tmp_path / "neighbour" / "scene.json").write_text("theirs")
+    before = _tree(tmp_path)
+    args = ["synth", "--layout", "nuscenes", "--out", str(tmp_path / "out"), "--frames", "1"]
+    result = runner.invoke(app, [*args, "--version", version])
+    assert result.exit_code == 1, result.output
+    _one_line_error(result, "is not a plain name")
+    assert _tree(tmp_path) == before and not (tmp_path / "out").exists()

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from drcpo.datasets.kitti import FRAME_ID
 from drcpo.datasets.nuscenes import CATEGORY_TO_CLASS, LIDAR_CHANNEL, POINT_COLUMNS
 from drcpo.errors import DataError
 from drcpo.outputs import OutputKind, atomic_write_bytes, write_directory
@@ -141,6 +142,7 @@ class NuScenesWriter:
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
+        check_version_name(self.version)
         names = ("scene", "sample", "sample_data", "sample_annotation", "instance", "ego_pose")
         self.tables = {name: [] for name in (*names, "calibrated_sensor", "log")}
         self._categories: set[str] = set()
@@ -325,6 +327,16 @@ def _write_points(path: Path, points: np.ndarray, where: str) -> None:
     atomic_write_bytes(path, np.ascontiguousarray(points, dtype="<f4").tobytes())
 
 
+def check_version_name(version: Any) -> str:
+    """``version`` if it is a plain directory name (``v1.0-mini``), else :class:`DataError`."""
+    if not isinstance(version, str) or not FRAME_ID.fullmatch(version):
+        raise DataError(
+            f"nuScenes version {version!r} is not a plain name (letters, digits, '_', '-' and '.' "
+            "not first; no path separators): it names the tables' directory inside the output"
+        )
+    return version
+
+
 def write_nuscenes(
     root: str | os.PathLike,
     scenes: Iterable[SceneRecord],
@@ -335,7 +347,9 @@ def write_nuscenes(
 ) -> Path:
     """Write ``scenes`` (produced one at a time) as a nuScenes layout under ``root``,
     atomically as a whole; ``manifest``: extra entries of the marker file (e.g. the
-    parameters a synthetic data set was made with)."""
+    parameters a synthetic data set was made with). ``version`` names the tables' directory
+    inside ``root``: a plain name, never a path (refused before anything is written)."""
+    check_version_name(version)
 
     def write(tmp: Path) -> None:
         writer = NuScenesWriter(tmp, version)
