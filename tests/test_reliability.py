@@ -84,3 +84,45 @@ def test_an_edited_index_is_refused_on_load(tmp_path):
     (index / "manifest.json").write_text(json.dumps(unchecked))
     with pytest.raises(DataError, match=r"object 0 \(Car\) has candidate 7 \(Pedestrian\)"):
         load_index(db)
+
+
+def test_every_size_validation_accepts_is_written_so_that_it_reads_back(tmp_path):
+    from drcpo.datasets.kitti import read_labels
+    from drcpo.datasets.kitti_writer import label_lines, reference_calibration, write_labels
+    from drcpo.frame import Frame
+
+    boxes = np.array(
+        [
+            [10.0, 0.0, -1.0, 1e-30, 1.6, 1.5, 0.0],
+            [12.0, 3.0, -1.0, 3.9, 4e-4, 1.5, 0.3],
+            [15.0, -3.0, -1.0, 3.9, 1.6, 1.5, 0.1],
+        ]
+    )
+    Frame(np.zeros((1, 4), np.float32), boxes, np.array(["Car"] * 3)).validate()
+    lines = label_lines(boxes, ["Car"] * 3, reference_calibration())
+    write_labels(tmp_path / "000000.txt", lines)
+    labels = read_labels(tmp_path / "000000.txt")
+    lwh = labels.dimensions  # length, height, width
+    np.testing.assert_allclose(lwh[:, 0], [1e-30, 3.9, 3.9], rtol=1e-9)
+    np.testing.assert_allclose(lwh[:, 2], [1.6, 4e-4, 1.6], rtol=1e-9)
+    assert lines[2].split()[8:11] == ["1.500000", "1.600000", "3.900000"]  # KITTI's usual form
+
+
+def test_an_occlusion_that_is_not_a_kitti_level_is_refused_on_read_and_write(tmp_path):
+    from drcpo.datasets.kitti import read_labels
+    from drcpo.datasets.kitti_writer import label_lines, reference_calibration
+
+    path = tmp_path / "000000.txt"
+    path.write_text(
+        "Car 0.00 300 1.85 387.63 181.54 423.81 203.12 1.67 1.87 3.69 -16.53 2.39 58.49 1.57\n"
+    )
+    with pytest.raises(DataError, match=r"000000\.txt:1: Car has occlusion '300'; KITTI's levels"):
+        read_labels(path)
+    path.write_text(
+        "Car 0.00 1.5 1.85 387.63 181.54 423.81 203.12 1.67 1.87 3.69 -16.53 2.39 58.49 1.57\n"
+    )
+    with pytest.raises(DataError, match="has occlusion '1.5'"):
+        read_labels(path)
+    box = np.array([[10.0, 0.0, -1.0, 3.9, 1.6, 1.5, 0.0]])
+    with pytest.raises(DataError, match="occlusion levels must be"):
+        label_lines(box, ["Car"], reference_calibration(), occlusion=np.array([44]))

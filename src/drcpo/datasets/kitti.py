@@ -281,6 +281,8 @@ class KittiLabels:
         return np.concatenate([xyz, length, width, height, heading], axis=1).astype(np.float64)
 
 
+#: KITTI's occlusion levels: 0 visible, 1 partly, 2 largely occluded, 3 unknown; -1 in results.
+OCCLUSION_LEVELS = (-1, 0, 1, 2, 3)
 _LABEL_FIELDS = 15  # type, truncation, occlusion, alpha, bbox (4), h, w, l, x, y, z, ry
 
 
@@ -288,7 +290,8 @@ def read_labels(path: str | os.PathLike) -> KittiLabels:
     """Read a KITTI ``label_2/*.txt`` file; ``DontCare`` rows and blank lines are skipped.
 
     Raises :class:`DataError` naming the file and line for a line with the wrong number of
-    fields, a non-numeric or non-finite value, or a non-positive box size.
+    fields, a non-numeric or non-finite value, a non-positive box size, or an occlusion that is
+    not one of :data:`OCCLUSION_LEVELS`.
     """
     path = Path(path)
     rows: list[tuple[str, np.ndarray, int]] = []
@@ -311,6 +314,11 @@ def read_labels(path: str | os.PathLike) -> KittiLabels:
         if (numbers[7:10] <= 0).any():
             raise DataError(
                 f"{path}:{number}: {name} has a non-positive size h, w, l = {numbers[7:10]}"
+            )
+        if numbers[1] not in OCCLUSION_LEVELS:
+            raise DataError(
+                f"{path}:{number}: {name} has occlusion {fields[2]!r}; KITTI's levels are "
+                f"{', '.join(str(v) for v in OCCLUSION_LEVELS)}"
             )
         rows.append((name, numbers, number))
     return _labels_from_rows(rows)

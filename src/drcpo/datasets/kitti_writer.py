@@ -23,6 +23,7 @@ import numpy as np
 
 from drcpo.datasets.kitti import (
     DEFAULT_IMAGE_SHAPE,
+    OCCLUSION_LEVELS,
     Calibration,
     check_split_name,
     lidar_boxes_to_camera,
@@ -207,7 +208,9 @@ def label_lines(
     Camera boxes come from :func:`~drcpo.datasets.kitti.lidar_boxes_to_camera`; alpha is
     ``ry - arctan2(x, z)`` of the box in the rectified camera frame; the 2D box and, unless
     given, the truncation come from :func:`project_boxes`. ``occlusion`` defaults to 3
-    (unknown). Boxes entirely behind the camera get an empty 2D box at (0, 0).
+    (unknown); given, each must be a KITTI level (0 to 3, or -1). Boxes entirely behind the
+    camera get an empty 2D box at (0, 0). Every positive size is written so that it reads back
+    positive (below a millimetre in exponent form), as the reader requires.
     """
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     count = len(boxes)
@@ -219,6 +222,11 @@ def label_lines(
     bbox = np.nan_to_num(bbox, nan=0.0)
     truncation = projected_truncation if truncation is None else np.asarray(truncation, float)
     occlusion = np.full(count, 3) if occlusion is None else np.asarray(occlusion)
+    if len(occlusion) != count or not np.isin(occlusion, OCCLUSION_LEVELS).all():
+        raise DataError(
+            f"label_lines: occlusion levels must be {count} of {OCCLUSION_LEVELS}, got "
+            f"{sorted(set(np.asarray(occlusion).tolist()))}"
+        )
     camera = lidar_boxes_to_camera(boxes, calib)
     ry = wrap_angle(camera[:, 6])
     alpha = wrap_angle(ry - np.arctan2(camera[:, 0], camera[:, 2]))
@@ -228,9 +236,15 @@ def label_lines(
         lines.append(
             f"{names[i]} {float(truncation[i]):.2f} {int(occlusion[i]):d} {alpha[i]:.2f} "
             f"{bbox[i, 0]:.2f} {bbox[i, 1]:.2f} {bbox[i, 2]:.2f} {bbox[i, 3]:.2f} "
-            f"{h:.6f} {w:.6f} {length:.6f} {x:.6f} {y:.6f} {z:.6f} {ry[i]:.6f}"
+            f"{_size(h)} {_size(w)} {_size(length)} {x:.6f} {y:.6f} {z:.6f} {ry[i]:.6f}"
         )
     return lines
+
+
+def _size(value: float) -> str:
+    """Six decimals (KITTI's files), or the shortest exact form where those would round a
+    positive size to zero."""
+    return f"{value:.6f}" if value >= 1e-3 else repr(float(value))
 
 
 def write_labels(path: str | os.PathLike, lines: Sequence[str]) -> Path:
