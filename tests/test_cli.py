@@ -300,3 +300,17 @@ def test_synth_nuscenes_refuses_a_version_that_is_a_path(tmp_path, version):
     assert result.exit_code == 1, result.output
     _one_line_error(result, "is not a plain name")
     assert _tree(tmp_path) == before and not (tmp_path / "out").exists()
+
+
+def test_an_output_inside_an_input_is_refused(tmp_path):
+    kitti = _kitti(tmp_path / "kitti")
+    db = _database(tmp_path / "db")
+    before = _tree(tmp_path)
+    for out in (db / "augmented", kitti / "augmented"):
+        args = ["--kitti", str(kitti), "--db", str(db), "--out", str(out), "--pipeline", "cda"]
+        result = runner.invoke(app, ["augment", *args])
+        assert result.exit_code == 1, result.output
+        _one_line_error(result, "the output lies inside the input")
+    result = runner.invoke(app, ["build-db", "--kitti", str(kitti), "--out", str(kitti / "db")])
+    _one_line_error(result, "the output lies inside the input")
+    assert _tree(tmp_path) == before

@@ -126,3 +126,24 @@ def test_an_occlusion_that_is_not_a_kitti_level_is_refused_on_read_and_write(tmp
     box = np.array([[10.0, 0.0, -1.0, 3.9, 1.6, 1.5, 0.0]])
     with pytest.raises(DataError, match="occlusion levels must be"):
         label_lines(box, ["Car"], reference_calibration(), occlusion=np.array([44]))
+
+
+def test_overwrite_removes_only_what_drcpo_wrote_naming_anything_else(tmp_path):
+    from drcpo.index import IndexConfig, build_index
+    from drcpo.synth import write_synthetic_kitti
+
+    db = _database(tmp_path / "db")
+    build_index(GroundTruthDatabase.open(db), IndexConfig(k=2, workers=1)).save(db)
+    # a database with its index/ is all drcpo's: --overwrite replaces it
+    GroundTruthDatabase.open(db).save(db, overwrite=True)
+    GroundTruthDatabase.open(db).save(tmp_path / "db2")
+    (tmp_path / "db2" / "NOTES.txt").write_text("mine")
+    with pytest.raises(OutputError, match=r"holds .*db2/NOTES\.txt, which drcpo did not write"):
+        GroundTruthDatabase.open(tmp_path / "db2").save(tmp_path / "db2", overwrite=True)
+    assert (tmp_path / "db2" / "NOTES.txt").read_text() == "mine"
+    root = tmp_path / "synthetic"
+    write_synthetic_kitti(root, 1, seed=0)
+    GroundTruthDatabase.open(db).save(root / "my_db")  # a database kept inside the data set
+    with pytest.raises(OutputError, match=r"holds .*synthetic/my_db, which drcpo did not write"):
+        write_synthetic_kitti(root, 1, seed=1, overwrite=True)
+    GroundTruthDatabase.open(root / "my_db").verify()  # still there, whole

@@ -95,7 +95,9 @@ __all__ = [
 FORMAT_NAME = "drcpo-candidate-index"
 FORMAT_VERSION = 1
 INDEX_DIRNAME = "index"
-INDEX_OUTPUT = OutputKind("drcpo candidate index", "manifest.json", FORMAT_NAME)
+INDEX_OUTPUT = OutputKind(
+    "drcpo candidate index", "manifest.json", FORMAT_NAME, ("candidates.npy", "densities.npy")
+)
 
 #: ``progress(class_name, objects_done, objects_total)``, called from the calling thread.
 Progress = Callable[[str, int, int], None]

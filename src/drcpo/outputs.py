@@ -29,6 +29,7 @@ from __future__ import annotations
 import ctypes
 import errno
 import fcntl
+import fnmatch
 import json
 import os
 import re
@@ -68,11 +69,16 @@ class OutputKind:
     """A kind of directory drcpo writes, recognised by a JSON marker file naming its format.
 
     Writers write the marker last, so a directory holding it is a complete output of the kind.
+    ``entries``: what the kind writes at its top level (``fnmatch`` patterns; ``{key}`` takes
+    the marker's value of ``key``): ``--overwrite`` refuses an output holding anything else (a
+    user's file, another output nested in it), naming it, so that it removes only what drcpo
+    wrote. ``None``: not checked.
     """
 
     description: str  # for messages, e.g. "drcpo database"
     marker: str  # file name inside the output, e.g. "manifest.json"
     format: str  # the marker's "format" value
+    entries: tuple[str, ...] | None = None
 
     def owns(self, path: str | os.PathLike) -> bool:
         """Whether directory ``path`` holds this kind's marker."""
@@ -126,8 +132,9 @@ def check_output(
 ) -> Path:
     """Raise :class:`OutputError` unless ``path`` may be written as a ``kind`` output.
 
-    Refused: ``path`` is or contains one of ``inputs`` (an output beside its inputs, or in a
-    directory of them, is fine: it never replaces them); ``path`` exists and
+    Refused: ``path`` is, contains or lies inside one of ``inputs`` (an output beside its
+    inputs is fine: it never replaces them; inside one, a later ``--overwrite`` of that input
+    would take it along); ``path`` exists and
     ``overwrite`` is false (:class:`OutputExistsError`); ``path`` exists and is neither an empty
     directory nor a ``kind`` output. Cheap, so commands call it before their work. Returns
     ``path`` resolved (symbolic links followed).
@@ -139,6 +146,8 @@ def check_output(
             relation = "is"
         elif source.is_relative_to(target):
             relation = "contains"
+        elif target.is_relative_to(source) and source.is_dir():
+            relation = "lies inside"
         else:
             continue
         raise OutputError(
@@ -177,7 +186,23 @@ def _not_owned(path: Path, kind: OutputKind) -> str | None:
     if not isinstance(found, dict) or found.get("format") != kind.format:
         shown = found.get("format") if isinstance(found, dict) else found
         return f"is not a {kind.description} ({marker} has format {shown!r}, not {kind.format!r})"
+    if kind.entries is not None:
+        fields = {k: v for k, v in found.items() if isinstance(v, str)}
+        patterns = [kind.marker, *(p.format_map(_Blank(fields)) for p in kind.entries)]
+        for entry in sorted(os.listdir(path)):
+            if not any(fnmatch.fnmatchcase(entry, p) for p in patterns if p):
+                return (
+                    f"holds {path / entry}, which drcpo did not write as part of a "
+                    f"{kind.description}"
+                )
     return None
+
+
+class _Blank(dict):
+    """Marker fields for ``str.format_map``; a missing one matches nothing."""
+
+    def __missing__(self, key: str) -> str:
+        return ""
 
 
 # Writing a directory --------------------------------------------------------------------------

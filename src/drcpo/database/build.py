@@ -404,6 +404,8 @@ def import_openpcdet(
     root = Path(root) if root is not None else dbinfos_pkl.parent
     if origin not in _ORIGINS:
         raise ConfigError(f"origin must be one of {', '.join(_ORIGINS)}, got {origin!r}")
+    if not dbinfos_pkl.is_file():  # the missing input is the news, not where the output goes
+        raise DataError(f"{dbinfos_pkl}: cannot read (no such file)")
     check_output(out, DATABASE_OUTPUT, overwrite, inputs=[dbinfos_pkl, root])
     entries = sorted(
         _dbinfo_entries(dbinfos_pkl, origin), key=lambda e: (e["image_idx"], e["gt_idx"])

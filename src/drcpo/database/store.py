@@ -63,7 +63,12 @@ FORMAT_NAME = "drcpo-gt-database"
 FORMAT_VERSION = 2
 READ_VERSIONS = (1, 2)  # version 1: no point_features, no velocity.npy
 DIFFICULTY_NAMES = ("easy", "moderate", "hard")  # codes 0, 1, 2; -1 is "unknown"
-DATABASE_OUTPUT = OutputKind("drcpo database", "manifest.json", FORMAT_NAME)
+DATABASE_OUTPUT = OutputKind(
+    "drcpo database",
+    "manifest.json",
+    FORMAT_NAME,
+    ("*.npy", "index"),  # index: `drcpo index`
+)
 
 _COLUMNS: dict[str, Any] = {
     "boxes": np.float64,

@@ -40,7 +40,12 @@ __all__ = [
 ]
 
 #: What :func:`augment_kitti` writes; ``augment.json`` (written last) marks it as drcpo's.
-AUGMENT_OUTPUT = OutputKind("drcpo augment output", "augment.json", "drcpo-augmented-kitti")
+AUGMENT_OUTPUT = OutputKind(
+    "drcpo augment output",
+    "augment.json",
+    "drcpo-augmented-kitti",
+    ("training", "ImageSets", "stats.jsonl", "timings.jsonl"),
+)
 #: The output's one file that differs between runs: per frame, the milliseconds it took.
 TIMINGS_FILE = "timings.jsonl"
 _FRAMES = "frames"  # staging subdirectory: one record per finished frame, written last

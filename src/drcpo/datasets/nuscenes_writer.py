@@ -43,7 +43,12 @@ __all__ = [
 NUSCENES_MANIFEST = "drcpo_nuscenes.json"
 NUSCENES_FORMAT = "drcpo-nuscenes"
 NUSCENES_FORMAT_VERSION = 1
-NUSCENES_OUTPUT = OutputKind("drcpo nuScenes-style data set", NUSCENES_MANIFEST, NUSCENES_FORMAT)
+NUSCENES_OUTPUT = OutputKind(
+    "drcpo nuScenes-style data set",
+    NUSCENES_MANIFEST,
+    NUSCENES_FORMAT,
+    ("samples", "sweeps", "maps", "{version}"),
+)
 
 #: The devkit's visibility levels (token, level, description).
 _VISIBILITY = (

@@ -49,7 +49,9 @@ __all__ = [
 SYNTH_MANIFEST = "synth.json"
 SYNTH_FORMAT_VERSION = 1
 SYNTH_FORMAT = "drcpo-synthetic-kitti"
-SYNTH_OUTPUT = OutputKind("drcpo synthetic KITTI data set", SYNTH_MANIFEST, SYNTH_FORMAT)
+SYNTH_OUTPUT = OutputKind(
+    "drcpo synthetic KITTI data set", SYNTH_MANIFEST, SYNTH_FORMAT, ("training", "ImageSets")
+)
 
 
 @dataclass(frozen=True, eq=False)
