@@ -38,7 +38,7 @@ from drcpo.errors import DrcpoError
 from drcpo.frame import Frame
 from drcpo.geometry import points_in_boxes
 from drcpo.index import CandidateIndex, build_index
-from drcpo.outputs import atomic_write_bytes
+from drcpo.outputs import OutputKind, atomic_write_bytes, check_output
 from drcpo.partitions import partition_counts
 from drcpo.synth.dataset import matches, synth_parameters, write_synthetic_kitti
 from drcpo.synth.sensor import LidarConfig
@@ -116,6 +116,13 @@ class _Run:
         )
 
 
+#: What the demo writes into its directory: the summary (its marker), the cached synthetic
+#: frames, their database and index, the figures.
+DEMO_OUTPUT = OutputKind(
+    "drcpo demo output", "summary.json", "drcpo-demo", ("kitti", "gt_database", "*.png")
+)
+
+
 def run_demo(
     out: str | Path = "drcpo_demo",
     frames: int = DEFAULT_FRAMES,
@@ -131,6 +138,9 @@ def run_demo(
     in the figures and the summary by the name or the file's stem.
     """
     out = Path(out)
+    # Its files go straight into ``out``, so ``out`` must be new, empty or an earlier demo's:
+    # never a directory of the user's (check_output names what is in the way).
+    check_output(out, DEMO_OUTPUT, overwrite=True)
     run = _Run(console or Console(stderr=True))
     start = time.perf_counter()
     configs = _presets(run, presets)
@@ -143,6 +153,7 @@ def run_demo(
     figures = _figures(run, out, database, index, originals, results, list(configs), seed)
     groups = {"original": originals, **results}
     summary = {
+        "format": DEMO_OUTPUT.format,
         "out": str(out),
         "frames": frames,
         "seed": seed,
