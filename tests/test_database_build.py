@@ -497,3 +497,23 @@ def test_cli_import_of_a_corrupted_pickle_fails_in_one_line(kitti_sample, tmp_pa
     assert "error:" in message and "Traceback" not in message
     assert "kitti_dbinfos_train.pkl: not a readable pickle: dtype <U3: flags 120" in message
     _no_database_left(tmp_path)
+
+
+def test_import_refuses_points_far_outside_their_box(kitti_sample, tmp_path):
+    root = _openpcdet_copy(kitti_sample, tmp_path)
+    dbinfos = safe_pickle.load(kitti_sample / "kitti_dbinfos_train.pkl")
+    (root / "dbinfos.pkl").write_bytes(pickle.dumps(dbinfos))
+    first = root / dbinfos["Car"][0]["path"]
+    points = np.fromfile(first, dtype=np.float32).reshape(-1, 4)
+    points[3, :3] = (5e6, 0.0, 0.0)  # 5,000 km from its box: beyond drcpo's own limit
+    points.tofile(first)
+    with pytest.raises(DataError, match=r"000001_Car_1\.bin: 1 of its 9 points lie more than 1"):
+        import_openpcdet(root / "dbinfos.pkl", tmp_path / "db")
+    points[3, :3] = (0.0, 0.0, 4.0)  # 4 m above the centre of a 1.5 m tall car
+    points.tofile(first)
+    with pytest.raises(DataError, match="outside the object's box"):
+        import_openpcdet(root / "dbinfos.pkl", tmp_path / "db")
+    _no_database_left(tmp_path)
+    points[3, :3] = (0.0, 0.0, 0.2)  # inside: imported
+    points.tofile(first)
+    import_openpcdet(root / "dbinfos.pkl", tmp_path / "db")

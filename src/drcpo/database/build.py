@@ -37,7 +37,7 @@ from drcpo.datasets.kitti import (
     read_points,
 )
 from drcpo.errors import ConfigError, DataError, shown
-from drcpo.frame import VELOCITY, Frame, rotate_velocities
+from drcpo.frame import MAX_COORDINATE, VELOCITY, Frame, rotate_velocities
 from drcpo.geometry import rotate_points_z, to_canonical
 from drcpo.outputs import check_output
 
@@ -619,6 +619,29 @@ class _LabelLookup:
         return self._cache[frame_id]
 
 
+#: Metres an imported object's points may lie outside its box (both frameworks store the points
+#: inside it; a point further out is a corrupt or foreign file, and would be pasted as the object).
+IMPORT_MARGIN = 1.0
+
+
+def _check_points_in_box(path: Path, canonical: np.ndarray, box: np.ndarray) -> None:
+    """Refuse an object whose points (relative, canonical pose) leave its box by more than
+    :data:`IMPORT_MARGIN`, or would leave the coordinate limit once placed."""
+    if not len(canonical):
+        return
+    xyz = np.asarray(canonical[:, :3], dtype=np.float64)
+    reach = np.abs(xyz) - (np.asarray(box[3:6], dtype=np.float64) / 2 + IMPORT_MARGIN)
+    far = np.flatnonzero((reach > 0).any(axis=1) | ~np.isfinite(xyz).all(axis=1))
+    if len(far):
+        raise DataError(
+            f"{path}: {len(far)} of its {len(xyz)} points lie more than {IMPORT_MARGIN} m outside "
+            f"the object's box (first: {xyz[far[0]].round(3).tolist()} from the centre, box size "
+            f"{np.round(box[3:6], 3).tolist()}); the file does not hold this object's points"
+        )
+    if (np.abs(np.asarray(box[:3]))[None] + np.abs(xyz) > MAX_COORDINATE).any():
+        raise DataError(f"{path}: points beyond the coordinate limit of {MAX_COORDINATE:g} m")
+
+
 def _imported_record(
     entry: dict[str, Any],
     root: Path,
@@ -648,9 +671,11 @@ def _imported_record(
             )
         occlusion, truncation = int(frame_labels.occlusion[i]), float(frame_labels.truncation[i])
     velocity = entry.get("velocity")
+    canonical = rotate_points_z(relative, -box[6])
+    _check_points_in_box(path, canonical, box)
     return ObjectRecord(
         velocity=None if velocity is None else rotate_velocities(velocity, -box[6])[0],
-        points=rotate_points_z(relative, -box[6]),
+        points=canonical,
         name=entry["name"],
         box=box,
         frame_id=entry["image_idx"],
