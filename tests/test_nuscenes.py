@@ -590,3 +590,54 @@ def test_a_sample_without_lidar_is_named(copy):
     dataset = NuScenesDataset(copy, VERSION)
     with pytest.raises(DataError, match="has no LIDAR_TOP key frame"):
         dataset.frame(dataset.frame_ids[0])
+
+
+def _scenes_by_name(copy):
+    return {s["name"]: s for s in json.loads((copy / VERSION / "scene.json").read_text())}
+
+
+def test_a_next_chain_running_into_another_scene_is_refused(copy):
+    """A chain that runs on past last_sample_token into the next scene would hand that scene's
+    samples to a split of this one (a train/val leak)."""
+    by_name = _scenes_by_name(copy)
+    first, second = by_name["scene-0000"], by_name["scene-0001"]
+
+    def link(rows):
+        for row in rows:
+            if row["token"] == first["last_sample_token"]:
+                row["next"] = second["first_sample_token"]
+        return rows
+
+    _edit(copy, "sample", link)
+    # the chain stops at last_sample_token: scene-0000 keeps its own 4 samples only
+    one = NuScenesDataset(copy, VERSION, scenes=["scene-0000"])
+    assert len(one.frame_ids) == 4
+    assert {one.frame(t).metadata["scene"] for t in one.frame_ids} == {"scene-0000"}
+    _edit(
+        copy,
+        "scene",
+        lambda rows: [
+            {**r, "last_sample_token": second["last_sample_token"]}
+            if r["name"] == "scene-0000"
+            else r
+            for r in rows
+        ],
+    )
+    with pytest.raises(DataError, match=r"belongs to scene .*, reached along|reached along"):
+        NuScenesDataset(copy, VERSION, scenes=["scene-0000"])
+
+
+def test_a_chain_that_ends_early_or_a_scene_listed_twice_is_refused(copy):
+    by_name = _scenes_by_name(copy)
+    first = by_name["scene-0000"]
+
+    def cut(rows):
+        samples = {r["token"]: r for r in rows}
+        samples[samples[first["first_sample_token"]]["next"]]["next"] = ""
+        return rows
+
+    _edit(copy, "sample", cut)
+    with pytest.raises(DataError, match="ends at .*, not at its last_sample_token"):
+        NuScenesDataset(copy, VERSION, scenes=["scene-0000"])
+    with pytest.raises(DataError, match="is reached from scene .* and from scene"):
+        NuScenesDataset(copy, VERSION, scenes=["scene-0001", "scene-0001"])

@@ -413,6 +413,12 @@ class NuScenesDataset(FrameSequence):
         self.scene_of: dict[str, str] = {}
         for scene in self.scene_tokens:
             for token in self._samples_of(scene):
+                if token in self.scene_of:  # two scenes (or one listed twice) share a sample
+                    raise DataError(
+                        f"{self.tables.path('sample')}: sample {token!r} is reached from scene "
+                        f"{self.scene_of[token]!r} and from scene {scene!r}; each sample "
+                        "belongs to one scene (is a scene listed twice?)"
+                    )
                 self.frame_ids.append(token)
                 self.scene_of[token] = scene
 
@@ -431,17 +437,36 @@ class NuScenesDataset(FrameSequence):
         return chosen
 
     def _samples_of(self, scene: str) -> list[str]:
+        """The scene's samples along its ``next`` chain, checked as the devkit's tables promise:
+        each sample of this scene, none twice, the chain ending at ``last_sample_token`` (a
+        chain running on into the next scene would leak its samples into this one's split)."""
         t = self.tables
         token = t.field("scene", scene, "first_sample_token", str)
+        last = t.field("scene", scene, "last_sample_token", str)
         where = f"scene.json {scene!r} field 'first_sample_token'"
         samples: list[str] = []
+        seen: set[str] = set()
         while token:
             t.get("sample", token, where)
-            if len(samples) > len(t.records["sample"]):
+            if token in seen:
                 raise DataError(f"{t.path('sample')}: the 'next' chain of scene {scene!r} loops")
+            owner = t.field("sample", token, "scene_token", str)
+            if owner != scene:
+                raise DataError(
+                    f"{t.path('sample')}: sample {token!r}, reached along the 'next' chain of "
+                    f"scene {scene!r}, belongs to scene {owner!r}"
+                )
+            seen.add(token)
             samples.append(token)
+            if token == last:
+                break
             where = f"sample.json {token!r} field 'next'"
             token = t.field("sample", token, "next", str)
+        if not samples or samples[-1] != last:
+            raise DataError(
+                f"{t.path('sample')}: the 'next' chain of scene {scene!r} ends at "
+                f"{(samples or [''])[-1]!r}, not at its last_sample_token {last!r}"
+            )
         return samples
 
     # One frame --------------------------------------------------------------------------------
