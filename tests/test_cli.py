@@ -343,3 +343,14 @@ def test_demo_marks_its_output_and_a_rerun_may_use_it(tmp_path):
     (out / "NOTES.txt").write_text("mine")
     with pytest.raises(Exception, match=r"holds .*NOTES\.txt, which drcpo did not write"):
         check_output(out, DEMO_OUTPUT, overwrite=True)
+
+
+@pytest.mark.parametrize("out", ["", ".", ".."])
+def test_an_output_that_is_the_working_directory_is_refused(tmp_path, monkeypatch, out):
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    result = runner.invoke(app, ["synth", "--out", out, "--frames", "1", "--overwrite"])
+    assert result.exit_code == 1, result.output
+    _one_line_error(result, "working directory")
+    assert list(tmp_path.iterdir()) == [work] and not any(work.iterdir())

@@ -147,3 +147,26 @@ def test_overwrite_removes_only_what_drcpo_wrote_naming_anything_else(tmp_path):
     with pytest.raises(OutputError, match=r"holds .*synthetic/my_db, which drcpo did not write"):
         write_synthetic_kitti(root, 1, seed=1, overwrite=True)
     GroundTruthDatabase.open(root / "my_db").verify()  # still there, whole
+
+
+def test_an_array_header_promising_too_much_memory_names_the_file(tmp_path):
+    db = _database(tmp_path / "db")
+    header = "{'descr': '<f8', 'fortran_order': False, 'shape': (4000000000000, 7), }"
+    header = header + " " * (117 - len(header)) + "\n"
+    (db / "boxes.npy").write_bytes(
+        b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header.encode()
+    )
+    with pytest.raises(DataError, match=r"boxes\.npy: unreadable array \(its header asks"):
+        GroundTruthDatabase.open(db)
+
+
+def test_a_vertical_road_plane_names_its_file_in_plain_numbers(tmp_path):
+    from drcpo.datasets.kitti import read_plane
+
+    path = tmp_path / "000000.txt"
+    path.write_text("# Plane\nWidth 4\nHeight 1\n1.0 0.0 0.0 1.65\n")
+    with pytest.raises(
+        DataError, match=r"000000\.txt:4: the road plane '1.0 0.0 0.0 1.65' is vertical"
+    ) as caught:
+        read_plane(path)
+    assert "array(" not in str(caught.value)

@@ -382,7 +382,9 @@ def road_plane_to_lidar(plane: np.ndarray, calib) -> np.ndarray:
     """
     plane = np.asarray(plane, dtype=np.float64).reshape(-1)
     if plane.shape != (4,) or not np.isfinite(plane).all():
-        raise DataError(f"road plane must be four finite numbers (a, b, c, d), got {plane}")
+        raise DataError(
+            f"road plane must be four finite numbers (a, b, c, d), got {plane.tolist()}"
+        )
     if calib is None:
         raise DataError("a KITTI road plane needs the frame's calibration (calib)")
     r0 = np.asarray(calib.R0_rect, dtype=np.float64)
@@ -390,7 +392,7 @@ def road_plane_to_lidar(plane: np.ndarray, calib) -> np.ndarray:
     normal = (r0 @ tr[:, :3]).T @ plane[:3]
     offset = plane[:3] @ (r0 @ tr[:, 3]) + plane[3]
     if abs(normal[2]) < 1e-6 * max(np.linalg.norm(normal), 1e-12):
-        raise DataError(f"road plane {plane} is vertical in the LiDAR frame")
+        raise DataError(f"road plane {plane.tolist()} is vertical in the LiDAR frame")
     return np.array([-normal[0], -normal[1], -offset]) / normal[2]
 
 

@@ -405,6 +405,10 @@ def _load_array(path: Path, mmap: bool) -> np.ndarray:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise DataError(f"{path}: unreadable array ({exc})") from exc
+    except MemoryError:  # a header promising more than this machine holds (the file lies)
+        raise DataError(
+            f"{path}: unreadable array (its header asks for more memory than there is)"
+        ) from None
 
 
 # --------------------------------------------------------------------------------------------

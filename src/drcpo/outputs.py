@@ -132,14 +132,21 @@ def check_output(
 ) -> Path:
     """Raise :class:`OutputError` unless ``path`` may be written as a ``kind`` output.
 
-    Refused: ``path`` is, contains or lies inside one of ``inputs`` (an output beside its
+    Refused: ``path`` is empty, is or contains the working directory; ``path`` is, contains or
+    lies inside one of ``inputs`` (an output beside its
     inputs is fine: it never replaces them; inside one, a later ``--overwrite`` of that input
     would take it along); ``path`` exists and
     ``overwrite`` is false (:class:`OutputExistsError`); ``path`` exists and is neither an empty
     directory nor a ``kind`` output. Cheap, so commands call it before their work. Returns
     ``path`` resolved (symbolic links followed).
     """
+    if not str(path):
+        raise OutputError("the output path is empty; name a directory")
     target = Path(path).resolve()
+    if Path.cwd().resolve().is_relative_to(target):  # '' and '.' come here too
+        raise OutputError(
+            f"{path}: the output is or contains the working directory; name a new directory"
+        )
     for item in inputs:
         source = Path(item).resolve()
         if target == source:

@@ -489,6 +489,10 @@ def _load(path: Path, mmap: bool = False) -> np.ndarray:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise DataError(f"{path}: unreadable array ({exc})") from exc
+    except MemoryError:  # a header promising more than this machine holds (the file lies)
+        raise DataError(
+            f"{path}: unreadable array (its header asks for more memory than there is)"
+        ) from None
 
 
 def _check_text_columns(path: Path, columns: dict[str, np.ndarray]) -> None:

@@ -465,6 +465,11 @@ def read_plane(path: str | os.PathLike) -> np.ndarray:
     norm = np.linalg.norm(plane[:3]) if plane.size == 4 else 0.0
     if plane.size != 4 or not np.isfinite(plane).all() or norm == 0:
         raise DataError(f"{path}:4: expected 4 finite coefficients a b c d, got {lines[3]!r}")
+    if abs(plane[1]) < 1e-9 * norm:  # b = 0: no height anywhere on it (y points down)
+        raise DataError(
+            f"{path}:4: the road plane {lines[3].strip()!r} is vertical (b = 0): boxes cannot "
+            "be put on it"
+        )
     if plane[1] > 0:
         plane = -plane
     return plane / norm

@@ -128,7 +128,8 @@ def road_plane_heights(plane: np.ndarray, calib: Any, xyz: np.ndarray) -> np.nda
     """
     a, b, c, d = (float(v) for v in np.asarray(plane, dtype=np.float64).reshape(4))
     if abs(b) < 1e-9:
-        raise DataError(f"road plane {plane!r} is vertical (b = 0); cannot put boxes on it")
+        shown = np.asarray(plane, dtype=np.float64).reshape(4).tolist()
+        raise DataError(f"road plane {shown} is vertical (b = 0); cannot put boxes on it")
     rect = np.asarray(calib.lidar_to_rect(np.asarray(xyz, dtype=np.float32)), dtype=np.float32)
     rect[:, 1] = (-d - a * rect[:, 0] - c * rect[:, 2]) / b
     return np.asarray(calib.rect_to_lidar(rect))[:, 2].astype(np.float64)
