@@ -132,7 +132,7 @@ def check_output(
 ) -> Path:
     """Raise :class:`OutputError` unless ``path`` may be written as a ``kind`` output.
 
-    Refused: ``path`` is empty, is or contains the working directory; ``path`` is, contains or
+    Refused: ``path`` is empty, a symbolic link, is or contains the working directory; ``path`` is, contains or
     lies inside one of ``inputs`` (an output beside its
     inputs is fine: it never replaces them; inside one, a later ``--overwrite`` of that input
     would take it along); ``path`` exists and
@@ -159,6 +159,11 @@ def check_output(
             continue
         raise OutputError(
             f"{path}: the output {relation} the input {item}; write it somewhere else"
+        )
+    if os.path.islink(path):  # written through, the output would land wherever it points
+        raise OutputError(
+            f"{path} is a symbolic link (to {os.readlink(path)}); drcpo never writes through "
+            "one: give the real path"
         )
     _check_replaceable(target, kind, overwrite, Path(path))
     return target
