@@ -38,8 +38,8 @@ import numpy as np
 
 from drcpo.database import GroundTruthDatabase
 from drcpo.geometry import canonical_iou3d
-from drcpo.index import IndexConfig, build_index, similarity_recall
-from drcpo.similarity import SimilaritySearch
+from drcpo.index import IndexConfig, build_index
+from drcpo.similarity import SimilaritySearch, similarity_recall
 
 KITTI = {"Car": 14_357, "Pedestrian": 2_207, "Cyclist": 734}
 WAYMO = {"Car": 1_000_000}
@@ -146,7 +146,7 @@ def step_recall(args) -> dict:
         for i in range(0, len(sample), 512):
             search.top(sample[i : i + 512])
         timings[mode] = (time.perf_counter() - start) / len(sample) * 1e6
-    recall = similarity_recall(dims, s, sample, workers=args.workers)
+    recall = similarity_recall(dims, s, sample)
     return {
         "recall": recall,
         "sample": len(sample),

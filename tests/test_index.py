@@ -14,10 +14,9 @@ from drcpo.index import (
     indexed_mask,
     load_index,
     partition_occupancy,
-    similarity_recall,
 )
 from drcpo.partitions import grid_for, mirror_points, num_partitions, partition_counts
-from drcpo.similarity import SimilaritySearch
+from drcpo.similarity import SimilaritySearch, similarity_recall
 
 CLASSES = ("Car", "Pedestrian", "Cyclist", "Van")
 

@@ -35,10 +35,10 @@ not depend on the number of workers.
 default): the ``approx_factor x 2K`` nearest neighbours in u-space by L1 distance
 (``scipy.spatial.cKDTree``) are re-ranked by exact IoU and the best 2K kept. Stage 2 is unchanged.
 Its recall against the exact top-2K is measured by ``benchmarks/bench_index.py``
-(``approx_recall``) and :func:`similarity_recall`. On realistic size distributions the exact grid
-search is faster than the k-d tree query itself (1,000,000 objects: see the benchmark), which is
-why the exact search is the default at every size; the approximate mode remains for size
-distributions so spread out that the grid search degrades.
+(``approx_recall``, :func:`drcpo.similarity.similarity_recall`). On realistic size distributions
+the exact grid search is faster than the k-d tree query itself (1,000,000 objects: see the
+benchmark), which is why the exact search is the default at every size; the approximate mode
+remains for size distributions so spread out that the grid search degrades.
 
 **Arithmetic.** IoUs are computed in float64 as in :func:`drcpo.geometry.canonical_iou3d`.
 Scores and means are float64 sums of float32 densities, which are exact (so independent of the
@@ -88,7 +88,6 @@ __all__ = [
     "normalise_counts",
     "partition_occupancy",
     "rank_candidates",
-    "similarity_recall",
 ]
 
 
@@ -372,25 +371,17 @@ def load_index(
     return CandidateIndex.load(database, path, mmap=mmap)
 
 
-def _check_candidate_classes(
-    path: Path, database: GroundTruthDatabase, candidates: np.ndarray
-) -> None:
-    """Every candidate a database row of the same class as its object (DR.CPO builds an object
-    from its candidates' points: a Pedestrian's among a Car's would be pasted as a Car)."""
+def _check_candidate_classes(path: Path, database: GroundTruthDatabase, table: np.ndarray) -> None:
+    """Every candidate a row of its object's class (DR.CPO pastes candidates' points)."""
     names = np.asarray(database.names).astype(str)
-    if candidates.shape[1] == 0 or not len(names):
-        return
-    rows, slots = np.nonzero(candidates >= 0)
-    if (candidates[rows, slots] >= len(names)).any():
-        raise DataError(
-            f"{path / 'candidates.npy'}: candidates past the database's {len(names)} rows"
-        )
-    wrong = np.flatnonzero(names[candidates[rows, slots]] != names[rows])
-    if len(wrong):
-        row, other = int(rows[wrong[0]]), int(candidates[rows[wrong[0]], slots[wrong[0]]])
+    rows, slots = np.nonzero(table >= 0)
+    found = table[rows, slots]
+    wrong = np.flatnonzero(names[np.minimum(found, len(names) - 1)] != names[rows])
+    if len(wrong) or (found >= len(names)).any():
+        row, other = (int(rows[wrong[0]]), int(found[wrong[0]])) if len(wrong) else (-1, -1)
         raise DataError(
             f"{path / 'candidates.npy'}: object {row} ({names[row]}) has candidate {other} "
-            f"({names[other]}) among {len(wrong)} candidates of another class"
+            f"({names[other]}) among {len(wrong)} candidates of another class or out of range"
         )
 
 
@@ -807,36 +798,3 @@ def _fill_rank(ids, densities, totals, position, first, alpha, k):  # pragma: no
         for c in range(min(k, n)):
             out[b, c] = ids[b, order[c]]
     return out
-
-
-# --------------------------------------------------------------------------------------------
-# Approximate-mode quality
-# --------------------------------------------------------------------------------------------
-def similarity_recall(
-    dims: np.ndarray,
-    s: int,
-    sample: np.ndarray,
-    approx_factor: float = 1.5,
-    workers: int | None = None,
-) -> float:
-    """Mean share of each sampled object's exact top-``s`` that the approximate mode finds.
-
-    Args:
-        dims: ``(M, 3)`` box sizes of one class.
-        s: neighbours (``2 k``).
-        sample: local ids to check.
-    """
-    exact = SimilaritySearch(dims, s, mode="exact")
-    approx = SimilaritySearch(dims, s, mode="approximate", approx_factor=approx_factor)
-    config = IndexConfig(workers=workers, block_size=256)
-    sample = np.asarray(sample, np.int64)
-    found = 0
-    blocks = [sample[i : i + config.block_size] for i in range(0, len(sample), config.block_size)]
-    for truth, guess in zip(
-        _map_blocks(lambda b: exact.top(b)[0], blocks, len(sample), config, None),
-        _map_blocks(lambda b: approx.top(b)[0], blocks, len(sample), config, None),
-        strict=True,
-    ):
-        for t_row, g_row in zip(truth, guess, strict=True):
-            found += len(np.intersect1d(t_row, g_row, assume_unique=True))
-    return found / max(len(sample) * s, 1)

@@ -132,10 +132,10 @@ def check_output(
 ) -> Path:
     """Raise :class:`OutputError` unless ``path`` may be written as a ``kind`` output.
 
-    Refused: ``path`` is empty, a symbolic link, is or contains the working directory; ``path`` is, contains or
-    lies inside one of ``inputs`` (an output beside its
-    inputs is fine: it never replaces them; inside one, a later ``--overwrite`` of that input
-    would take it along); ``path`` exists and
+    Refused: ``path`` is empty, a symbolic link, or is or contains the working directory;
+    ``path`` is, contains or lies inside one of ``inputs`` (an output beside its inputs is fine:
+    it never replaces them; inside one, a later ``--overwrite`` of that input would take it
+    along); ``path`` exists and
     ``overwrite`` is false (:class:`OutputExistsError`); ``path`` exists and is neither an empty
     directory nor a ``kind`` output. Cheap, so commands call it before their work. Returns
     ``path`` resolved (symbolic links followed).

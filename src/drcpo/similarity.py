@@ -1,6 +1,6 @@
 """The candidate index's first stage: for every object of a class, the ``s`` objects whose boxes
 are most alike (canonical IoU), found exactly by a grid search over box sizes or approximately;
-:func:`drcpo.index.similarity_recall` measures how much of the exact answer the approximate
+:func:`similarity_recall` measures how much of the exact answer the approximate
 mode keeps. See :mod:`drcpo.index` for the whole method."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 
 from drcpo.errors import ConfigError
 
-__all__ = ["SimilaritySearch"]
+__all__ = ["SimilaritySearch", "similarity_recall"]
 
 _BOUND_SLACK = 1e-9  # relative safety margin on IoU upper bounds against rounding
 _OCCUPANCY_DIVISOR = 48.0  # typical cell holds s / this objects
@@ -350,3 +350,24 @@ def _rerank(queries, near, dims, vol, s):  # pragma: no cover - numba
             out_iou[b, c] = -1.0
             out_id[b, c] = -1
     return out_id, out_iou
+
+
+def similarity_recall(
+    dims: np.ndarray, s: int, sample: np.ndarray, approx_factor: float = 1.5, block: int = 256
+) -> float:
+    """Mean share of each sampled object's exact top-``s`` that the approximate mode finds.
+
+    Args:
+        dims: ``(M, 3)`` box sizes of one class.
+        s: neighbours (``2 k``).
+        sample: local ids to check, taken ``block`` at a time.
+    """
+    exact = SimilaritySearch(dims, s, mode="exact")
+    approx = SimilaritySearch(dims, s, mode="approximate", approx_factor=approx_factor)
+    sample = np.asarray(sample, np.int64)
+    found = 0
+    for start in range(0, len(sample), block):
+        rows = sample[start : start + block]
+        for truth, guess in zip(exact.top(rows)[0], approx.top(rows)[0], strict=True):
+            found += len(np.intersect1d(truth, guess, assume_unique=True))
+    return found / max(len(sample) * s, 1)
