@@ -17,6 +17,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import struct
+import zlib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -316,11 +318,41 @@ class NuScenesWriter:
                     "modality": "lidar",
                 }
             ],
-            "map": [],
+            # One map for every log, as the devkit's reverse index needs; its image is blank
+            # (drcpo's worlds have no map; the devkit draws it under a LiDAR sweep).
+            "map": [
+                {
+                    "token": token_of("map", "drcpo"),
+                    "log_tokens": [row["token"] for row in self.tables["log"]],
+                    "category": "semantic_prior",
+                    "filename": MAP_IMAGE,
+                }
+            ],
         }
+        atomic_write_bytes(self.root / MAP_IMAGE, _blank_png(16))
         for name, rows in tables.items():
             text = json.dumps(rows, indent=0)
             atomic_write_bytes(self.root / self.version / f"{name}.json", text.encode())
+
+
+MAP_IMAGE = "maps/drcpo_blank.png"
+
+
+def _blank_png(side: int) -> bytes:
+    """A ``side`` x ``side`` black 8-bit greyscale PNG (signature, IHDR, IDAT, IEND chunks)."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    header = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    rows = b"".join(b"\0" + bytes(side) for _ in range(side))  # filter byte 0, then pixels
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(rows))
+        + chunk(b"IEND", b"")
+    )
 
 
 def _write_points(path: Path, points: np.ndarray, where: str) -> None:

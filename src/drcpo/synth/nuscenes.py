@@ -71,6 +71,7 @@ LIDAR_IN_EGO = 0.94
 _SWEEP_US = 50_000  # 20 Hz
 _EGO_BOX = (4.8, 2.0)  # length, width of the recording car, metres
 _FIRST_TIMESTAMP = 1_500_000_000_000_000  # microseconds
+_SCENE_SPACING_US = 60_000_000  # a minute between scene starts: longer than any scene
 
 
 @dataclass(frozen=True)
@@ -152,9 +153,16 @@ class SyntheticScene:
 
 
 def synthesize_scene(
-    rng: np.random.Generator, name: str, config: NuScenesSynthConfig | None = None
+    rng: np.random.Generator,
+    name: str,
+    config: NuScenesSynthConfig | None = None,
+    number: int = 0,
 ) -> SyntheticScene:
-    """Generate, drive through and sweep one scene (the same generator state, the same scene)."""
+    """Generate, drive through and sweep one scene (the same generator state, the same scene).
+
+    Scene ``number`` of a data set starts :data:`_SCENE_SPACING_US` after the one before, as a
+    recording's scenes follow one another (the devkit orders scenes by their start).
+    """
     config = config or NuScenesSynthConfig()
     lidar = config.lidar
     world = generate_world(rng, config.world, mount_height=lidar.mount_height)
@@ -184,7 +192,7 @@ def synthesize_scene(
         )
         points = _sweep(rng, scene, i, lidar)
         ego_t, ego_q = _ego_pose(scene, i, lidar.mount_height)
-        stamp = _FIRST_TIMESTAMP + i * _SWEEP_US
+        stamp = _FIRST_TIMESTAMP + number * _SCENE_SPACING_US + i * _SWEEP_US
         sweeps.append(SweepRecord(stamp, points, ego_t, ego_q, key))
         if key:
             annotations.append(_annotations(scene, i, points))
@@ -372,7 +380,7 @@ def write_synthetic_nuscenes(
 
     def generate():
         for number in range(scenes):
-            scene = synthesize_scene(frame_rng(seed, number), f"scene-{number:04d}", config)
+            scene = synthesize_scene(frame_rng(seed, number), f"scene-{number:04d}", config, number)
             record = scene.record
             summary["samples"] += len(record.annotations)
             summary["sweeps"] += len(record.sweeps)
