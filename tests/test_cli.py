@@ -319,12 +319,12 @@ def test_an_output_inside_an_input_is_refused(tmp_path):
 def test_demo_into_a_directory_of_the_users_is_refused(tmp_path):
     mine = tmp_path / "mine"
     mine.mkdir()
-    (mine / "summary.json").write_text('{"my": "notes"}')
+    (mine / "demo.json").write_text('{"my": "notes"}')
     (mine / "bev.png").write_bytes(b"my picture")
     result = runner.invoke(app, ["demo", "--out", str(mine), "--frames", "1"])
     assert result.exit_code == 1
     _one_line_error(result, "is not a drcpo demo output")
-    (mine / "summary.json").unlink()
+    (mine / "demo.json").unlink()
     result = runner.invoke(app, ["demo", "--out", str(mine), "--frames", "1"])
     _one_line_error(result, "is not a drcpo demo output")
     assert (mine / "bev.png").read_bytes() == b"my picture"
@@ -337,8 +337,9 @@ def test_demo_marks_its_output_and_a_rerun_may_use_it(tmp_path):
 
     out = tmp_path / "demo"
     out.mkdir()
-    (out / "summary.json").write_text('{"format": "drcpo-demo"}')
+    (out / "demo.json").write_text('{"format": "drcpo-demo"}')
     (out / "bev.png").write_bytes(b"an earlier demo's")
+    (out / "summary.json").write_text("{}")
     assert check_output(out, DEMO_OUTPUT, overwrite=True) == out.resolve()
     (out / "NOTES.txt").write_text("mine")
     with pytest.raises(Exception, match=r"holds .*NOTES\.txt, which drcpo did not write"):

@@ -139,6 +139,7 @@ def test_a_failing_stage_fails_the_demo_naming_it(demo_run, tmp_path, monkeypatc
     monkeypatch.setattr(drcpo.demo.DRCPO, "apply", broken)
     out = tmp_path / "out"
     shutil.copytree(demo_run[0] / "kitti", out / "kitti")  # reused: no ray-casting
+    shutil.copy(demo_run[0] / "demo.json", out / "demo.json")  # an earlier demo's directory
     args = ["demo", "--out", str(out), "--frames", "2", "--augment-frames", "1"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 1, result.output

@@ -116,10 +116,14 @@ class _Run:
         )
 
 
-#: What the demo writes into its directory: the summary (its marker), the cached synthetic
-#: frames, their database and index, the figures.
+#: What the demo writes into its directory: its marker ``demo.json`` (written first, so that a
+#: demo stopped half-way may be run again there), the cached synthetic frames, their database
+#: and index, the figures and the summary.
 DEMO_OUTPUT = OutputKind(
-    "drcpo demo output", "summary.json", "drcpo-demo", ("kitti", "gt_database", "*.png")
+    "drcpo demo output",
+    "demo.json",
+    "drcpo-demo",
+    ("kitti", "gt_database", "*.png", "summary.json"),
 )
 
 
@@ -141,6 +145,8 @@ def run_demo(
     # Its files go straight into ``out``, so ``out`` must be new, empty or an earlier demo's:
     # never a directory of the user's (check_output names what is in the way).
     check_output(out, DEMO_OUTPUT, overwrite=True)
+    marker = json.dumps({"format": DEMO_OUTPUT.format}) + "\n"
+    atomic_write_bytes(out / DEMO_OUTPUT.marker, marker.encode())
     run = _Run(console or Console(stderr=True))
     start = time.perf_counter()
     configs = _presets(run, presets)
@@ -153,7 +159,6 @@ def run_demo(
     figures = _figures(run, out, database, index, originals, results, list(configs), seed)
     groups = {"original": originals, **results}
     summary = {
-        "format": DEMO_OUTPUT.format,
         "out": str(out),
         "frames": frames,
         "seed": seed,
