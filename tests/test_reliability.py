@@ -170,3 +170,34 @@ def test_a_vertical_road_plane_names_its_file_in_plain_numbers(tmp_path):
     ) as caught:
         read_plane(path)
     assert "array(" not in str(caught.value)
+
+
+def test_a_file_size_limit_while_saving_names_the_file(tmp_path):
+    """Under ``ulimit -f`` (Python ignores SIGXFSZ, so writes fail short) the error names the
+    array being written and why, and nothing is left behind."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent(
+        """
+        import resource, sys
+        import numpy as np
+        from drcpo.database import GroundTruthDatabase
+        from drcpo.errors import OutputError
+        resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, 50_000))
+        points = np.zeros((20_000, 4), np.float32)
+        offsets = np.array([0, 10_000, 20_000])
+        boxes = np.array([[0, 0, 0, 4, 2, 1.5, 0]] * 2, float)
+        db = GroundTruthDatabase.from_arrays(points, offsets, ["Car", "Car"], boxes)
+        try:
+            db.save(sys.argv[1])
+        except OutputError as exc:
+            print(exc)
+        """
+    )
+    out = tmp_path / "db"
+    done = subprocess.run([sys.executable, "-c", script, str(out)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "points.npy" in done.stdout and "file-size limit" in done.stdout, done.stdout
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == []

@@ -69,7 +69,7 @@ import numpy as np
 from drcpo.config_fields import Checked, spec, to_dict
 from drcpo.database import GroundTruthDatabase, read_manifest
 from drcpo.errors import ConfigError, DataError
-from drcpo.outputs import OutputKind, write_directory
+from drcpo.outputs import OutputKind, save_array, write_directory
 from drcpo.partitions import DEFAULT_MIRRORED, Grid, flat_cell, grid_for, num_partitions
 from drcpo.similarity import SimilaritySearch
 
@@ -295,8 +295,8 @@ class CandidateIndex:
         manifest = {**self.manifest(), "checksum": self.checksum()}
 
         def write(tmp: Path) -> None:
-            np.save(tmp / "candidates.npy", np.ascontiguousarray(self.candidates, np.int32))
-            np.save(tmp / "densities.npy", np.ascontiguousarray(self.densities, np.float32))
+            save_array(tmp / "candidates.npy", np.asarray(self.candidates, np.int32))
+            save_array(tmp / "densities.npy", np.asarray(self.densities, np.float32))
             (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
         return write_directory(Path(db_dir) / INDEX_DIRNAME, write, INDEX_OUTPUT, overwrite)

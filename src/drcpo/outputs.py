@@ -45,6 +45,8 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from drcpo.errors import OutputError, OutputExistsError
 
 __all__ = [
@@ -593,6 +595,18 @@ def _os_errors(shown: Path) -> Iterator[None]:
         raise
     except OSError as exc:
         raise OutputError(f"cannot write {shown}: {_describe(exc)}") from exc
+
+
+def save_array(path: Path, array: np.ndarray) -> None:
+    """``np.save`` (no pickles) naming ``path`` in any error: numpy's short write under a
+    file-size limit or a full disk says neither which file nor why."""
+    try:
+        np.save(path, np.ascontiguousarray(array), allow_pickle=False)
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        if exc.errno is None and "requested and" in reason:
+            reason = f"short write ({reason}): the disk is full or a file-size limit was reached"
+        raise OSError(exc.errno or errno.EIO, reason, os.fspath(path)) from None
 
 
 def _describe(exc: OSError) -> str:

@@ -44,7 +44,7 @@ import numpy as np
 
 from drcpo.errors import DataError
 from drcpo.frame import rotate_velocities
-from drcpo.outputs import OutputKind, write_directory
+from drcpo.outputs import OutputKind, save_array, write_directory
 
 __all__ = [
     "DATABASE_OUTPUT",
@@ -442,7 +442,7 @@ class GroundTruthDatabase:
 
         def write(tmp: Path) -> None:
             for name, array in arrays.items():
-                np.save(tmp / f"{name}.npy", np.ascontiguousarray(array), allow_pickle=False)
+                save_array(tmp / f"{name}.npy", array)
             (tmp / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
         return write_directory(path, write, DATABASE_OUTPUT, overwrite=overwrite)
