@@ -145,11 +145,11 @@ def run_demo(
     # Its files go straight into ``out``, so ``out`` must be new, empty or an earlier demo's:
     # never a directory of the user's (check_output names what is in the way).
     check_output(out, DEMO_OUTPUT, overwrite=True)
-    marker = json.dumps({"format": DEMO_OUTPUT.format}) + "\n"
-    atomic_write_bytes(out / DEMO_OUTPUT.marker, marker.encode())
     run = _Run(console or Console(stderr=True))
     start = time.perf_counter()
-    configs = _presets(run, presets)
+    configs = _presets(run, presets)  # a bad one stops the demo before anything is written
+    marker = json.dumps({"format": DEMO_OUTPUT.format}) + "\n"
+    atomic_write_bytes(out / DEMO_OUTPUT.marker, marker.encode())
     root = _synthetic_data(run, out / "kitti", frames, seed)
     database = _database(run, root, out / "gt_database")
     index = _index(run, database)
