@@ -162,29 +162,49 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
             build_index(database, IndexConfig(workers=plan.workers)).save(db, overwrite=True)
             entry["index_s"] = _cpu() - start
         subsets[fraction] = entry
-    return {"train": str(train_root), "val": str(val_root), "subsets": subsets, **timings}
+    return {
+        "train": str(train_root), "val": str(val_root), "val_id": _tree_digest(val_root),
+        "subsets": subsets, **timings,
+    }  # fmt: skip
+
+
+def _tree_digest(root: Path) -> str:
+    """A hash of a KITTI root's frames, labels, calibrations and ``val`` split (not of
+    ``synth.json``, which names the version that wrote it)."""
+    digest = hashlib.sha256()
+    files = [p for p in (root / "training").rglob("*") if p.is_file()]
+    for file in sorted([*files, root / "ImageSets" / "val.txt"]):
+        digest.update(str(file.relative_to(root)).encode() + b"\0" + file.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 # Runs -----------------------------------------------------------------------------------------
 _VAL: dict[str, Any] = {}
+#: What the arms' samples depend on: a run made by the same code is found without augmenting.
 CODE_FILES = ("src/drcpo", "benchmarks/detection")
+#: What turns a run's samples into AP: the detector, its training and scoring.
+TRAINER_FILES = ("benchmarks/detection", "src/drcpo/evaluation")
 #: Bump when :func:`run_one` changes what a run trains or scores: with the hash of
-#: :data:`CODE_FILES` (drcpo, the detector, the arms) it keys the cache of finished runs.
+#: :data:`TRAINER_FILES` and the digest of the samples it keys the cache of finished runs.
 RUN_VERSION = 1
 
 
-def code_revision() -> dict[str, Any]:
-    """The git commit (when in a checkout) and a hash of the code a run depends on: drcpo's
-    sources and configs, the detector and the arms, and :data:`RUN_VERSION`, so a finished run
-    is reused only by the same code."""
-    root = Path(__file__).resolve().parents[1]
+def _hash_files(root: Path, entries: tuple[str, ...]) -> str:
     digest = hashlib.sha256(f"run version {RUN_VERSION}".encode())
-    for entry in CODE_FILES:
+    for entry in entries:
         path = root / entry
         files = sorted(path.rglob("*")) if path.is_dir() else [path]
         for file in files:
             if file.suffix in (".py", ".yaml") and file.is_file():
                 digest.update(str(file.relative_to(root)).encode() + b"\0" + file.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def code_revision() -> dict[str, Any]:
+    """The git commit (when in a checkout), a hash of the code a run's samples depend on
+    (drcpo's sources and configs, the detector and the arms) and one of the code that trains
+    and scores them, each with :data:`RUN_VERSION`."""
+    root = Path(__file__).resolve().parents[1]
     try:
         head = subprocess.run(
             ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True
@@ -196,7 +216,12 @@ def code_revision() -> dict[str, Any]:
         ).stdout.strip()
     except OSError:
         head, dirty = "", ""
-    return {"commit": head or None, "dirty": bool(dirty), "code": digest.hexdigest()[:16]}
+    return {
+        "commit": head or None,
+        "dirty": bool(dirty),
+        "code": _hash_files(root, CODE_FILES),
+        "trainer": _hash_files(root, TRAINER_FILES),
+    }
 
 
 def environment(device: str) -> dict[str, Any]:
@@ -244,17 +269,43 @@ def _score(model, task: dict[str, Any], directory: Path) -> tuple[dict, list]:
     return kitti_ap(task["val"], "val", directory), detections
 
 
-def run_one(task: dict[str, Any]) -> dict[str, Any]:
-    """Train one (subset, arm, seed) run, detect on the validation frames, score them; a run
-    finished before by the same code (``run.json`` in its directory) is read back instead."""
-    from detection.scoring import heading_errors
-    from detection.train import TrainConfig, load_frames, train
+def _finished(runs: Path, key: str) -> dict[str, Any] | None:
+    for record in runs.glob(f"*-{key}/run.json"):
+        return json.loads(record.read_text())
+    return None
 
-    directory = Path(task["directory"])
-    record = directory / "run.json"
-    if record.is_file():
-        return {**json.loads(record.read_text()), "cached": True}
-    shutil.rmtree(directory, ignore_errors=True)  # an unfinished run's files
+
+def _write_json(path: Path, payload: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(payload, indent=1) + "\n")
+    os.replace(tmp, path)  # a reader sees the whole file or none
+
+
+def _cached(run: dict[str, Any], task: dict[str, Any]) -> dict[str, Any]:
+    """A finished run as the result of ``task``: another arm with the same samples (an override
+    equal to a default, say) shares it."""
+    return {**run, "arm": task["arm"], "fraction": task["fraction"], "trained_as": run["arm"],
+            "cached": True}  # fmt: skip
+
+
+def run_one(task: dict[str, Any]) -> dict[str, Any]:
+    """Train one (subset, arm, seed) run, detect on the validation frames, score them.
+
+    A run is known by what it trains on: its key hashes the digest of its augmented samples
+    with the plan, the trainer's code and the validation set. A finished run of the same key
+    (``run.json`` in its directory) is read back instead, whichever arm or code made its samples;
+    ``aliases/`` remembers the key of (arm, subset, seed, drcpo's code), so a grid run again by
+    the same code does not even augment."""
+    from detection.scoring import heading_errors
+    from detection.train import TrainConfig, augment_samples, load_frames, train
+
+    runs = Path(task["runs"])
+    alias = runs / "aliases" / f"{task['alias']}.json"
+    if alias.is_file():
+        run = _finished(runs, json.loads(alias.read_text())["key"])
+        if run is not None:
+            return _cached(run, task)
     wall = time.perf_counter()
     clock = [time.process_time()]
 
@@ -268,6 +319,15 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
         steps=task["steps"], batch_size=task["batch_size"], seed=task["seed"],
         device=task["device"],
     )  # fmt: skip
+    samples = augment_samples(frames, augment, config)
+    plan = task["plan"]
+    key = run_key(plan, len(frames), task["seed"], samples.digest, task["trainer"], task["val_id"])
+    run = _finished(runs, key)
+    if run is not None:
+        _write_json(alias, {"key": key})
+        return _cached(run, task)
+    directory = runs / f"{parse_arm(task['arm']).slug}-{len(frames)}-s{task['seed']}-{key}"
+    shutil.rmtree(directory, ignore_errors=True)  # an unfinished run's files
     curve: list[dict[str, Any]] = []
 
     def progress(step: int, loss: float, model) -> None:
@@ -278,39 +338,40 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
             model.train()
 
     setup = lap()
-    result = train(frames, augment, config, progress=progress)
+    result = train(samples, config, progress=progress)
     trained = lap()
     ap, detections = _score(result.model, task, directory / "detections")
     curve.append({"step": config.steps, "ap": ap})
     evaluated = lap()
-    samples = max(result.samples, 1)
+    count = max(samples.count, 1)
     run = {
-        **{k: task[k] for k in ("arm", "fraction", "seed", "split", "key")},
+        **{k: task[k] for k in ("arm", "fraction", "seed", "split")},
+        "key": key,
+        "samples": samples.digest,
         "frames": len(frames),
         "ap": ap,
         "curve": curve if task["curve_every"] else [],
         "heading": heading_errors(_val_frames(task["val"]), detections),
         "added_per_frame": {
-            transform: {name: count / samples for name, count in per_class.items()}
-            for transform, per_class in result.added.items()
+            transform: {name: n / count for name, n in per_class.items()}
+            for transform, per_class in samples.added.items()
         },
-        "labels_per_frame": {name: count / samples for name, count in result.labels.items()},
+        "labels_per_frame": {name: n / count for name, n in samples.labels.items()},
         "labels_with_points_per_frame": {
-            name: count / samples for name, count in result.labels_with_points.items()
+            name: n / count for name, n in samples.labels_with_points.items()
         },
         "empty_label_share": {
-            name: result.empty_labels.get(name, 0) / count
-            for name, count in result.labels.items()
-            if count
+            name: samples.empty_labels.get(name, 0) / n for name, n in samples.labels.items() if n
         },
         "median_range_m": {
-            name: round(float(np.median(values)), 2) for name, values in result.ranges.items()
+            name: round(float(np.median(values)), 2) for name, values in samples.ranges.items()
         },
-        "points_per_frame": result.points / samples,
-        "augment_ms_per_frame": 1000 * float(np.median(result.augment_seconds or [0.0])),
+        "points_per_frame": samples.points / count,
+        "augment_ms_per_frame": 1000 * float(np.median(samples.augment_seconds or [0.0])),
         "final_loss": float(np.mean(result.losses[-20:])),
         "seconds": {  # CPU seconds of this single-threaded process, except wall
             "setup": setup,
+            "augment_per_step": float(np.sum(samples.augment_seconds)) / config.steps,
             **{f"{k}_per_step": v / config.steps for k, v in result.seconds.items()},
             "train": trained,
             "evaluate": evaluated,
@@ -320,22 +381,35 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
         "revision": task["revision"],
         "environment": environment(task["device"]),
     }
-    tmp = directory / ".run.json.tmp"
-    tmp.write_text(json.dumps(run, indent=1) + "\n")
-    os.replace(tmp, record)  # its presence marks the run finished
+    _write_json(directory / "run.json", run)  # its presence marks the run finished
+    _write_json(alias, {"key": key})
     return {**run, "cached": False}
 
 
-def run_key(plan: Plan, arm: str, frames: int, seed: int, code: str) -> str:
-    """What a finished run depends on, hashed: the arm, subset, seed, the data and training
-    settings of the plan, and the code."""
-    settings = {
-        "arm": arm, "frames": frames, "seed": seed, "pool": plan.frames,
-        "val_frames": plan.val_frames, "street_angle": plan.street_angle, "steps": plan.steps,
-        "batch_size": plan.batch_size, "curve_every": plan.curve_every,
-        "code": code,
+def _settings(plan: Plan, frames: int, seed: int) -> dict[str, Any]:
+    return {
+        "frames": frames, "seed": seed, "pool": plan.frames, "val_frames": plan.val_frames,
+        "street_angle": plan.street_angle, "steps": plan.steps, "batch_size": plan.batch_size,
+        "curve_every": plan.curve_every,
     }  # fmt: skip
+
+
+def _sha(settings: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def run_key(plan: Plan, frames: int, seed: int, samples: str, trainer: str, val: str) -> str:
+    """What a finished run depends on, hashed: the subset, seed and training settings of the
+    plan, the digest of its augmented samples, the trainer's code and the validation set."""
+    return _sha({**_settings(plan, frames, seed), "samples": samples, "trainer": trainer,
+                 "val": val})  # fmt: skip
+
+
+def alias_key(plan: Plan, arm: str, frames: int, seed: int, code: str) -> str:
+    """The arm, subset, seed and settings and the code that makes the samples, hashed: where a
+    grid run again by the same code finds its runs' keys without augmenting (the cache's key
+    before runs were keyed by their samples, so earlier runs' ``key`` is their alias)."""
+    return _sha({**_settings(plan, frames, seed), "arm": arm, "code": code})
 
 
 def run_grid(work: Path, plan: Plan, data: dict[str, Any]) -> list[dict[str, Any]]:
@@ -345,18 +419,15 @@ def run_grid(work: Path, plan: Plan, data: dict[str, Any]) -> list[dict[str, Any
         for fraction in plan.fractions:
             subset = data["subsets"][fraction]
             for arm in plan.arms:
-                key = run_key(plan, arm, subset["frames"], seed, revision["code"])
-                slug = parse_arm(arm).slug
+                alias = alias_key(plan, arm, subset["frames"], seed, revision["code"])
                 tasks.append(
                     {
                         "train": data["train"], "val": data["val"], "split": subset["split"],
                         "db": subset["db"], "arm": arm, "fraction": fraction, "seed": seed,
                         "steps": plan.steps, "batch_size": plan.batch_size,
-                        "curve_every": plan.curve_every, "device": plan.device, "key": key,
-                        "revision": revision,
-                        "directory": str(
-                            work / "runs" / f"{slug}-{subset['frames']}-s{seed}-{key}"
-                        ),
+                        "curve_every": plan.curve_every, "device": plan.device, "alias": alias,
+                        "revision": revision, "trainer": revision["trainer"], "plan": plan,
+                        "val_id": data["val_id"], "runs": str(work / "runs"),
                     }
                 )  # fmt: skip
     context = multiprocessing.get_context("spawn")
@@ -378,6 +449,67 @@ def run_grid(work: Path, plan: Plan, data: dict[str, Any]) -> list[dict[str, Any
             runs.append(run)
     order = {arm: i for i, arm in enumerate(plan.arms)}
     return sorted(runs, key=lambda r: (r["fraction"], order[r["arm"]], r["seed"]))
+
+
+def _adopt_one(task: dict[str, Any]) -> str:
+    from detection.train import TrainConfig, augment_samples, load_frames
+
+    record = Path(task["record"])
+    run = json.loads(record.read_text())
+    frames = load_frames(task["train"], run["split"])
+    config = TrainConfig(steps=task["plan"].steps, batch_size=task["plan"].batch_size,
+                         seed=run["seed"])  # fmt: skip
+    samples = augment_samples(frames, make_augment(parse_arm(run["arm"]), task["db"]), config)
+    key = run_key(task["plan"], len(frames), run["seed"], samples.digest, task["trainer"],
+                  task["val_id"])  # fmt: skip
+    before = run["key"]
+    directory = record.parent.with_name(record.parent.name.removesuffix(before) + key)
+    adopted = {"key_before": before, "trainer": task["trainer"], "samples_by": task["commit"]}
+    _write_json(record, {**run, "key": key, "samples": samples.digest, "adopted": adopted})
+    os.replace(record.parent, directory)
+    _write_json(record.parent.parent / "aliases" / f"{before}.json", {"key": key})
+    return f"  {directory.name}: was {before}"
+
+
+def adopt(work: Path, plan: Plan, data: dict[str, Any]) -> None:
+    """Key the runs finished before runs were keyed by their samples (``run.json`` without
+    ``samples``) by the digest of their samples, as the drcpo imported here makes them: it must
+    be a clean checkout at the commit that made the run, and the run's plan must be this one.
+    Their trainer is taken to be today's: the move to samples augmented before training left
+    every step's batch and the optimiser's path as they were (one run retrained shows it)."""
+    import drcpo
+
+    checkout = Path(drcpo.__file__).resolve().parents[2]
+    git = ["git", "-C", str(checkout)]
+    head = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True).stdout
+    dirty = subprocess.run(
+        [*git, "status", "--porcelain", "--", "src/drcpo"], capture_output=True, text=True
+    ).stdout.strip()
+    revision = code_revision()
+    tasks = []
+    for record in sorted((work / "runs").glob("*/run.json")):
+        run = json.loads(record.read_text())
+        if "samples" in run:
+            continue
+        made = run["revision"]
+        if made["commit"] != head.strip() or dirty:
+            here = f"{head.strip() or '?'}{' (changed)' if dirty else ''}"
+            print(f"  {record.parent.name}: made at {made['commit']}, drcpo here at {here}",
+                  file=sys.stderr)  # fmt: skip
+            continue
+        if alias_key(plan, run["arm"], run["frames"], run["seed"], made["code"]) != run["key"]:
+            print(f"  {record.parent.name}: another plan", file=sys.stderr)
+            continue
+        tasks.append(
+            {"record": str(record), "train": data["train"], "db": str(work / "db" / run["split"]),
+             "plan": plan, "trainer": revision["trainer"], "val_id": data["val_id"],
+             "commit": made["commit"]}
+        )  # fmt: skip
+    print(f"adopting {len(tasks)} runs", file=sys.stderr)
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(plan.workers) as pool:
+        for line in pool.imap_unordered(_adopt_one, tasks):
+            print(line, file=sys.stderr)
 
 
 # Summary --------------------------------------------------------------------------------------
@@ -631,6 +763,10 @@ def parse_plan(argv: list[str] | None) -> tuple[Plan, argparse.Namespace]:
     parser.add_argument("--curve-every", type=int, help="validation AP every N steps (a curve)")
     parser.add_argument("--replicates", type=int, help="bootstrap replicates")
     parser.add_argument("--device", choices=("cpu", "cuda"), help="where the detector trains")
+    parser.add_argument(
+        "--adopt", action="store_true",
+        help="key --work's runs made before runs were keyed by their samples, then stop",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     plan = QUICK if args.quick else Plan()
     changes = {
@@ -687,6 +823,9 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         try:
             data = prepare_data(work, plan)
+            if args.adopt:
+                adopt(work, plan, data)
+                return 0
             prepared = time.perf_counter()
             runs = run_grid(work, plan, data)
             summary = summarise(runs, plan, work, data["val"], plan.replicates)

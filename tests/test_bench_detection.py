@@ -5,6 +5,7 @@ training, detection, KITTI evaluation, paired statistics and controls)."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -84,16 +85,25 @@ def test_the_broken_control_moves_only_inserted_labels_along_their_heading():
 
 def test_a_run_key_changes_with_what_the_run_depends_on():
     plan = bench.Plan()
-    key = bench.run_key(plan, "cda", 60, 0, "abc")
-    assert key == bench.run_key(plan, "cda", 60, 0, "abc")
+    key = bench.run_key(plan, 60, 0, "samples", "trainer", "val")
+    assert key == bench.run_key(plan, 60, 0, "samples", "trainer", "val")
     others = [
-        bench.run_key(plan, "paper", 60, 0, "abc"),
-        bench.run_key(plan, "cda", 240, 0, "abc"),
-        bench.run_key(plan, "cda", 60, 1, "abc"),
-        bench.run_key(plan, "cda", 60, 0, "abd"),
-        bench.run_key(bench.Plan(steps=7), "cda", 60, 0, "abc"),
+        bench.run_key(plan, 240, 0, "samples", "trainer", "val"),
+        bench.run_key(plan, 60, 1, "samples", "trainer", "val"),
+        bench.run_key(plan, 60, 0, "sample", "trainer", "val"),
+        bench.run_key(plan, 60, 0, "samples", "trainers", "val"),
+        bench.run_key(plan, 60, 0, "samples", "trainer", "vals"),
+        bench.run_key(bench.Plan(steps=7), 60, 0, "samples", "trainer", "val"),
     ]
     assert key not in others and len(set(others)) == len(others)
+    alias = bench.alias_key(plan, "cda", 60, 0, "abc")
+    assert alias == bench.alias_key(plan, "cda", 60, 0, "abc")
+    others = [
+        bench.alias_key(plan, "paper", 60, 0, "abc"),
+        bench.alias_key(plan, "cda", 60, 0, "abd"),
+        bench.alias_key(bench.Plan(steps=7), "cda", 60, 0, "abc"),
+    ]
+    assert alias not in others and len(set(others)) == len(others)
 
 
 def test_comparisons_pair_each_arm_with_cda_and_drcpo_arms_with_paper():
@@ -155,6 +165,20 @@ def test_quick_grid_runs_end_to_end_and_reuses_finished_runs(tmp_path):
     second = json.loads(again.stdout.strip().splitlines()[-1])
     assert second["runs_cached"] == 16 and second["ap"] == result["ap"]
     assert second["paired"] == result["paired"]
+    # a run is known by its samples: without the aliases, and under another arm's name that
+    # augments alike, the finished runs are found again (here by augmenting, not training)
+    shutil.rmtree(tmp_path / "work" / "runs" / "aliases")
+    alike = "cda:gt_sampling.enabled=true"
+    third = subprocess.run(
+        [*command, "--out", str(tmp_path / "third"), "--arms", "cda", alike, "--seeds", "0"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert third.returncode == 0, third.stderr[-3000:]
+    runs = json.loads((tmp_path / "third" / "detection.json").read_text())["runs"]
+    assert len(runs) == 4 and all(r["cached"] and r["trained_as"] == "cda" for r in runs)
+    assert {r["key"] for r in runs if r["arm"] == alike} == {
+        r["key"] for r in runs if r["arm"] == "cda"
+    }
 
 
 def test_an_unknown_arm_fails_at_once_naming_it(tmp_path):

@@ -203,7 +203,7 @@ def _frames(count: int) -> list[Frame]:
 def test_training_repeats_exactly_for_a_seed_and_hands_each_sample_its_generator():
     pytest.importorskip("torch", reason="the detector needs torch (pip install -e '.[detection]')")
     from detection.model import BevDetector, parameter_count
-    from detection.train import TrainConfig, sample_order, train
+    from detection.train import TrainConfig, augment_samples, sample_order, train
 
     assert 120_000 < parameter_count(BevDetector()) < 180_000
     frames = _frames(3)
@@ -215,29 +215,59 @@ def test_training_repeats_exactly_for_a_seed_and_hands_each_sample_its_generator
 
     config = TrainConfig(steps=2, batch_size=2, seed=5)
     grid = Grid(x_range=(0.0, 64.0), y_range=(-24.0, 24.0))
-    first = train(frames, record, config, grid)
+    first = augment_samples(frames, record, config)
     order = sample_order(3, 2, 2, 5).reshape(-1, 2)
     expected = [
         (id(frames[i]), np.random.default_rng([5, e, i]).random()) for e, i in order.tolist()
     ]
     assert seen == expected
-    second = train(frames, None, config, grid)
-    again = train(frames, None, config, grid)
-    other = train(frames, None, TrainConfig(steps=2, batch_size=2, seed=6), grid)
+    plain = augment_samples(frames, None, config)
+    second, again = train(plain, config, grid), train(plain, config, grid)
+    other_config = TrainConfig(steps=2, batch_size=2, seed=6)
+    other = train(augment_samples(frames, None, other_config), other_config, grid)
     assert second.losses == again.losses and second.losses != other.losses
     weights, repeated = second.model.state_dict(), again.model.state_dict()
     assert all((weights[key] == repeated[key]).all() for key in weights)
-    assert first.samples == 4 and first.labels == {"Car": 4, "Pedestrian": 4, "Cyclist": 4}
+    assert first.count == 4 and first.labels == {"Car": 4, "Pedestrian": 4, "Cyclist": 4}
+    with pytest.raises(ValueError, match="1 batches for 2 steps"):
+        train(augment_samples(frames, None, TrainConfig(steps=1, batch_size=2)), config, grid)
+
+
+def test_the_samples_digest_changes_with_any_point_box_or_name_and_only_then():
+    from detection.train import TrainConfig, augment_samples
+
+    frames = _frames(2)
+    config = TrainConfig(steps=2, batch_size=2, seed=1)
+    digest = augment_samples(frames, None, config).digest
+    assert digest == augment_samples(_frames(2), None, config).digest
+    assert (
+        digest != augment_samples(frames, None, TrainConfig(steps=3, batch_size=2, seed=1)).digest
+    )
+
+    def nudge(field: str):
+        def augment(frame: Frame, rng: np.random.Generator) -> Frame:
+            if field == "points":
+                return frame.replace(points=frame.points + np.float32(1e-3))
+            if field == "boxes":
+                return frame.replace(boxes=frame.boxes[:, [0, 1, 2, 3, 4, 5, 6]] * 1.0001)
+            return frame.replace(names=np.array(["Van", *frame.names[1:]]))
+
+        return augment
+
+    changed = {
+        augment_samples(frames, nudge(f), config).digest for f in ("points", "boxes", "names")
+    }
+    assert digest not in changed and len(changed) == 3
 
 
 def test_training_fits_a_frame_and_predicts_its_objects():
     pytest.importorskip("torch", reason="the detector needs torch (pip install -e '.[detection]')")
-    from detection.train import TrainConfig, predict, train
+    from detection.train import TrainConfig, augment_samples, predict, train
 
     frames = _frames(1)
     grid = Grid(x_range=(0.0, 64.0), y_range=(-24.0, 24.0))
     config = TrainConfig(steps=60, batch_size=1, learning_rate=1e-2, seed=0)
-    result = train(frames, None, config, grid)
+    result = train(augment_samples(frames, None, config), config, grid)
     assert np.mean(result.losses[-5:]) < 0.3 * np.mean(result.losses[:5])
     (found,) = predict(result.model, frames, grid, threshold=0.3)
     truth = frames[0].boxes

@@ -1,15 +1,17 @@
 """Training loop and inference of :class:`~.model.BevDetector` on drcpo frames.
 
-The loop draws frames in epochs (a fresh permutation per epoch from ``(seed, epoch)``) and
-augments each with its own generator ``np.random.default_rng([seed, epoch, index])``
-(``index`` = the frame's position in the training set), so an arm's samples do not depend on the
-batch size or on what other arms do, and runs of different arms with one seed see the same
-frames in the same order. One torch thread, deterministic algorithms, and ``torch.manual_seed``
-make a run repeat exactly for a seed.
+All samples of a run are augmented before training (:func:`augment_samples`), so that a run is
+known by what it trains on. They are drawn in epochs (a fresh permutation per epoch from
+``(seed, epoch)``), each augmented with its own generator
+``np.random.default_rng([seed, epoch, index])`` (``index`` = the frame's position in the
+training set), so an arm's samples do not depend on the batch size or on what other arms do,
+and runs of different arms with one seed see the same frames in the same order. One torch
+thread, deterministic algorithms, and ``torch.manual_seed`` make a run repeat exactly for a seed.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -46,31 +48,44 @@ class TrainConfig:
 
 
 @dataclass
-class TrainResult:
-    """A trained model, its loss per step, and what the augmentation did per sample.
+class Samples:
+    """What a run trains on, augmented once before training: each step's batch of frames, in
+    order, and what the augmentation did to them.
 
+    ``digest`` is a SHA-256 of every sample's points, boxes and names in order: two runs with one
+    digest, plan and detector train the same model, whatever code produced their samples.
     ``added`` counts, per transform and class, the objects the augmentation reports it added
-    (drcpo's statistics); ``labels`` counts the labelled objects the model trained on per class,
+    (drcpo's statistics); ``labels`` counts the labelled objects per class,
     ``labels_with_points`` those holding at least :data:`MIN_LABEL_POINTS` points and
     ``empty_labels`` those holding none; ``ranges`` lists their distances from the sensor
     (BEV, metres); ``points`` sums the samples' points; ``augment_seconds`` is each sample's
-    augmentation time (CPU seconds; its median leaves out the first calls' kernel loading);
-    ``seconds`` is the CPU time of this process spent augmenting, encoding (BEV features and
-    targets) and in the optimiser steps (forward, backward, update): on a shared machine, what
-    an idle core would take.
+    augmentation time (CPU seconds; its median leaves out the first calls' kernel loading).
     """
 
-    model: BevDetector
-    losses: list[float]
-    samples: int
+    batches: list[list[Frame]]
+    digest: str = ""
     added: dict[str, dict[str, int]] = field(default_factory=dict)
     labels: dict[str, int] = field(default_factory=dict)
     labels_with_points: dict[str, int] = field(default_factory=dict)
     empty_labels: dict[str, int] = field(default_factory=dict)
     ranges: dict[str, list[float]] = field(default_factory=dict)
     points: int = 0
-    seconds: dict[str, float] = field(default_factory=dict)
     augment_seconds: list[float] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return sum(len(batch) for batch in self.batches)
+
+
+@dataclass
+class TrainResult:
+    """A trained model and its loss per step; ``seconds`` is the CPU time of this process spent
+    encoding (BEV features and targets) and in the optimiser steps (forward, backward, update):
+    on a shared machine, what an idle core would take."""
+
+    model: BevDetector
+    losses: list[float]
+    seconds: dict[str, float] = field(default_factory=dict)
 
 
 MIN_LABEL_POINTS = 5  # a label with fewer points is hardly evidence of an object
@@ -110,7 +125,7 @@ def sample_order(count: int, steps: int, batch_size: int, seed: int) -> np.ndarr
     return np.concatenate(order)[:needed].reshape(steps, batch_size, 2)
 
 
-def _tally_labels(result: TrainResult, frame: Frame) -> None:
+def _tally_labels(result: Samples, frame: Frame) -> None:
     names = frame.names.astype(str)
     inside = np.zeros(len(names), dtype=np.int64)
     if len(names):
@@ -141,23 +156,55 @@ def _batch(samples: Sequence[Frame], grid: Grid) -> tuple[torch.Tensor, ...]:
     return tuple(torch.from_numpy(a) for a in (features, heat, code, mask))
 
 
+def _digest_update(digest: Any, frame: Frame) -> None:
+    for array in (frame.points, frame.boxes):
+        array = np.ascontiguousarray(array)
+        digest.update(f"{array.dtype.str}{array.shape}".encode() + array.tobytes())
+    digest.update("\0".join(frame.names.astype(str).tolist()).encode() + b"\1")
+
+
+def augment_samples(
+    frames: Sequence[Frame], augment: Augment | None, config: TrainConfig | None = None
+) -> Samples:
+    """Every sample of a run, in training order, each passed through ``augment(frame, rng)``
+    (``None``: no augmentation) with its own generator."""
+    config = config or TrainConfig()
+    if not frames:
+        raise ValueError("train: no training frames")
+    order = sample_order(len(frames), config.steps, config.batch_size, config.seed)
+    digest = hashlib.sha256()
+    samples = Samples([])
+    for batch in order:
+        samples.batches.append([])
+        for epoch, index in batch:
+            frame = frames[int(index)]
+            if augment is not None:
+                begun = time.process_time()
+                frame = augment(frame, np.random.default_rng([config.seed, int(epoch), int(index)]))
+                samples.augment_seconds.append(time.process_time() - begun)
+                _tally_added(samples.added, frame)
+            _tally_labels(samples, frame)
+            _digest_update(digest, frame)
+            samples.batches[-1].append(frame)
+    samples.digest = digest.hexdigest()
+    return samples
+
+
 def train(
-    frames: Sequence[Frame],
-    augment: Augment | None,
+    samples: Samples,
     config: TrainConfig | None = None,
     grid: Grid | None = None,
     progress: Callable[[int, float, BevDetector], None] | None = None,
 ) -> TrainResult:
-    """Train a fresh detector on ``frames`` (cut to the camera view), each sample passed through
-    ``augment(frame, rng)`` first (``None``: no augmentation).
+    """Train a fresh detector on ``samples`` (:func:`augment_samples`), one batch per step.
 
     ``progress(step, loss, model)`` is called after each step (a validation curve can
     evaluate the model there; it must leave it in training mode).
     """
     config = config or TrainConfig()
     grid = grid or Grid()
-    if not frames:
-        raise ValueError("train: no training frames")
+    if len(samples.batches) != config.steps:
+        raise ValueError(f"train: {len(samples.batches)} batches for {config.steps} steps")
     configure_torch(config.seed, config.device)
     model = BevDetector(grid.channels).to(config.device)
     optimiser = torch.optim.AdamW(
@@ -166,25 +213,11 @@ def train(
     schedule = torch.optim.lr_scheduler.OneCycleLR(
         optimiser, max_lr=config.learning_rate, total_steps=config.steps, pct_start=0.3
     )
-    order = sample_order(len(frames), config.steps, config.batch_size, config.seed)
-    result = TrainResult(model, [], 0, seconds={"augment": 0.0, "encode": 0.0, "step": 0.0})
+    result = TrainResult(model, [], seconds={"encode": 0.0, "step": 0.0})
     model.train()
-    for step, batch in enumerate(order):
+    for step, batch in enumerate(samples.batches):
         start = time.process_time()
-        samples = []
-        for epoch, index in batch:
-            frame = frames[int(index)]
-            if augment is not None:
-                begun = time.process_time()
-                frame = augment(frame, np.random.default_rng([config.seed, int(epoch), int(index)]))
-                result.augment_seconds.append(time.process_time() - begun)
-                _tally_added(result.added, frame)
-            samples.append(frame)
-        encoded = time.process_time()
-        for frame in samples:  # not timed: the benchmark's own bookkeeping
-            _tally_labels(result, frame)
-        tallied = time.process_time()
-        features, heat, code, mask = _batch(samples, grid)
+        features, heat, code, mask = _batch(batch, grid)
         stepping = time.process_time()
         features, heat, code, mask = (t.to(config.device) for t in (features, heat, code, mask))
         heat_logits, code_out = model(features)
@@ -194,12 +227,9 @@ def train(
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         optimiser.step()
         schedule.step()
-        done = time.process_time()
-        result.seconds["augment"] += encoded - start
-        result.seconds["encode"] += stepping - tallied
-        result.seconds["step"] += done - stepping
+        result.seconds["encode"] += stepping - start
+        result.seconds["step"] += time.process_time() - stepping
         result.losses.append(float(loss.detach()))
-        result.samples += len(samples)
         if progress is not None:
             progress(step + 1, result.losses[-1], model)
     return result
