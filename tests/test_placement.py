@@ -7,6 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drcpo import placement
+from drcpo.collisions import bev_collisions
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_corners, bev_overlap_area, box_members, points_in_boxes
@@ -24,7 +25,6 @@ from drcpo.placement import (
     PlacementConfig,
     PlacementRounds,
     _Obstacles,
-    bev_collisions,
     frame_ground,
     place_objects,
     sample_poses,
@@ -285,6 +285,42 @@ def test_source_height_mode_keeps_the_source_z(rng):
     np.testing.assert_array_equal(result.boxes[:, 2], source[result.accepted, 2])
     with pytest.raises(DataError, match="source boxes"):
         place_objects(frame, sizes(9), None, rng, config)
+
+
+def test_the_papers_ablations_place_objects_at_their_own_centre_and_turn_them_in_a_range(rng):
+    count = 400
+    source = np.column_stack(
+        [rng.uniform(-10, 80, count), rng.uniform(-50, 50, count), np.full(count, -1.0),
+         sizes(count), rng.uniform(-np.pi, np.pi, count)]
+    )  # fmt: skip
+    fixed = PlacementConfig(location="source", fov_only=True)
+    boxes = sample_poses(sizes(count), rng, fixed, source=source)
+    placed = np.isfinite(boxes[:, 0])
+    np.testing.assert_array_equal(boxes[placed, :2], source[placed, :2])
+    corners = bev_corners(boxes[placed])
+    assert (corners[..., 0] >= 0.0).all() and (corners[..., 0] <= 70.4).all()
+    assert (np.abs(corners[..., 1]) <= 40.0).all()
+    assert (np.abs(np.arctan2(corners[..., 1], corners[..., 0])) <= fixed.fov_half_angle).all()
+    # every row left out had a corner outside the area or the view
+    left = sample_poses(sizes(count), rng, PlacementConfig(location="source"), source=source)
+    outside = ~np.isfinite(left[:, 0])
+    probe = left.copy()
+    probe[:, :2] = source[:, :2]  # its own centre, the heading drawn
+    far = bev_corners(probe[outside])
+    assert ((far[..., 0] < 0) | (far[..., 0] > 70.4) | (np.abs(far[..., 1]) > 40)).any(1).all()
+    for half_width in (np.pi / 4, np.pi / 2):
+        turned = sample_poses(
+            sizes(count), rng, PlacementConfig(heading_range=half_width), source=source
+        )
+        turn = np.angle(np.exp(1j * (turned[:, 6] - source[:, 6])))
+        assert (np.abs(turn) <= half_width + 1e-9).all()
+        assert np.abs(turn).max() > 0.9 * half_width  # the whole range is drawn
+        assert (turned[:, 6] >= -np.pi).all() and (turned[:, 6] < np.pi).all()
+    frame = scene(rng)
+    result = place_objects(frame, sizes(count), source, rng, fixed)
+    np.testing.assert_array_equal(result.boxes[:, :2], source[result.accepted, :2])
+    with pytest.raises(DataError, match="own poses needs their boxes"):
+        place_objects(frame, sizes(3), None, rng, fixed)
 
 
 def test_field_of_view_only(rng):

@@ -53,6 +53,8 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from drcpo import collisions
+from drcpo.collisions import bev_collisions
 from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
 from drcpo.frame import Frame
@@ -64,6 +66,7 @@ from drcpo.poses import (
     draw_poses,
     footprint_ground,
     observed_cells,
+    own_poses,
     source_heights,
 )
 
@@ -71,12 +74,12 @@ __all__ = [
     "CAMERA_FOV_MODES",
     "HEIGHT_MODES",
     "KITTI_FOV_HALF_ANGLE",
+    "LOCATION_MODES",
     "REASONS",
     "PlacementConfig",
     "PlacementResult",
     "PlacementRounds",
     "Round",
-    "bev_collisions",
     "frame_ground",
     "place_objects",
     "sample_poses",
@@ -86,6 +89,7 @@ __all__ = [
 REASONS = ("out_of_range", "collision", "obstacle", "occluded", "no_ground", "slope", "budget")
 HEIGHT_MODES = ("ground", "source", "observed")
 CAMERA_FOV_MODES = ("auto", "always", "never")
+LOCATION_MODES = ("random", "source")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
 KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 
@@ -93,10 +97,16 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first fifteen fields.
+    section ``drcpo.placement``, whose keys are the first seventeen fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
+        location: ``"random"`` (the paper: the centre uniform over the area) or ``"source"``
+            (the object's own centre in the frame it was taken from: the paper's "fixed
+            location" ablation, as ground-truth sampling places objects).
+        heading_range: ``None`` (the paper: heading uniform over the circle) or the half-width
+            (radians) of a uniform turn from the object's own heading (the paper's rotation
+            range ablation: pi / 4 ... pi).
         height: ``"ground"`` (bottom on the estimated ground), ``"source"`` or ``"observed"``
             (bottom on the ground the frame observed under the footprint, the centre drawn
             where the frame observed ground; see the module).
@@ -143,6 +153,23 @@ class PlacementConfig(Checked):
     y_range: list[float] = field(
         default_factory=lambda: [-40.0, 40.0],
         metadata=spec("range", "metres, box inside", low=-200.0, high=200.0, strict=True),
+    )
+    location: str = field(
+        default="random",
+        metadata=spec(
+            "choice", "centre uniform over the area, or the object's own", choices=LOCATION_MODES
+        ),
+    )
+    heading_range: float | None = field(
+        default=None,
+        metadata=spec(
+            "float",
+            "half-width (radians) of a uniform turn from the object's own heading (null: "
+            "heading uniform over the circle, the paper)",
+            low=0.0,
+            high=math.pi,
+            optional=True,
+        ),
     )
     height: str = field(
         default="ground",
@@ -291,6 +318,7 @@ def sample_poses(
     rng: np.random.Generator,
     config: PlacementConfig | None = None,
     cells: CentreCells | None = None,
+    source: np.ndarray | None = None,
 ) -> np.ndarray:
     """Random boxes ``float64 (K, 7)`` of sizes ``dims`` ``(K, 3)`` (metres).
 
@@ -298,11 +326,13 @@ def sample_poses(
     lies in the area (and field of view when ``fov_only``), with ``cells`` only over those in
     the cells (:class:`PlacementRounds` gives the observed ground's,
     :func:`drcpo.poses.observed_cells`, with ``height="observed"``); ``z = dz / 2`` (bottom at
-    0). Rows that cannot fit have NaN x and y. See :func:`drcpo.poses.draw_poses`.
+    0). Rows that cannot fit have NaN x and y. ``source`` ``(K, 7)``: the objects' own boxes,
+    for ``location="source"`` or a ``heading_range``. See :func:`drcpo.poses.draw_poses`.
     """
     config = config or PlacementConfig()
     half_angle = float(config.fov_half_angle) if config.fov_only else None
-    return draw_poses(dims, rng, config.x_range, config.y_range, half_angle, cells)
+    own = (config.location, config.heading_range, source)
+    return draw_poses(dims, rng, config.x_range, config.y_range, half_angle, cells, own)
 
 
 def place_objects(
@@ -387,6 +417,9 @@ class PlacementRounds:
         frame = Frame.from_dict(frame) if isinstance(frame, dict) else frame
         self._dims = dims = check_dims(dims)
         self._source_z = source_heights(source_boxes, len(dims), config.height)
+        self._source = None
+        if config.location == "source" or config.heading_range is not None:
+            self._source = own_poses(source_boxes, len(dims))
         self._rng = rng
         if ground is None:
             ground = frame_ground(frame)
@@ -433,7 +466,8 @@ class PlacementRounds:
         if cap is not None:
             tried = tried[: cap - self._attempts]
         self._attempts += len(tried)
-        boxes = sample_poses(self._room[tried], self._rng, config, self.cells)
+        source = None if self._source is None else self._source[tried]
+        boxes = sample_poses(self._room[tried], self._rng, config, self.cells, source)
         several = config.poses_per_round > 1
         verdict = _judge(
             boxes,
@@ -547,10 +581,7 @@ def _judge(
     # First come, first placed: a box loses against earlier boxes of the batch that were placed.
     if not first_come:
         return verdict
-    kept = np.zeros(len(live), dtype=bool)
-    if len(live):
-        candidates = boxes[live]
-        _first_come(candidates, *heading_terms(candidates), pending[live], kept)
+    kept = collisions.first_come(boxes[live], pending[live])
     verdict[live[~kept]] = _COLLISION
     return verdict
 
@@ -704,71 +735,6 @@ def _indexed_members(
                     found_point[found], found_box[found] = rows[k], m
                     found += 1
     return found_point[:found].copy(), found_box[:found].copy()
-
-
-def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
-    """``bool (A, B)``: whether the BEV footprints of ``(A, 7)`` and ``(B, 7)`` boxes overlap,
-    i.e. their interiors intersect (:func:`drcpo.geometry.bev_overlap_area` ``> 0``; boxes that
-    only touch do not collide).
-
-    A separating-axis test on the four edge normals, exact up to float rounding (footprints
-    within about 1e-12 m of touching may go either way, as the overlap area's own rounding does).
-    """
-    boxes_a = np.asarray(boxes_a, dtype=np.float64).reshape(-1, 7)
-    boxes_b = np.asarray(boxes_b, dtype=np.float64).reshape(-1, 7)
-    out = np.zeros((len(boxes_a), len(boxes_b)), dtype=bool)
-    if out.size:
-        _collisions(boxes_a, *heading_terms(boxes_a), boxes_b, *heading_terms(boxes_b), out)
-    return out
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _projected_half(u_x, u_y, length, width, c, s):  # pragma: no cover - numba
-    # Half the extent along the unit axis (u_x, u_y) of a length x width footprint whose
-    # length runs along (c, s).
-    return length / 2.0 * abs(u_x * c + u_y * s) + width / 2.0 * abs(-u_x * s + u_y * c)
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _overlap(ax, ay, al, aw, ca, sa, bx, by, bl, bw, cb, sb):  # pragma: no cover - numba
-    # Interiors intersect <=> on every edge normal of either footprint the projections overlap
-    # by more than zero (convex polygons: a separating line can be taken along an edge).
-    dx, dy = bx - ax, by - ay
-    reach = math.sqrt(al * al + aw * aw) / 2.0 + math.sqrt(bl * bl + bw * bw) / 2.0
-    if dx * dx + dy * dy >= reach * reach:
-        return False
-    if abs(dx * ca + dy * sa) >= al / 2.0 + _projected_half(ca, sa, bl, bw, cb, sb):
-        return False
-    if abs(-dx * sa + dy * ca) >= aw / 2.0 + _projected_half(-sa, ca, bl, bw, cb, sb):
-        return False
-    if abs(dx * cb + dy * sb) >= bl / 2.0 + _projected_half(cb, sb, al, aw, ca, sa):
-        return False
-    return abs(-dx * sb + dy * cb) < bw / 2.0 + _projected_half(-sb, cb, al, aw, ca, sa)
-
-
-@numba.njit(cache=True, nogil=True)
-def _collisions(a, ca, sa, b, cb, sb, out):  # pragma: no cover - numba
-    for i in range(a.shape[0]):
-        for j in range(b.shape[0]):
-            out[i, j] = _overlap(
-                a[i, 0], a[i, 1], a[i, 3], a[i, 4], ca[i], sa[i],
-                b[j, 0], b[j, 1], b[j, 3], b[j, 4], cb[j], sb[j],
-            )  # fmt: skip
-
-
-@numba.njit(cache=True, nogil=True)
-def _first_come(boxes, cos, sin, objects, kept):  # pragma: no cover - numba
-    # Each box is kept unless it overlaps an earlier box of another object that was kept (an
-    # object's own poses are alternatives: at most one is placed).
-    for i in range(boxes.shape[0]):
-        kept[i] = True
-        for j in range(i):
-            if kept[j] and objects[j] != objects[i] and _overlap(
-                boxes[i, 0], boxes[i, 1], boxes[i, 3], boxes[i, 4], cos[i], sin[i],
-                boxes[j, 0], boxes[j, 1], boxes[j, 3], boxes[j, 4], cos[j], sin[j],
-            ):  # fmt: skip
-                kept[i] = False
-                break
 
 
 def frame_ground(frame: Frame, exclude: np.ndarray | None = None) -> GroundModel:

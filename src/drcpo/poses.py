@@ -99,6 +99,7 @@ def draw_poses(
     y_range: tuple[float, float],
     half_angle: float | None = None,
     cells: CentreCells | None = None,
+    own: tuple[str, float | None, np.ndarray | None] = ("random", None, None),
 ) -> np.ndarray:
     """Random boxes ``float64 (K, 7)`` of sizes ``dims`` ``(K, 3)`` (metres).
 
@@ -107,15 +108,27 @@ def draw_poses(
     the field of view; with ``cells``, only positions inside them (see the module);
     ``z = dz / 2`` (bottom at 0). Rows that cannot fit (or found no fitting position in
     :data:`FOV_ROUNDS` + 1 draws) have NaN x and y.
+
+    ``own`` = (location, heading range, the objects' own boxes ``(K, 7)``), the paper's
+    ablations: location ``"source"`` keeps each object's own centre (NaN where its footprint
+    leaves the area or the field of view); a heading range (radians) turns each object from
+    its own heading by an angle uniform in ``[-range, range)``.
     """
     dims = check_dims(dims)
-    heading = rng.uniform(-np.pi, np.pi, len(dims))
+    location, heading_range, source = own
+    if heading_range is None:
+        heading = rng.uniform(-np.pi, np.pi, len(dims))
+    else:
+        turned = source[:, 6] + rng.uniform(-heading_range, heading_range, len(dims))
+        heading = np.mod(turned + np.pi, 2.0 * np.pi) - np.pi
     boxes = np.column_stack([np.zeros((len(dims), 3)), dims, heading])
     boxes[:, 2] = dims[:, 2] / 2.0
     # numpy's cos and sin, as geometry.bev_corners uses them
     cos, sin = np.cos(heading), np.sin(heading)
     area = (*map(float, x_range), *map(float, y_range))
     half = -1.0 if half_angle is None else float(half_angle)
+    if location == "source":
+        return _at_own_centres(boxes, source, cos, sin, area, half)
     # Each round draws the rows given and returns those to draw again (with the whole area:
     # those that fit but leave the field of view; none without one).
     todo = _draw_round(boxes, np.arange(len(dims)), cos, sin, rng, area, half, cells)
@@ -125,6 +138,32 @@ def draw_poses(
         todo = _draw_round(boxes, todo, cos, sin, rng, area, half, cells)
     boxes[todo, :2] = np.nan
     return boxes
+
+
+def _at_own_centres(boxes, source, cos, sin, area, half_angle) -> np.ndarray:
+    boxes[:, :2] = source[:, :2]
+    reach_x = (np.abs(cos) * boxes[:, 3] + np.abs(sin) * boxes[:, 4]) / 2.0
+    reach_y = (np.abs(sin) * boxes[:, 3] + np.abs(cos) * boxes[:, 4]) / 2.0
+    x0, x1, y0, y1 = area
+    fits = (boxes[:, 0] - reach_x >= x0) & (boxes[:, 0] + reach_x <= x1)
+    fits &= (boxes[:, 1] - reach_y >= y0) & (boxes[:, 1] + reach_y <= y1)
+    if half_angle >= 0:
+        fits &= in_fov(boxes, half_angle)
+    boxes[~fits, :2] = np.nan
+    return boxes
+
+
+def own_poses(source_boxes: np.ndarray | None, count: int) -> np.ndarray:
+    """The objects' own boxes ``float64 (count, 7)`` for placement's ``location="source"`` or
+    ``heading_range``; DataError when they are missing, of another count or not finite."""
+    if source_boxes is None:
+        raise DataError("placement from the objects' own poses needs their boxes (None given)")
+    source_boxes = np.asarray(source_boxes, dtype=np.float64).reshape(-1, 7)
+    if len(source_boxes) != count:
+        raise DataError(f"source_boxes has {len(source_boxes)} rows; dims has {count}")
+    if not np.isfinite(source_boxes[:, [0, 1, 6]]).all():
+        raise DataError("source_boxes hold a non-finite x, y or heading")
+    return source_boxes
 
 
 def in_fov(boxes: np.ndarray, half_angle: float) -> np.ndarray:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from drcpo import placement
+from drcpo.collisions import bev_collisions
 from drcpo.config import GTSamplingConfig, from_dict, to_dict
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
@@ -136,8 +136,8 @@ class GroundTruthSampling(Transform):
             stats.tried(self.name, name, count)
             existing = np.concatenate(kept_boxes)
             # Overlap area > 0, as OpenPCDet's BEV IoU test, by separating axes (same verdicts).
-            hits_existing = placement.bev_collisions(boxes, existing).any(axis=1)
-            among = placement.bev_collisions(boxes, boxes)
+            hits_existing = bev_collisions(boxes, existing).any(axis=1)
+            among = bev_collisions(boxes, boxes)
             np.fill_diagonal(among, False)
             valid = ~hits_existing & ~among.any(axis=1)
             stats.rejected(self.name, name, "collision", int(np.count_nonzero(~valid)))

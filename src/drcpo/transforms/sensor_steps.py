@@ -30,6 +30,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from drcpo.collisions import bev_collisions
 from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members
@@ -42,7 +43,6 @@ from drcpo.placement import (
     PlacementConfig,
     PlacementResult,
     PlacementRounds,
-    bev_collisions,
     frame_ground,
 )
 from drcpo.poses import CentreCells
