@@ -63,6 +63,16 @@ def test_a_bad_arm_is_refused_naming_it_and_the_key(spec, message):
     assert spec in str(caught.value)
 
 
+def test_every_arm_of_the_ablation_script_is_a_valid_distinct_arm():
+    text = (BENCHMARKS / "run_ablation.sh").read_text()
+    body = text[text.index("arms=(") + len("arms=(") : text.index("\n)\n")]
+    specs = [word for line in body.splitlines() for word in line.split("#")[0].split()]
+    parsed = [arms.parse_arm(spec) for spec in specs]  # a key renamed or deleted fails here
+    assert len(specs) >= 20 and {"cda", "paper", "realistic"} <= set(specs)
+    assert len({arm.slug for arm in parsed}) == len(specs)
+    assert len({(arm.kind, repr(arm.config)) for arm in parsed}) == len(specs)  # none alike
+
+
 def test_the_broken_control_moves_only_inserted_labels_along_their_heading():
     class Insert(arms.Transform):
         name = "insert"
