@@ -15,6 +15,7 @@ import json
 import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
@@ -450,8 +451,13 @@ def augment(
     verify: Annotated[bool, typer.Option(help=VERIFY_HELP)] = True,
     cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
     workers: Annotated[
-        int, typer.Option(min=1, help="With --cluster: the workers (actors) augmenting frames.")
-    ] = 2,
+        int | None,
+        typer.Option(
+            min=1,
+            help="Processes augmenting frames, one core each (default 1); with --cluster: its "
+            "workers (default 2). The output is the same bytes for any number.",
+        ),
+    ] = None,
 ) -> None:
     """Augment KITTI frames and write them in KITTI layout, with stats.jsonl per frame.
 
@@ -468,12 +474,15 @@ def augment(
     transform = build_pipeline(settings, database, kind=pipeline)
     run: Callable[..., dict[str, Any]] = augment_kitti
     if cluster is not None:
-        from functools import partial
-
         from drcpo.distributed import augment_kitti_cluster, require_ray
 
         require_ray()
+        workers = workers or 2
         run = partial(augment_kitti_cluster, cluster=cluster, workers=workers)
+    elif (workers or 1) > 1:
+        from drcpo.distributed.local import augment_kitti_processes
+
+        run = partial(augment_kitti_processes, workers=workers)
     with progress_bar(f"frames of {split}") as progress:
         summary = run(
             kitti, split, transform, out, frames, seed, fov, overwrite, progress, inputs=[db]
@@ -488,6 +497,8 @@ def augment(
         table.add_row("frames resumed from an earlier run", str(summary["resumed"]))
     if "cluster" in summary:
         table.add_row("cluster", f"{summary['cluster']['address']}, {workers} workers")
+    elif (workers or 1) > 1:
+        table.add_row("worker processes", str(workers))
     Console().print(table)
 
 

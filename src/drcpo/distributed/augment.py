@@ -31,7 +31,7 @@ from drcpo.index import INDEX_DIRNAME, load_index
 from drcpo.transforms.base import Transform, transform_from_config
 from drcpo.warmup import warmup
 
-__all__ = ["FrameWorker", "augment_kitti_cluster"]
+__all__ = ["FrameWorker", "augment_kitti_cluster", "transform_sources"]
 
 
 class FrameWorker:
@@ -101,7 +101,7 @@ def augment_kitti_cluster(
     stays up.
     """
     require_ray()
-    database, index = _sources(transform, index_path)
+    database, index = transform_sources(transform, index_path)
     args = (str(Path(root).resolve()), split, transform.to_config(), database, index)
     report: dict[str, Any] = {}
     start = time.perf_counter()
@@ -149,7 +149,9 @@ def augment_kitti_cluster(
     return summary
 
 
-def _sources(transform: Transform, index_path: str | os.PathLike | None) -> tuple[Any, Any]:
+def transform_sources(
+    transform: Transform, index_path: str | os.PathLike | None
+) -> tuple[Any, Any]:
     """Paths of the database and index the transform draws from (``None`` where it has none)."""
     stages = getattr(transform, "transforms", (transform,))
     found = (t.database for t in stages if getattr(t, "database", None) is not None)
@@ -158,7 +160,7 @@ def _sources(transform: Transform, index_path: str | os.PathLike | None) -> tupl
         return None, None
     if database.path is None:
         raise ConfigError(
-            "the cluster's workers open the database from disk: save it first "
+            "the workers open the database from disk: save it first "
             "(GroundTruthDatabase.save) and open it from there"
         )
     needs_index = any(getattr(t, "index", None) is not None for t in stages)
