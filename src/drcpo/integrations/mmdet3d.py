@@ -57,7 +57,7 @@ try:
 except ImportError as _exc:  # pragma: no cover - exercised without mmdet3d only
     raise ImportError(
         "drcpo.integrations.mmdet3d needs MMDetection3D 1.x with mmengine and mmcv "
-        f"({_exc}); see README 'Training with MMDetection3D' for the installs"
+        f"({_exc}); see docs/mmdet3d.md for the installs"
     ) from _exc
 
 __all__ = [
