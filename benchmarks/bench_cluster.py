@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     kitti, db = prepare(work, frames)
     sides = {}
     # One BLAS thread on both sides, as Ray gives its workers (OMP_NUM_THREADS=1): a threaded
-    # BLAS spins on the other core after each product (docs/augmentation.md, "Threads in data-loader workers").
+    # BLAS spins on the other core after each product (docs/augmentation.md, on threads).
     threads = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
     env = {**os.environ, "RAY_USAGE_STATS_ENABLED": "0", **threads}
     for side in ("one", "cluster"):
