@@ -141,7 +141,7 @@ def synthetic_frames(limit: int, seed: int = 0) -> list[Frame]:
 
 def time_call(transform, frame: Frame, seed: int) -> tuple[float, float, dict]:
     """Wall and CPU milliseconds of one call (CPU time is the steadier figure on a shared
-    machine; HPR may use two threads, so it can exceed the wall time), and its statistics."""
+    machine), and its statistics."""
     start, cpu = time.perf_counter(), time.process_time()
     out = transform(frame, np.random.default_rng(seed))
     wall = (time.perf_counter() - start) * 1000.0

@@ -60,7 +60,7 @@ def database(work: Path, root: Path) -> str:
     if not (db / "manifest.json").is_file():
         build_database(root, "train", db, workers=1, overwrite=True)
     if not (db / "index" / "manifest.json").is_file():
-        build_index(GroundTruthDatabase.open(db), IndexConfig(workers=1)).save(db, overwrite=True)
+        build_index(GroundTruthDatabase.open(db), IndexConfig()).save(db, overwrite=True)
     return str(db)
 
 

@@ -159,7 +159,7 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
 
             start = _cpu()
             database = GroundTruthDatabase.open(db)
-            build_index(database, IndexConfig(workers=plan.workers)).save(db, overwrite=True)
+            build_index(database, IndexConfig()).save(db, overwrite=True)
             entry["index_s"] = _cpu() - start
         subsets[fraction] = entry
     return {

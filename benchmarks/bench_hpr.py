@@ -9,7 +9,7 @@ other processes hits both alike:
   the ``bench`` extra),
 
 and, for the record, each of our methods on its own (``reference`` = one Qhull hull, ``sectors``,
-``local``; one and two threads). Every result is checked against the fixture's visible set
+``local``). Every result is checked against the fixture's visible set
 (Jaccard index). Without the fixtures it runs on a sweep of drcpo's synthetic LiDAR world.
 
 Objects (s-HPR): on the object fixtures (``object*.npz``, else synthetic box-shaped objects) it
@@ -44,10 +44,8 @@ from drcpo.occlusion import hidden_point_removal, hpr
 DEFAULT_FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "hpr"
 VARIANTS = {
     "reference": {"method": "reference"},
-    "sectors_1_thread": {"method": "sectors", "workers": 1},
-    "sectors_2_threads": {"method": "sectors", "workers": 2},
-    "local_1_thread": {"method": "local", "workers": 1},
-    "local_2_threads": {"method": "local", "workers": 2},
+    "sectors": {"method": "sectors"},
+    "local": {"method": "local"},
 }
 
 

@@ -18,7 +18,7 @@ Each build runs in its own process (so peak RSS is the build's own): open the sa
 approximate mode (L1 nearest neighbours in log-size space, re-ranked by IoU) finds. Its time
 per object and the exact search's, on the same sample, are printed next to it.
 
-Usage: ``python benchmarks/bench_index.py [--quick] [--workers N]``; the last stdout line is
+Usage: ``python benchmarks/bench_index.py [--quick]``; the last stdout line is
 one JSON object ``{"kitti_s", "kitti_peak_rss_mb", "waymo_s", "waymo_peak_rss_mb",
 "approx_recall", ...}``.
 """
@@ -114,7 +114,7 @@ def step_index(args) -> dict:
     database = GroundTruthDatabase.open(args.dir)
     database.checksum  # noqa: B018 - read from the manifest, not timed as indexing
     start = time.perf_counter()
-    index = build_index(database, IndexConfig(workers=args.workers))
+    index = build_index(database, IndexConfig())
     index.save(args.dir, overwrite=True)
     seconds = time.perf_counter() - start
     return {"seconds": seconds, "peak_rss_mb": peak_rss_mb(), "classes": index.classes}
@@ -181,8 +181,6 @@ def child(step: str, part: str, work: Path, args) -> dict:
     ]
     if args.quick:
         command.append("--quick")
-    if args.workers:
-        command += ["--workers", str(args.workers)]
     done = subprocess.run(command, check=True, capture_output=True, text=True)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -190,7 +188,6 @@ def child(step: str, part: str, work: Path, args) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="1/20 KITTI, 1/50 Waymo size")
-    parser.add_argument("--workers", type=int, default=None, help="threads (default: all)")
     parser.add_argument("--sample", type=int, default=None, help="objects in the recall sample")
     parser.add_argument("--brute", type=int, default=None, help="of those, checked by brute force")
     parser.add_argument("--step", choices=("make", "index", "recall"), help=argparse.SUPPRESS)

@@ -387,7 +387,7 @@ def training_database(seed: int, frames: int, work: Path, k: int = 400):
     path = work / f"synth_db_{seed}_{frames}"
     GroundTruthDatabase.from_records(records).save(path, overwrite=True)
     database = GroundTruthDatabase.open(path)
-    build_index(database, IndexConfig(k=k, workers=1)).save(path, overwrite=True)
+    build_index(database, IndexConfig(k=k)).save(path, overwrite=True)
     return database, load_index(database)
 
 
@@ -976,7 +976,7 @@ def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         database = GroundTruthDatabase.open(path)
     else:  # as tests/openpcdet_support.sample_database builds it
         database = import_openpcdet(dbinfos, path)
-        build_index(database, IndexConfig(k=20, workers=1)).save(database.path, overwrite=True)
+        build_index(database, IndexConfig(k=20)).save(database.path, overwrite=True)
     index = load_index(database)
     try:
         from drcpo.sensor_config import estimate_sensor

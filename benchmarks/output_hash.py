@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> dict:
     frames = synthetic_frames(6, seed=7)
     if KITTI_SAMPLE.is_dir():
         frames = kitti_frames(6) + frames
+
     def digest_of(pipeline) -> bytes:
         digest = hashlib.sha256()
         for number, frame in enumerate(frames):

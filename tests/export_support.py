@@ -52,6 +52,6 @@ def drcpo_world(tmp_path: Path):
 
     root = small_kitti(tmp_path / "kitti")
     db = build_database(root, "train", tmp_path / "db")
-    index = build_index(db, IndexConfig(k=5, workers=1))
+    index = build_index(db, IndexConfig(k=5))
     index.save(db.path)
     return root, db, index

@@ -36,7 +36,7 @@ def sample_database(out: Path) -> Path:
     from drcpo.index import IndexConfig, build_index
 
     database = import_openpcdet(KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
-    build_index(database, IndexConfig(k=20, workers=1)).save(out)
+    build_index(database, IndexConfig(k=20)).save(out)
     return out
 
 

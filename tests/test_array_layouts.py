@@ -58,7 +58,7 @@ def _variant(frame: Frame, layout: str) -> dict:
 @pytest.fixture(scope="module")
 def pipeline():
     db = synthetic_database(np.random.default_rng(7), {"Car": 40, "Pedestrian": 20, "Cyclist": 10})
-    return build_pipeline("default", db, build_index(db, IndexConfig(k=10, workers=1)))
+    return build_pipeline("default", db, build_index(db, IndexConfig(k=10)))
 
 
 @pytest.mark.parametrize("layout", sorted(LAYOUTS))
@@ -101,7 +101,7 @@ def kernels_loaded_in_worker(warmup: bool) -> int:
     """In a fresh process: the kernels a forked worker's first calls (one per layout of
     :data:`LAYOUTS`) load, after :func:`drcpo.warmup` in the parent or without it."""
     db = synthetic_database(np.random.default_rng(7), {"Car": 40, "Pedestrian": 20, "Cyclist": 10})
-    pipeline = build_pipeline("default", db, build_index(db, IndexConfig(k=10, workers=1)))
+    pipeline = build_pipeline("default", db, build_index(db, IndexConfig(k=10)))
     if warmup:
         drcpo.warmup(pipeline)
     frame = synthetic_frame(np.random.default_rng(3), objects=3)

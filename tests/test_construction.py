@@ -269,7 +269,7 @@ def test_real_kitti_database_with_its_index(kitti_sample, tmp_path):
     from drcpo.index import IndexConfig, build_index
 
     database = build_database(kitti_sample, "train", tmp_path / "db", classes="all")
-    index = build_index(database, IndexConfig(workers=1))
+    index = build_index(database, IndexConfig())
     rng = np.random.default_rng(0)
     constructed = 0
     for row in range(len(database)):

@@ -71,7 +71,7 @@ REGISTERED = [*sorted(TRANSFORMS), "DRCPO[realistic]"]
 @pytest.fixture(scope="module")
 def world():
     db = synthetic_database(np.random.default_rng(7), {"Car": 40, "Pedestrian": 20, "Cyclist": 10})
-    return db, build_index(db, IndexConfig(k=10, workers=1))
+    return db, build_index(db, IndexConfig(k=10))
 
 
 @pytest.fixture(scope="module")
@@ -200,7 +200,7 @@ def test_input_is_not_modified(made, frame, form):
 @pytest.fixture(scope="module")
 def feature_world():
     db = feature_database(np.random.default_rng(7))
-    return db, build_index(db, IndexConfig(k=10, workers=1))
+    return db, build_index(db, IndexConfig(k=10))
 
 
 @pytest.mark.parametrize("name", REGISTERED)

@@ -108,7 +108,6 @@ def test_cli_refuses_a_modified_database(db_dir, tmp_path, tamper):
         ("info", db_dir),
         ("info", db_dir, "--json"),
         ("index", db_dir, "--k", "4", "--overwrite"),
-        ("index", db_dir, "--k", "4", "--overwrite", "--workers", "1"),
         # (the database is opened before the KITTI root is read)
         ("augment", "--kitti", tmp_path / "kitti", "--db", db_dir, "--out", tmp_path / "out"),
     ):

@@ -350,7 +350,7 @@ def test_cluster_index_equals_one_process(cluster, tmp_path, approximate_above):
 
     many_objects().save(tmp_path / "db")
     database = GroundTruthDatabase.open(tmp_path / "db")
-    config = IndexConfig(k=20, block_size=16, approximate_above=approximate_above, workers=1)
+    config = IndexConfig(k=20, block_size=16, approximate_above=approximate_above)
     one = build_index(database, config)
     seen: dict[str, list[int]] = {}
     spread = build_index_cluster(

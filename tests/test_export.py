@@ -276,7 +276,7 @@ def test_a_resume_with_another_candidate_index_is_refused(tmp_path):
     pipeline = build_pipeline("default", db, load_index(db))
     with pytest.raises(RuntimeError):
         augment_kitti(root, "train", pipeline, out, progress=stop_after(1, RuntimeError("cut")))
-    build_index(db, IndexConfig(k=3, workers=1)).save(db.path, overwrite=True)
+    build_index(db, IndexConfig(k=3)).save(db.path, overwrite=True)
     pipeline = build_pipeline("default", db, load_index(db))
     with pytest.raises(OutputError, match="differing in: index"):
         augment_kitti(root, "train", pipeline, out)

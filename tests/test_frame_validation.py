@@ -43,7 +43,7 @@ from test_pipeline import synthetic_database
 from drcpo.frame import Frame
 from drcpo.index import IndexConfig, build_index
 db = synthetic_database(np.random.default_rng(7), {"Car": 60, "Pedestrian": 30, "Cyclist": 20})
-pipeline = build_pipeline("default", db, build_index(db, IndexConfig(k=20, workers=1)))
+pipeline = build_pipeline("default", db, build_index(db, IndexConfig(k=20)))
 rng = np.random.default_rng(0)
 xyz = rng.uniform((0, -20, -1.7), (60, 20, 0), (5000, 3))
 frame = Frame(np.column_stack([xyz, rng.uniform(0, 1, 5000)]).astype(np.float32))
@@ -55,7 +55,7 @@ from drcpo.datasets.kitti import KittiDataset
 from drcpo.index import IndexConfig, build_index
 root, out = sys.argv[1], sys.argv[2]
 db = build_database(root, "train", out)
-build_index(db, IndexConfig(k=20, workers=1)).save(out)
+build_index(db, IndexConfig(k=20)).save(out)
 pipeline = build_pipeline("default", db)
 frame = KittiDataset(root, "train").frame("000001")
 """
@@ -93,7 +93,7 @@ TRANSFORMS = ("flip", "rotation", "scaling", "gt_sampling", "drcpo", "cda", "drc
 @pytest.fixture(scope="module")
 def transforms():
     db = synthetic_database(np.random.default_rng(7), {"Car": 40, "Pedestrian": 20, "Cyclist": 10})
-    index = build_index(db, IndexConfig(k=10, workers=1))
+    index = build_index(db, IndexConfig(k=10))
     return dict(
         zip(
             TRANSFORMS,

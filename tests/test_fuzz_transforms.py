@@ -53,7 +53,7 @@ SLOW = ("drcpo", "drcpo_pipeline")
 @pytest.fixture(scope="module")
 def transforms():
     db = synthetic_database(np.random.default_rng(7), {"Car": 40, "Pedestrian": 20, "Cyclist": 10})
-    index = build_index(db, IndexConfig(k=10, workers=1))
+    index = build_index(db, IndexConfig(k=10))
     made = [
         GlobalFlip(probability=0.5, axes=("x", "y")),
         GlobalRotation(),

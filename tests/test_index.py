@@ -91,7 +91,7 @@ def reference_index(db, config):
 )
 def test_matches_brute_force(seed, n, k, extra):
     db = random_database(np.random.default_rng(seed), n)
-    config = IndexConfig(k=k, workers=2, block_size=37, **extra)
+    config = IndexConfig(k=k, block_size=37, **extra)
     index = build_index(db, config)
     ref_candidates, ref_densities = reference_index(db, config)
     np.testing.assert_array_equal(index.densities, ref_densities)
@@ -101,7 +101,7 @@ def test_matches_brute_force(seed, n, k, extra):
 def test_large_class_with_many_ties_matches_brute_force():
     # Coarse sizes: thousands of objects share a handful of boxes, so IoU ties are everywhere.
     db = random_database(np.random.default_rng(7), 2500, classes=("Car",), step=0.2)
-    config = IndexConfig(k=30, workers=2)
+    config = IndexConfig(k=30)
     index = build_index(db, config)
     ref_candidates, ref_densities = reference_index(db, config)
     np.testing.assert_array_equal(index.densities, ref_densities)
@@ -134,10 +134,10 @@ def test_grid_search_first_stage_is_exact_on_continuous_sizes(rng):
         np.testing.assert_array_equal(ious[b], iou[b, expected])
 
 
-def test_workers_and_blocks_do_not_change_the_result():
+def test_blocks_do_not_change_the_result():
     db = random_database(np.random.default_rng(4), 600)
-    one = build_index(db, IndexConfig(k=20, workers=1, block_size=1000))
-    two = build_index(db, IndexConfig(k=20, workers=2, block_size=16))
+    one = build_index(db, IndexConfig(k=20, block_size=1000))
+    two = build_index(db, IndexConfig(k=20, block_size=16))
     np.testing.assert_array_equal(one.candidates, two.candidates)
 
 
@@ -291,7 +291,7 @@ def test_approximate_mode_recall_and_validity():
 
 @pytest.mark.parametrize(
     "bad",
-    [{"k": 0}, {"alpha": 0}, {"min_points": -1}, {"workers": 0}, {"grids": {"Car": (1, 0, 2)}}],
+    [{"k": 0}, {"alpha": 0}, {"min_points": -1}, {"block_size": 0}, {"grids": {"Car": (1, 0, 2)}}],
 )
 def test_bad_config_is_refused(bad):
     with pytest.raises(ConfigError):
@@ -317,7 +317,7 @@ def test_an_index_saved_with_the_old_parameter_names_still_loads(tmp_path):
     # What drcpo wrote before the index section joined the YAML config.
     params["mirrored"] = params.pop("mirror")
     params["exclude_difficulties"] = params.pop("exclude_difficulty")
-    params.update(workers=None, block_size=512)
+    params.update(workers=None, block_size=512)  # (how it was built: ignored)
     manifest_path.write_text(json.dumps(manifest))
     assert load_index(opened).config == config
     params["kk"] = 1
@@ -348,7 +348,7 @@ def test_cli_index_with_a_config_builds_the_index_that_config_needs(tmp_path):
     yaml_path.write_text(CUSTOM_YAML)
     config = load_config(yaml_path)
     runner = CliRunner()
-    args = ["index", str(tmp_path / "db"), "--workers", "1"]
+    args = ["index", str(tmp_path / "db")]
 
     # Without --config: the paper defaults, which DR.CPO with this config refuses, saying how.
     assert runner.invoke(app, args).exit_code == 0
@@ -362,7 +362,7 @@ def test_cli_index_with_a_config_builds_the_index_that_config_needs(tmp_path):
     assert result.exit_code == 0, result.output
     index = load_index(opened)
     assert index.k == 6 and index.grids["Car"] == (5, 2, 3)
-    assert index.config == dataclasses.replace(config.index, workers=None)
+    assert index.config == config.index
     np.testing.assert_array_equal(index.candidates, build_index(opened, config.index).candidates)
     DRCPO(opened, index, config.drcpo)  # accepted
 
@@ -411,7 +411,7 @@ def test_cli_index_builds_saves_and_refuses_to_overwrite(tmp_path):
     db = random_database(np.random.default_rng(16), 120)
     db.save(tmp_path / "db")
     runner = CliRunner()
-    result = runner.invoke(app, ["index", str(tmp_path / "db"), "--k", "8", "--workers", "1"])
+    result = runner.invoke(app, ["index", str(tmp_path / "db"), "--k", "8"])
     assert result.exit_code == 0, result.output
     assert "mean candidates" in result.output
     opened = GroundTruthDatabase.open(tmp_path / "db")
@@ -429,6 +429,8 @@ def test_cli_index_builds_saves_and_refuses_to_overwrite(tmp_path):
     missing = runner.invoke(app, ["index", str(tmp_path / "nowhere")])
     assert missing.exit_code == 1
     assert "not a drcpo database" in missing.output
+    alone = runner.invoke(app, ["index", str(tmp_path / "db"), "--workers", "2", "--overwrite"])
+    assert alone.exit_code == 1 and "--workers needs --cluster" in alone.output
 
 
 def test_progress_reaches_every_indexed_object():

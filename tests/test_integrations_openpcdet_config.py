@@ -33,7 +33,7 @@ def sample_db(tmp_path_factory):
 
     out = tmp_path_factory.mktemp("openpcdet") / "db"
     database = import_openpcdet(KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
-    build_index(database, IndexConfig(k=20, workers=1)).save(out)
+    build_index(database, IndexConfig(k=20)).save(out)
     return out
 
 

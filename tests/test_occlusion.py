@@ -8,7 +8,6 @@ import math
 import multiprocessing
 import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -124,7 +123,7 @@ def test_fast_paths_equal_reference_on_random_scenes(seed, monkeypatch):
     reference = hidden_point_removal(points, viewpoint, radius, method="reference")
     assert 0 < reference.sum() <= len(points)
     for method in FAST_METHODS:
-        got = hidden_point_removal(points, viewpoint, radius, method=method, workers=2)
+        got = hidden_point_removal(points, viewpoint, radius, method=method)
         assert np.array_equal(got, reference), method
 
 
@@ -277,8 +276,6 @@ def test_bad_input_raises_clear_errors():
             hidden_point_removal(good, (0, 0, 0), radius)
     with pytest.raises(ConfigError, match="method"):
         hidden_point_removal(good, (0, 0, 0), 10.0, method="fast")
-    with pytest.raises(ConfigError, match="workers"):
-        hidden_point_removal(good, (0, 0, 0), 10.0, workers=0)
     with pytest.raises(DataError, match="query"):
         hidden_point_removal(good, (0, 0, 0), 10.0, query=np.ones(3, dtype=bool))
     with pytest.raises(DataError, match="too far"):
@@ -299,20 +296,20 @@ def test_features_and_dtypes_pass_through():
 # Forked workers (PyTorch DataLoader style)
 # ----------------------------------------------------------------------------------------------
 def _worker_job(args):
-    points, method, workers = args
-    return hidden_point_removal(points, (0, 0, 0), 1e5, method=method, workers=workers)
+    points, method = args
+    return hidden_point_removal(points, (0, 0, 0), 1e5, method=method)
 
 
 def test_runs_in_forked_workers():
     rng = np.random.default_rng(9)
     points = street_scene(rng, 25000)
-    # run in the parent first: compiled kernels, thread pools and Qhull state exist before fork
-    expected = {m: _worker_job((points, m, 2)) for m in ("local", "sectors", "reference")}
+    # run in the parent first: compiled kernels and Qhull state exist before fork
+    expected = {m: _worker_job((points, m)) for m in ("local", "sectors", "reference")}
     context = multiprocessing.get_context("fork")
     with context.Pool(2) as pool:
-        jobs = [(points, m, w) for m in expected for w in (1, 2)]
+        jobs = [(points, m) for m in expected for _ in range(2)]
         results = pool.map_async(_worker_job, jobs).get(timeout=120)
-    for (_, method, _), got in zip(jobs, results, strict=True):
+    for (_, method), got in zip(jobs, results, strict=True):
         assert np.array_equal(got, expected[method]), method
 
 
@@ -484,37 +481,6 @@ def test_distinct_without_duplicates_is_the_same_setup(rng):
     assert distinct.size == 199 and inverse[3] == inverse[2] and inverse[1] != inverse[0]
 
 
-def test_self_occlusion_many_equals_one_by_one(rng):
-    from drcpo.occlusion import self_occlusion_many
-
-    objects = []
-    for k in range(7):
-        count = int(rng.integers(0, 1500)) if k else 0
-        points = rng.normal(size=(count, 4)) * [1.5, 0.8, 0.7, 1.0]
-        box = np.array([rng.uniform(5, 40), rng.uniform(-10, 10), 0.0, 4.0, 1.8, 1.5, 0.3])
-        points[:, :3] += box[:3]
-        objects.append((points, box))
-    alone = [
-        self_occlusion(p, b, 200.0, method="reference") if len(p) else np.zeros(0, bool)
-        for p, b in objects
-    ]
-    for workers in (1, 2):
-        together = self_occlusion_many(objects, 200.0, method="reference", workers=workers)
-        assert len(together) == len(objects)
-        for a, b in zip(alone, together, strict=True):
-            np.testing.assert_array_equal(a, b)
-    assert self_occlusion_many([], workers=2) == []
-    # A pool whose thread is busy elsewhere is not waited for: the caller does all the work.
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        gate = threading.Event()
-        busy = pool.submit(gate.wait)
-        together = self_occlusion_many(objects, 200.0, method="reference", pool=pool)
-        assert not busy.done()
-        gate.set()
-    for a, b in zip(alone, together, strict=True):
-        np.testing.assert_array_equal(a, b)
-
-
 def wall_and_cube(rng):
     """A wall at x = 20 m (with a second, hidden layer just behind part of it) and a dense cube
     inserted at x = 10 m in front of the wall's middle. Returns points, inserted, behind."""
@@ -613,11 +579,10 @@ def test_frame_grid_equals_the_two_passes(seed):
         radius,
     )
     assert expected[is_inserted].any() and expected[~is_inserted].any()
-    for workers in (1, 2):
-        grid = FrameGrid.build(frame, viewpoint, radius, spare=10)  # grows for the objects
-        found = grid_steps(grid, cleared, inserted, behind, method="local", workers=workers)
-        np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
-        assert not found[0][cleared].any()
+    grid = FrameGrid.build(frame, viewpoint, radius, spare=10)  # grows for the objects
+    found = grid_steps(grid, cleared, inserted, behind, method="local")
+    np.testing.assert_array_equal(np.concatenate([found[0][~cleared], found[1]]), expected)
+    assert not found[0][cleared].any()
 
 
 @pytest.mark.parametrize("path", ["grid", "own grid", "reference", "range_image"])
@@ -719,8 +684,6 @@ def test_inserted_scope_picks_its_path_and_refuses_bad_settings():
 def test_hidden_groups_count_samples_hidden_among_the_frame_points(seed):
     # Each sample decided as a point added to the frame's points without the cleared ones
     # (the definition: one HPR per sample), then counted per group against the share.
-    from concurrent.futures import ThreadPoolExecutor
-
     from drcpo.occlusion import FrameGrid
 
     frame, cleared, _, _ = _insertion_scene(seed)
@@ -747,13 +710,11 @@ def test_hidden_groups_count_samples_hidden_among_the_frame_points(seed):
     assert 0 < hidden_each.mean() < 1
     grid = FrameGrid.build(frame, radius=1e5)
     mixed = False
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        for share in (0.2, 0.5, 0.8, 1.0):
-            expected = (sizes > 0) & (counts >= np.ceil(share * sizes - 1e-9))
-            mixed |= 0 < expected.sum() < len(expected) - 1
-            for helper in (None, pool):
-                found = grid.hidden_groups(samples, offsets, cleared, share, helper)
-                np.testing.assert_array_equal(found, expected)
+    for share in (0.2, 0.5, 0.8, 1.0):
+        expected = (sizes > 0) & (counts >= np.ceil(share * sizes - 1e-9))
+        mixed |= 0 < expected.sum() < len(expected) - 1
+        found = grid.hidden_groups(samples, offsets, cleared, share)
+        np.testing.assert_array_equal(found, expected)
     assert mixed
     # Not applicable where R is not above the ranges.
     assert grid.groups_apply(samples) and grid.groups_apply(samples[:0])

@@ -468,7 +468,7 @@ def synthetic_world():
     db = synthetic_database(
         np.random.default_rng(11), {"Car": 120, "Pedestrian": 50, "Cyclist": 30}, 3, 400
     )
-    index = build_index(db, IndexConfig(k=20, workers=1))
+    index = build_index(db, IndexConfig(k=20))
     calib = reference_calibration()
     frames = []
     for i in range(2):
@@ -493,7 +493,7 @@ def kitti_world(kitti_sample, tmp_path_factory):
 
         out = tmp_path_factory.mktemp("kitti") / "db"
         db = build_database(kitti_sample, "train", out)
-        index = build_index(db, IndexConfig(k=20, workers=1))
+        index = build_index(db, IndexConfig(k=20))
         index.save(out)
         dataset = KittiDataset(kitti_sample, "train")
         frames = []
@@ -699,44 +699,6 @@ def test_determinism_across_runs_and_a_forked_worker(synthetic_world):
         np.testing.assert_array_equal(a, c)
     other = _run_seed(10)
     assert not np.array_equal(other[1], first[1])
-
-
-def test_same_output_on_one_thread_as_on_two(kitti_world):
-    # A data-loader worker pinned to one core runs every step on its own thread; the frame
-    # must be the one two threads give.
-    db, index, frames = kitti_world
-    one_thread, two_threads = DRCPO(db, index, workers=1), DRCPO(db, index, workers=2)
-    assert one_thread == two_threads  # the threads are not part of the config
-    for i, frame in enumerate(frames):
-        one = one_thread(frame, np.random.default_rng(30 + i))
-        two = two_threads(frame, np.random.default_rng(30 + i))
-        np.testing.assert_array_equal(one.points, two.points)
-        np.testing.assert_array_equal(one.boxes, two.boxes)
-        assert one.metadata["augment_stats"]["objects"] == two.metadata["augment_stats"]["objects"]
-
-
-def test_one_worker_starts_no_thread(kitti_world, monkeypatch):
-    import concurrent.futures
-
-    db, index, frames = kitti_world
-    submitted = []
-    original = concurrent.futures.ThreadPoolExecutor.submit
-    monkeypatch.setattr(
-        concurrent.futures.ThreadPoolExecutor,
-        "submit",
-        lambda pool, *a, **k: submitted.append(a[0]) or original(pool, *a, **k),
-    )
-    DRCPO(db, index, workers=1)(frames[0], np.random.default_rng(0))
-    assert submitted == []
-    DRCPO(db, index, workers=2)(frames[0], np.random.default_rng(0))
-    assert submitted
-
-
-@pytest.mark.parametrize("workers", [0, 3, 1.5, "2"])
-def test_workers_must_be_one_two_or_auto(kitti_world, workers):
-    db, index, _ = kitti_world
-    with pytest.raises(ConfigError, match="workers"):
-        DRCPO(db, index, workers=workers)
 
 
 def test_drcpo_dict_in_dict_out_and_features(synthetic_world):

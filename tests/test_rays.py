@@ -5,13 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
 from drcpo.errors import ConfigError, DataError
-from drcpo.occlusion import rays as rays_module
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import point_cells, render_object, surfel_radii
 from drcpo.sensor import Sensor, sensor_preset
@@ -499,35 +497,6 @@ def test_cells_given_or_found_alike() -> None:
     assert nearer.removed[owner == -1].sum() < found.removed[owner == -1].sum()
     with pytest.raises(DataError, match="cells' column"):
         RayOcclusion(points, owner, sensor, cells=(beam, column[:-1], distance))
-
-
-def test_verdicts_in_two_halves_on_a_pool_alike() -> None:
-    """With a pool, the elements' windows are found in two halves and each verdict is taken
-    in two interleaved halves (one on the pool's thread when it is free): the same points
-    removed as in one pass, with all the objects and without one of them; a non-finite
-    inserted point in the second half is named."""
-    rng = np.random.default_rng(22)
-    sensor = small_sensor()
-    frame = scene(rng, 2000, sensor)
-    parts, owners = [frame], [np.full(len(frame), -1)]
-    for k, centre in enumerate([(6.0, 1.0, -0.9), (7.0, 1.6, -0.8), (5.0, -1.5, -0.9)]):
-        local = rng.uniform(-0.5, 0.5, (800, 3)) * (3.0, 1.6, 1.4) + centre
-        parts.append(np.column_stack([local, rng.random(800)]).astype(np.float32))
-        owners.append(np.full(800, k))
-    points, owner = np.concatenate(parts), np.concatenate(owners)
-    assert (owner >= 0).sum() >= rays_module._SPLIT_ELEMENTS
-    radii = rng.uniform(0.05, 0.3, len(points))
-    alone = RayOcclusion(points, owner, sensor, radii=radii)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        halves = RayOcclusion(points, owner, sensor, radii=radii, pool=pool)
-        np.testing.assert_array_equal(halves.removed, alone.removed)
-        np.testing.assert_array_equal(halves.without([1]), alone.without([1]))
-        broken = points.copy()
-        broken[-5, 1] = np.nan
-        with pytest.raises(DataError, match=f"row {len(points) - 5}"):
-            RayOcclusion(broken, owner, sensor, radii=radii, pool=pool)
-    assert alone.removed[owner == -1].sum() > 10 and alone.removed[owner >= 0].any()
-    assert (alone.without([1]) != alone.removed)[owner != 1].any()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -9,7 +9,6 @@ frame, each of which fails without the step.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -34,7 +33,7 @@ def _realistic(db, index, **changes):
     for key, value in changes.items():
         section, name = key.split(".")
         config[section][name] = value
-    return DRCPO(db, index, config, workers=1)
+    return DRCPO(db, index, config)
 
 
 @pytest.fixture(scope="module")
@@ -267,8 +266,7 @@ def test_a_frame_without_some_added_objects_knows_their_points_as_a_fresh_one(
     found again) and :meth:`SensorFrame.added_counts` counts from one pass: both as a
     SensorFrame built afresh on the pruned frame and a per-box count find them, also where
     two added boxes overlap (a point's box is the last holding it); the parent's (point,
-    box) pairs, and the added objects' holes and radii found on a pool, are handed on too,
-    those of the kept ones."""
+    box) pairs are handed on too, those of the kept ones."""
     from drcpo.sensor_config import SensorConfig
     from drcpo.transforms.insertion import BoxQuery, take_rows
     from drcpo.transforms.sensor_steps import SensorFrame
@@ -293,33 +291,17 @@ def test_a_frame_without_some_added_objects_knows_their_points_as_a_fresh_one(
     keep = np.random.default_rng(2).random(len(made.points)) < 0.7
     expected = BoxQuery(take_rows(made.points, keep)).counts(made.boxes[seen.added])
     np.testing.assert_array_equal(seen.added_counts(keep), expected)
-    pool = ThreadPoolExecutor(max_workers=1)
-    seen.find_added_surfaces(pool)  # (handed on by without_added, of the kept objects)
     for drop in ([0], [added - 1], [0, added - 1], list(range(1, added, 2))):
         mask = np.isin(np.arange(added), drop)
         pruned, names = seen.without_added(mask)
         fresh = SensorFrame(pruned.frame, config)
         assert len(names) == len(drop)
         np.testing.assert_array_equal(pruned.added_owner, fresh.added_owner)
-        fresh.find_added_surfaces(pool)
-        for mine, theirs in zip(pruned.added_surfaces(), fresh.added_surfaces(), strict=True):
-            np.testing.assert_array_equal(mine, theirs)
         keep = np.random.default_rng(len(drop)).random(len(pruned.frame.points)) < 0.5
         np.testing.assert_array_equal(pruned.added_counts(keep), fresh.added_counts(keep))
         boxes = pruned.frame.boxes[pruned.added]
         reference = BoxQuery(take_rows(pruned.frame.points, keep)).counts(boxes)
         np.testing.assert_array_equal(pruned.added_counts(keep), reference)
-    pool.shutdown()
-
-
-def test_same_seed_same_output_whatever_the_threads(synthetic_world):  # noqa: F811
-    db, index, frames = synthetic_world
-    one = _realistic(db, index)
-    two = DRCPO(db, index, one.config, workers=2)
-    for seed in SEEDS:
-        a = one(frames[1], np.random.default_rng(seed))
-        b = two(frames[1], np.random.default_rng(seed))
-        assert np.array_equal(a.points, b.points) and np.array_equal(a.boxes, b.boxes)
 
 
 def test_radius_share_caps_the_rendered_elements(synthetic_world):  # noqa: F811

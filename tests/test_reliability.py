@@ -62,7 +62,7 @@ def test_an_edited_index_is_refused_on_load(tmp_path):
     boxes = np.column_stack([rng.normal(size=(12, 3)), dims, np.zeros(12)])
     GroundTruthDatabase.from_arrays(points, offsets, names, boxes).save(tmp_path / "db")
     db = GroundTruthDatabase.open(tmp_path / "db")
-    build_index(db, IndexConfig(k=4, workers=1)).save(db.path)
+    build_index(db, IndexConfig(k=4)).save(db.path)
     load_index(db)  # as saved: fine
     index = tmp_path / "db" / "index"
     manifest = json.loads((index / "manifest.json").read_text())
@@ -133,7 +133,7 @@ def test_overwrite_removes_only_what_drcpo_wrote_naming_anything_else(tmp_path):
     from drcpo.synth import write_synthetic_kitti
 
     db = _database(tmp_path / "db")
-    build_index(GroundTruthDatabase.open(db), IndexConfig(k=2, workers=1)).save(db)
+    build_index(GroundTruthDatabase.open(db), IndexConfig(k=2)).save(db)
     # a database with its index/ is all drcpo's: --overwrite replaces it
     GroundTruthDatabase.open(db).save(db, overwrite=True)
     GroundTruthDatabase.open(db).save(tmp_path / "db2")

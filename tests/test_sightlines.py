@@ -61,25 +61,6 @@ def test_sight_lines_match_the_naive_clip(margin: float) -> None:
     np.testing.assert_array_equal(got, expected)
 
 
-def test_sight_lines_in_two_halves_on_a_pool_alike() -> None:
-    """With a pool, the points are taken in two halves (one on the pool's thread when it is
-    free): the same answer for every point."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from drcpo.occlusion import sightlines
-
-    rng = np.random.default_rng(5)
-    points, boxes = random_scene(rng, points=sightlines._SPLIT_POINTS + 1001, boxes=8)
-    origin = np.array([0.3, -0.2, 1.7])
-    own = rng.integers(-1, len(boxes), len(points))
-    alone = sight_lines_cross(points, origin, boxes, own, 0.1)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        halves = sight_lines_cross(points, origin, boxes, own, 0.1, pool=pool)
-    np.testing.assert_array_equal(halves, alone)
-    half = len(points) // 2
-    assert 0 < alone[:half].sum() < half and 0 < alone[half:].sum() < len(points) - half
-
-
 def test_the_prefilter_never_passes_over_a_box_the_segment_enters() -> None:
     """Boxes whose bounding circle holds the origin, points straight above it, and segments
     that end at or graze a box (tangent, corner, just short of its near face) against the

@@ -6,13 +6,11 @@ grow)."""
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
 from drcpo.errors import DataError
-from drcpo.occlusion.rays import element_radii
 from drcpo.occlusion.render import point_cells
 from drcpo.occlusion.silhouettes import _line_gaps, silhouette_gaps
 from drcpo.sensor import Sensor
@@ -163,43 +161,6 @@ def test_with_silhouette_gaps_appends_gaps_that_are_never_returns() -> None:
     reach = np.linalg.norm(filled[-1, :3] - np.asarray(sensor.mount))
     assert radii[-1] == pytest.approx(reach * sensor.azimuth_step / 2, rel=1e-5)
     assert len(radii) == int((filled_owner >= 0).sum())
-    # the radii found on a pool's thread meanwhile: the same, bit for bit
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        lent = with_silhouette_gaps(points, owner, sensor, pool=pool)
-    for mine, theirs in zip((filled, filled_owner, radii), lent, strict=True):
-        np.testing.assert_array_equal(theirs, mine)
-
-
-def test_surfaces_found_before_for_the_first_rows_give_the_same_answer() -> None:
-    """The holes and radii of the objects whose points all lie among the first rows, found
-    before (numbered from 0 there, after the others here), give what is found at once, bit
-    for bit; radii of the wrong length are refused."""
-    sensor = small_sensor()
-    rng = np.random.default_rng(4)
-    rows, owners = [], []
-    for k, (centre, count) in enumerate([(20, 60), (-60, 40), (100, 300), (0, 20)]):
-        for _ in range(count):  # (denser objects, smaller elements)
-            b, c = int(rng.integers(0, 8)), int(centre + rng.integers(-6, 7))
-            rows.append(on_ray(sensor, b, c % sensor.num_columns, rng.uniform(3.0, 4.0)))
-            owners.append(k)
-    points = np.column_stack([np.array(rows), rng.random(len(rows))]).astype(np.float32)
-    owner = np.array(owners)
-    # objects 2 and 3 (numbered 0 and 1 among themselves) lie among the first rows
-    order = np.argsort(owner < 2, kind="stable")
-    points, owner = points[order], owner[order]
-    first = int((owner >= 2).sum())
-    local = np.where(owner[:first] >= 2, owner[:first] - 2, -1)
-    gaps, gap_owner = silhouette_gaps(points[:first], local, sensor)
-    known = (gaps, gap_owner, element_radii(points[:first], local))
-    at_once = with_silhouette_gaps(points, owner, sensor)
-    assert (at_once[1][len(points) :] == 3).any() and (at_once[1][len(points) :] == 0).any()
-    with ThreadPoolExecutor(max_workers=1) as lent:
-        for pool in (None, lent):
-            found = with_silhouette_gaps(points, owner, sensor, pool=pool, known=(first, known))
-            for mine, theirs in zip(at_once, found, strict=True):
-                np.testing.assert_array_equal(theirs, mine)
-    with pytest.raises(DataError, match="known radii"):
-        with_silhouette_gaps(points, owner, sensor, known=(first, (*known[:2], known[2][1:])))
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -76,7 +76,7 @@ def feature_frame(rng, features=FEATURES) -> Frame:
 @pytest.fixture(scope="module")
 def world():
     db = feature_database(np.random.default_rng(7))
-    return db, build_index(db, IndexConfig(k=10, workers=1))
+    return db, build_index(db, IndexConfig(k=10))
 
 
 # The frame's check ----------------------------------------------------------------------------
@@ -379,7 +379,7 @@ def test_a_database_without_velocities_gives_added_boxes_zero(rng):
 def test_drcpo_velocities_follow_the_new_headings(world):
     db, index = world
     frame = feature_frame(np.random.default_rng(5))
-    transform = DRCPO(db, index, workers=1)
+    transform = DRCPO(db, index)
     added_any = False
     for seed in range(4):
         out = transform(frame, np.random.default_rng(seed))
@@ -402,7 +402,7 @@ def test_drcpo_velocities_follow_the_new_headings(world):
 def test_drcpo_keeps_untouched_features_and_inserts_the_databases(world):
     db, index = world
     frame = feature_frame(np.random.default_rng(5))
-    out = DRCPO(db, index, workers=1)(frame, np.random.default_rng(2))
+    out = DRCPO(db, index)(frame, np.random.default_rng(2))
     inserted = out.points[:, 3] >= DB_INTENSITY
     assert inserted.any() and (~inserted).any()
     # untouched points: bit for bit (intensity is unique per frame point)
@@ -417,11 +417,11 @@ def test_drcpo_keeps_untouched_features_and_inserts_the_databases(world):
 def test_inserted_points_keep_every_database_column_when_no_time_lag_is_named(world):
     db, index = world
     frame = feature_frame(np.random.default_rng(5), features=("intensity", "ring"))
-    out = DRCPO(db, index, workers=1)(frame, np.random.default_rng(2))
+    out = DRCPO(db, index)(frame, np.random.default_rng(2))
     inserted = out.points[:, 3] >= DB_INTENSITY
     assert inserted.any() and (out.points[inserted, 4] == np.float32(DB_TIME_LAG)).all()
     wider = frame.replace(points=np.column_stack([frame.points, np.ones(len(frame), np.float32)]))
-    out = DRCPO(db, index, workers=1)(wider, np.random.default_rng(2))
+    out = DRCPO(db, index)(wider, np.random.default_rng(2))
     inserted = out.points[:, 3] >= DB_INTENSITY
     assert inserted.any() and (out.points[inserted, 5] == 0).all()  # beyond the database's
 
@@ -480,12 +480,12 @@ def test_global_rotation_and_scaling_move_velocities(rng):
 def test_hpr_viewpoints_follow_the_sensor_mount(world, monkeypatch):
     db, index = world
     frame = feature_frame(np.random.default_rng(5))
-    paper = DRCPO(db, index, workers=1)
+    paper = DRCPO(db, index)
     radius, viewpoint = paper.e_hpr_setting()
     z = paper.config.external_occlusion.setting.viewpoint_z
     np.testing.assert_array_equal(viewpoint, [0.0, 0.0, z])
     mount = [0.5, -0.25, 1.8]
-    mounted = DRCPO(db, index, from_dict(DRCPOConfig, {"sensor": {"mount": mount}}), workers=1)
+    mounted = DRCPO(db, index, from_dict(DRCPOConfig, {"sensor": {"mount": mount}}))
     assert mounted.e_hpr_setting()[0] == radius
     np.testing.assert_allclose(mounted.e_hpr_setting()[1], [0.5, -0.25, 1.8 + z])
     seen = []
@@ -559,7 +559,7 @@ def test_nuscenes_preset_places_objects_all_around_the_sensor():
     assert index.config.mirror == config.drcpo.construction.mirror
     frame = feature_frame(np.random.default_rng(5))
     frame = frame.replace(names=np.array([NUSCENES[str(n)] for n in frame.names]))
-    transform = DRCPO(db, index, config.drcpo, workers=1)
+    transform = DRCPO(db, index, config.drcpo)
     behind = 0
     for seed in range(6):
         out = transform(frame, np.random.default_rng(seed))
@@ -601,7 +601,7 @@ def naive_hidden_behind(originals, objects, boxes, viewpoint, radius):
 def test_multi_sweep_key_sweep_goes_through_drcpo_alone(world):
     db, index = world
     frame = multi_sweep_frame(np.random.default_rng(5))
-    transform = DRCPO(db, index, workers=1)
+    transform = DRCPO(db, index)
     key = frame.points[:, 4] == 0
     alone = transform(frame.replace(points=frame.points[key]), np.random.default_rng(1))
     out = transform(frame, np.random.default_rng(1))
@@ -615,7 +615,7 @@ def test_multi_sweep_earlier_sweeps_are_settled_from_their_own_origins(world):
 
     db, index = world
     frame = multi_sweep_frame(np.random.default_rng(5))
-    transform = DRCPO(db, index, workers=1)
+    transform = DRCPO(db, index)
     key = frame.points[:, 4] == 0
     alone = transform(frame.replace(points=frame.points[key]), np.random.default_rng(1))
     out = transform(frame, np.random.default_rng(1))
@@ -655,7 +655,7 @@ def transform_inside(points, boxes):
 def test_multi_sweep_metadata_is_checked(world):
     db, index = world
     frame = multi_sweep_frame(np.random.default_rng(5))
-    transform = DRCPO(db, index, workers=1)
+    transform = DRCPO(db, index)
     points = frame.points.copy()
     points[7, 4] = 0.07
     with pytest.raises(DataError, match="point row 7 has time lag 0.07.*sweep_time_lags"):

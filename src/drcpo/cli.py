@@ -363,8 +363,7 @@ def index(
         ),
     ] = None,
     workers: Annotated[
-        int | None,
-        typer.Option(min=1, help="Threads (default: all cores); with --cluster: its workers (2)."),
+        int | None, typer.Option(min=1, help="With --cluster: its workers (default 2).")
     ] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing index.")] = False,
     cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
@@ -390,8 +389,9 @@ def index(
         "min_points": min_points,
         "exclude_difficulty": exclude_difficulty,
         "approximate_above": approximate_above,
-        "workers": workers if cluster is None else None,
     }
+    if workers is not None and cluster is None:
+        fail("--workers needs --cluster (the index is built in one process otherwise)")
     given = {key: value for key, value in options.items() if value is not None}
     settings = dataclasses.replace(settings, **given)
     database = GroundTruthDatabase.open(db)

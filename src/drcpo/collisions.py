@@ -10,6 +10,8 @@ import numpy as np
 
 from drcpo.geometry import heading_terms
 
+__all__ = ["bev_collisions", "first_come"]
+
 
 def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     """``bool (A, B)``: whether the BEV footprints of ``(A, 7)`` and ``(B, 7)`` boxes overlap,

@@ -27,9 +27,8 @@ whole ring is out of reach (``IoU <= exp(-L_inf distance)``). The result equals 
 ranking, ties included (tested). Of a group of identical boxes only the 2K + 1 lowest rows can
 rank for anyone, so the surplus is left out of the search (a class of identical boxes would
 otherwise cost O(N^2)). The cell size adapts to the class's density, so the cost per object
-depends on K and hardly on N. Objects are processed in blocks, in cell order, by ``workers``
-threads running numba kernels that release the GIL; blocks write disjoint rows, so the result does
-not depend on the number of workers.
+depends on K and hardly on N. Objects are processed in blocks, in cell order; blocks write
+disjoint rows, so the result does not depend on who ranks them (a cluster's workers may).
 
 **Approximate mode** (classes with more than ``approximate_above`` indexed objects; off by
 default): the ``approx_factor x 2K`` nearest neighbours in u-space by L1 distance
@@ -58,7 +57,6 @@ import json
 import math
 import os
 from collections.abc import Callable, Iterable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -131,7 +129,6 @@ class IndexConfig(Checked):
         mirror: classes whose points are mirrored across the x axis before counting.
             In a loaded configuration both are ``drcpo.construction``'s, so the index
             partitions every class as construction does.
-        workers: threads (``None``: all cores).
         block_size: objects per work item.
     """
 
@@ -178,19 +175,12 @@ class IndexConfig(Checked):
         default_factory=lambda: list(DEFAULT_MIRRORED),
         metadata=spec("names", set_by="drcpo.construction.mirror (the index mirrors as it)"),
     )
-    workers: int | None = field(
-        default=None,
-        metadata=spec("int", low=1, optional=True, set_by="the caller (drcpo index --workers)"),
-    )
     block_size: int = field(
         default=512, metadata=spec("int", low=1, set_by="the caller (objects per work item)")
     )
 
     def grid(self, name: str) -> Grid:
         return grid_for(name, self.grids)
-
-    def resolved_workers(self) -> int:
-        return self.workers or os.cpu_count() or 1
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able parameters that decide the index (what the manifest stores): the config
@@ -424,7 +414,7 @@ def build_index(
     """Build the candidate index of ``database`` (see the module docstring for the method).
 
     ``map_blocks``: who ranks the blocks of objects (:data:`MapBlocks`; e.g. the workers of a
-    cluster, :mod:`drcpo.distributed`); default: ``config.workers`` threads of this process.
+    cluster, :mod:`drcpo.distributed`); default: this process, in order.
     The index does not depend on it.
 
     Raises :class:`DataError` before any work when the database's data does not match its
@@ -656,7 +646,7 @@ def rank_candidates(
         dims: ``(M, 3)`` box sizes (m) of the class's indexed objects, in database-row order
             (so local id order is row order, which breaks ties).
         densities: ``float32 (M, P)`` their partition densities.
-        config: ``k``, ``alpha``, ``approx_factor``, ``workers``, ``block_size``.
+        config: ``k``, ``alpha``, ``approx_factor``, ``block_size``.
         mode: ``"exact"`` or ``"approximate"`` first stage.
         rows: ``(M,)`` database rows of the objects; with ``out``, object i's candidates are
             written as database rows to ``out[rows[i], :min(k, M - 1)]``.
@@ -711,38 +701,14 @@ def _map_blocks(
     config: IndexConfig,
     progress: Callable[[int, int], None] | None,
 ) -> Iterable[Any]:
-    """``work(item)`` for each item, results in order, on ``workers`` threads.
-
-    ``progress(done, total)`` advances by ``block_size`` per item.
-    """
-    items = list(items)
-    workers = min(config.resolved_workers(), len(items))
+    """``work(item)`` for each item, in order; ``progress(done, total)`` advances by
+    ``block_size`` per item."""
     done = 0
-    if workers <= 1:
-        results: Iterable[Any] = map(work, items)
-    else:
-        pool = ThreadPoolExecutor(workers)
-        # Bounded look-ahead keeps memory flat while every thread stays busy.
-        results = _bounded_map(pool, work, items, 4 * workers)
-    try:
-        for result in results:
-            done = min(done + config.block_size, total)
-            if progress is not None:
-                progress(done, total)
-            yield result
-    finally:
-        if workers > 1:
-            pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _bounded_map(pool: ThreadPoolExecutor, fn: Callable, items: list, ahead: int) -> Iterable:
-    pending = [pool.submit(fn, item) for item in items[:ahead]]
-    nxt = len(pending)
-    while pending:
-        result = pending.pop(0).result()
-        if nxt < len(items):
-            pending.append(pool.submit(fn, items[nxt]))
-            nxt += 1
+    for item in items:
+        result = work(item)
+        done = min(done + config.block_size, total)
+        if progress is not None:
+            progress(done, total)
         yield result
 
 

@@ -14,7 +14,6 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 
 * :mod:`~drcpo.occlusion.presets`: the paper's ``(R, z)`` per detector.
 * :mod:`~drcpo.occlusion.checks`: input checks.
-* :mod:`~drcpo.occlusion.threads`: work over threads that no fork inherits.
 * :mod:`~drcpo.occlusion.grid`: points sorted into direction cells (numba), :class:`GridMemory`.
 * :mod:`~drcpo.occlusion.hull`: the certified hull of small clouds (numba).
 * :mod:`~drcpo.occlusion.kernels`: the per-point supporting-plane test (numba).
@@ -35,8 +34,8 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
   objects, reusing the first pass), :class:`RangeImage` and :class:`PlacedView` (placement's
   visible-ray verdicts of a round's boxes, the accepted ones painted in).
 
-Everything here is safe in forked worker processes (PyTorch DataLoader workers): no thread or
-pool outlives a call, and numba kernels are compiled without a threading layer.
+Everything here runs on the calling thread and is safe in forked worker processes (PyTorch
+DataLoader workers): numba kernels are compiled without a threading layer.
 """
 
 from __future__ import annotations
@@ -61,7 +60,7 @@ from drcpo.occlusion.hpr import (
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
 from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import render_object, surfel_radii
-from drcpo.occlusion.scopes import self_occlusion, self_occlusion_many
+from drcpo.occlusion.scopes import self_occlusion
 from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
 
 __all__ = [
@@ -88,7 +87,6 @@ __all__ = [
     "ray_occlusion",
     "render_object",
     "self_occlusion",
-    "self_occlusion_many",
     "surface_samples",
     "surfel_radii",
     "thread_grid_memory",

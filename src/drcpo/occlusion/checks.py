@@ -1,4 +1,4 @@
-"""Input checks shared by the occlusion modules: points, viewpoint, radius, query, workers.
+"""Input checks shared by the occlusion modules: points, viewpoint, radius, query.
 
 Each raises :class:`~drcpo.errors.DataError` (bad data) or :class:`~drcpo.errors.ConfigError`
 (bad setting) naming the culprit. Imports only :mod:`drcpo.errors`.
@@ -7,7 +7,6 @@ Each raises :class:`~drcpo.errors.DataError` (bad data) or :class:`~drcpo.errors
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 
 import numpy as np
@@ -71,15 +70,3 @@ def _check_query(query: np.ndarray | None, count: int) -> np.ndarray:
     mask = np.zeros(count, dtype=bool)
     mask[index] = True
     return mask
-
-
-def _check_workers(workers: int | None) -> int:
-    if workers is None:
-        try:
-            available = len(os.sched_getaffinity(0))
-        except AttributeError:  # not on Linux
-            available = os.cpu_count() or 1
-        return max(1, min(2, available))
-    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
-        raise ConfigError(f"workers must be a positive integer or None, got {workers!r}")
-    return int(workers)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -34,7 +33,6 @@ from drcpo.occlusion.checks import (
     _check_query,
     _check_radius,
     _check_viewpoint,
-    _check_workers,
 )
 from drcpo.occlusion.flip import _Setup
 from drcpo.occlusion.frame_grid import FrameGrid, GridInsertion
@@ -67,7 +65,6 @@ def external_occlusion(
     focus: np.ndarray | None = None,
     focus_margin: float = float(np.deg2rad(2.0)),
     method: str = "auto",
-    workers: int | None = None,
     range_image: dict | None = None,
 ) -> np.ndarray:
     """e-HPR, scope ``frame``: the paper's external occlusion of a whole frame (after
@@ -86,7 +83,7 @@ def external_occlusion(
             :func:`azimuth_focus`, ``focus_margin`` radians) are decided, exactly, against the
             whole frame; all others are reported visible.
         focus_margin: radians added on both sides of the focus points' azimuths.
-        method, workers: as in :func:`hidden_point_removal`.
+        method: as in :func:`hidden_point_removal`.
         range_image: keyword arguments for :func:`range_image_occlusion` in that mode.
 
     Returns:
@@ -105,7 +102,7 @@ def external_occlusion(
     if mode != "hpr":
         raise ConfigError(f"external occlusion mode must be 'hpr' or 'range_image', got {mode!r}")
     r = setting.radius if radius is None else radius
-    return hidden_point_removal(xyz, (x, y, height), r, method=method, query=query, workers=workers)
+    return hidden_point_removal(xyz, (x, y, height), r, method=method, query=query)
 
 
 class InsertedScope(ABC):
@@ -170,10 +167,9 @@ class _PointsScope(InsertedScope):
         radius: float,
         mode: str,
         method: str = "auto",
-        workers: int | None = None,
     ) -> None:
         self._xyz, self._inserted, self._viewpoint = xyz, inserted, viewpoint
-        self._radius, self._mode, self._method, self._workers = radius, mode, method, workers
+        self._radius, self._mode, self._method = radius, mode, method
         self._original = np.flatnonzero(~inserted)
         self._visible = None
         if mode == "range_image":
@@ -194,7 +190,6 @@ class _PointsScope(InsertedScope):
             self._radius,
             method=self._method,
             query=query,
-            workers=self._workers,
         )
 
     def in_windows(self, windows: np.ndarray | None) -> np.ndarray:
@@ -222,7 +217,6 @@ class _PointsScope(InsertedScope):
             self._radius,
             method=self._method,
             query=wanted,
-            workers=self._workers,
         )
 
 
@@ -250,8 +244,6 @@ def inserted_scope(
     grid: FrameGrid | None = None,
     cleared: np.ndarray | None = None,
     method: str = "auto",
-    workers: int | None = None,
-    pool: ThreadPoolExecutor | None = None,
 ) -> InsertedScope:
     """Step 1 of e-HPR's ``inserted`` scope: decide the inserted points; the returned
     object's :meth:`~InsertedScope.removed_behind` is step 2.
@@ -269,8 +261,7 @@ def inserted_scope(
         grid: the :class:`FrameGrid` of the frame before insertion, with ``cleared``
             (``bool (grid.size,)``): the frame points taken out. ``points[~inserted]`` must
             be the grid's points without them, in order.
-        method, workers: as in :func:`hidden_point_removal`; pool: a running pool whose thread
-            may take part.
+        method: as in :func:`hidden_point_removal`.
     """
     xyz = _check_points(points)
     center = _check_viewpoint(viewpoint)
@@ -286,9 +277,8 @@ def inserted_scope(
         if cleared is None:
             raise ValueError("inserted_scope: a grid needs cleared (the frame points taken out)")
         if grid.applies(cleared, xyz[inserted], method):
-            step = grid.insert(cleared, xyz[inserted], method=method, workers=workers, pool=pool)
+            step = grid.insert(cleared, xyz[inserted], method=method)
             return _GridScope(grid, step)
-    workers = _check_workers(workers)
     setup = _Setup.build(xyz, center, radius)
     if setup.size == 0:
         return _Nothing(inserted)
@@ -298,9 +288,9 @@ def inserted_scope(
         own = FrameGrid.build(xyz[original], center, radius, spare=len(xyz) - len(original))
         none_cleared = np.zeros(len(original), dtype=bool)
         if own.applies(none_cleared, xyz[inserted], "local"):
-            step = own.insert(none_cleared, xyz[inserted], method="local", workers=workers)
+            step = own.insert(none_cleared, xyz[inserted], method="local")
             return _GridScope(own, step)
-    return _PointsScope(xyz, inserted, center, radius, mode, method, workers)
+    return _PointsScope(xyz, inserted, center, radius, mode, method)
 
 
 def hidden_by_insertion(
@@ -311,7 +301,6 @@ def hidden_by_insertion(
     radius: float = 100000.0,
     *,
     method: str = "auto",
-    workers: int | None = None,
 ) -> np.ndarray:
     """Points that inserted objects remove from a frame (e-HPR's ``inserted`` scope, both
     steps of :func:`inserted_scope` for a fixed ``behind``).
@@ -327,13 +316,13 @@ def hidden_by_insertion(
         inserted: ``bool (N,)`` the inserted points.
         behind: ``bool (N,)`` original points whose removal is to be decided (points of
             ``inserted`` are ignored here).
-        viewpoint, radius, method, workers: as in :func:`hidden_point_removal`.
+        viewpoint, radius, method: as in :func:`hidden_point_removal`.
 
     Returns:
         ``bool (N,)``: points to remove.
     """
     xyz = _check_points(points)
-    _check_viewpoint(viewpoint), _check_radius(radius), _check_workers(workers)
+    _check_viewpoint(viewpoint), _check_radius(radius)
     if method not in HPR_METHODS:
         raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
     n = len(xyz)
@@ -342,7 +331,7 @@ def hidden_by_insertion(
     removed = np.zeros(n, dtype=bool)
     if not (inserted | behind).any():
         return removed
-    scope = inserted_scope(xyz, inserted, viewpoint, radius, method=method, workers=workers)
+    scope = inserted_scope(xyz, inserted, viewpoint, radius, method=method)
     removed[inserted] = scope.removed_inserted
     removed[~inserted] = scope.removed_of(behind[~inserted])
     return removed

@@ -6,7 +6,6 @@ points by direction. Imports :mod:`drcpo.occlusion.hpr` and the modules below it
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 
 import numpy as np
@@ -17,7 +16,6 @@ from drcpo.occlusion.checks import (
     _check_query,
     _check_radius,
     _check_viewpoint,
-    _check_workers,
 )
 from drcpo.occlusion.flip import _AT_VIEWPOINT
 from drcpo.occlusion.frame_kernels import (
@@ -39,8 +37,7 @@ from drcpo.occlusion.grid import (
 )
 from drcpo.occlusion.hpr import _LOCAL_MAX_CONE, AUTO_REFERENCE_MAX, hidden_point_removal
 from drcpo.occlusion.kernels import _BRUTE_BUDGET, _GROUP_BRUTE_BUDGET, Scene
-from drcpo.occlusion.local import _NONE_ABSENT, _PARALLEL_MIN, _first_cones
-from drcpo.occlusion.threads import _shared_chunks
+from drcpo.occlusion.local import _NONE_ABSENT, _first_cones
 
 __all__ = ["FrameGrid", "GridInsertion"]
 
@@ -48,18 +45,14 @@ __all__ = ["FrameGrid", "GridInsertion"]
 # generic grid's: its scans read whole runs of cells; docs/measurements.md: finer ones).
 _FRAME_ROW_HEIGHT = 1.0
 _FRAME_COLUMN_WIDTH = 0.5
-# Work items per call, claimed by the threads as they go: small enough that a thread the
-# system stalls for a while holds up little work.
-_FRAME_CHUNKS = 32
-_FRAME_PARALLEL_MIN = 256  # queries worth a second thread (one already running: cheap)
 
 
 class FrameGrid:
     """A frame's points seen from the e-HPR viewpoint, sorted once into the per-point test's
     grid, for e-HPR's ``inserted`` scope on that frame with any inserted objects.
 
-    It depends only on the frame, so the DR.CPO pipeline builds it (on a second thread) while
-    objects are placed and constructed. :meth:`insert` then adds the inserted points to its
+    It depends only on the frame, so the DR.CPO pipeline builds it once and uses it for the
+    placement's occlusion test and for e-HPR. :meth:`insert` then adds the inserted points to its
     cells (no re-sorting of the frame) and skips the frame points they displace;
     :meth:`in_windows` selects points by direction cell by cell.
 
@@ -199,8 +192,6 @@ class FrameGrid:
         inserted: np.ndarray,
         *,
         method: str = "auto",
-        workers: int | None = None,
-        pool: ThreadPoolExecutor | None = None,
     ) -> GridInsertion:
         """Step 1 of e-HPR's inserted scope with the per-point test: add the ``inserted``
         points to the grid's cells (no re-sorting of the frame), skip the ``cleared`` frame
@@ -212,14 +203,10 @@ class FrameGrid:
             cleared: ``bool (N,)`` frame points taken out (room made for the objects).
             inserted: ``(K, 3 + C)`` inserted points, metres.
             method: as in :func:`hidden_point_removal` (``"auto"`` or ``"local"``).
-            workers: threads (``None``: up to two of the CPUs this process may use).
-            pool: a running pool whose thread may take part (else one is started for the call
-                when ``workers > 1`` and the work is large enough).
         """
         n = self.size
         cleared = _check_query(cleared, n)
         xyz = _check_points(inserted)
-        workers = _check_workers(workers)
         k = len(xyz)
         rel = xyz - self.center
         ranges = self._inserted_ranges(xyz)
@@ -230,7 +217,7 @@ class FrameGrid:
         positions = self._add(rel, ranges)
         absent = np.zeros(n + k, dtype=bool)
         absent[:n] = cleared[self._order]
-        decide = partial(self._verdicts, self._scene(n + k, absent, r_min), workers, pool)
+        decide = partial(self._verdicts, self._scene(n + k, absent, r_min))
         verdicts = decide(n + np.arange(k))
         removed_inserted[positions] = verdicts == _VERDICT_REMOVE
         undecided = positions[verdicts == _VERDICT_UNDECIDED_WITH]
@@ -278,15 +265,13 @@ class FrameGrid:
         offsets: np.ndarray,
         cleared: np.ndarray,
         share: float,
-        pool: ThreadPoolExecutor | None = None,
     ) -> np.ndarray:
         """Which groups of ``samples`` are at least ``share`` hidden among the frame's points
         without the ``cleared`` ones (each sample decided exactly, as a point added to them
         alone); only where :meth:`groups_apply` (else ``ValueError``). A group is decided as
         soon as its count allows: samples the plane normal to their ray shows visible first,
         the others then one by one. Samples the test gives up on (its budget of full scans per
-        group spent) count as visible. ``pool`` may lend a thread (the answer does not depend
-        on it).
+        group spent) count as visible.
 
         Args:
             samples: ``(S, 3)`` points, metres.
@@ -327,43 +312,16 @@ class FrameGrid:
         sizes = np.diff(offsets)
         allowed = sizes - np.ceil(share * sizes - 1e-9).astype(np.int64)  # visible ones allowed
         scene = self._scene(n + len(xyz), absent, r_min)
-
-        def kernel(part: np.ndarray) -> None:
-            lo, hi = part[0], part[-1] + 1
-            _hidden_groups(
-                position,
-                cones,
-                offsets[lo : hi + 1],
-                allowed[lo:hi],
-                scene,
-                _GROUP_BRUTE_BUDGET,
-                hidden[lo:hi],
-            )
-
-        parts = [part for part in np.array_split(np.arange(len(hidden)), 4) if len(part)]
-        _shared_chunks(kernel, parts, pool)
+        if len(hidden):
+            _hidden_groups(position, cones, offsets, allowed, scene, _GROUP_BRUTE_BUDGET, hidden)
         return hidden
 
-    def _verdicts(
-        self,
-        scene: Scene,
-        workers: int,
-        pool: ThreadPoolExecutor | None,
-        queries: np.ndarray,
-    ) -> np.ndarray:
-        """:func:`_insertion_verdicts` of the sorted ``queries``, on two threads when worth it."""
+    def _verdicts(self, scene: Scene, queries: np.ndarray) -> np.ndarray:
+        """:func:`_insertion_verdicts` of the sorted ``queries``."""
         if not len(queries):
             return np.zeros(0, dtype=np.int8)
         cones = _first_cones(self._ranges[queries], scene.r_min, scene.rho_max)
-        parallel = workers > 1 and len(queries) >= (
-            _FRAME_PARALLEL_MIN if pool is not None else _PARALLEL_MIN
-        )
-        parts = np.array_split(np.arange(len(queries)), _FRAME_CHUNKS if parallel else 1)
-
-        def kernel(part: np.ndarray) -> np.ndarray:
-            return _insertion_verdicts(queries[part], cones[part], self.size, scene, _BRUTE_BUDGET)
-
-        return np.concatenate(_shared_chunks(kernel, parts, pool, start=parallel))
+        return _insertion_verdicts(queries, cones, self.size, scene, _BRUTE_BUDGET)
 
     def _scene(self, count: int, absent: np.ndarray, r_min: float) -> Scene:
         """The kernels' view of the first ``count`` sorted points, ``absent`` ones skipped;

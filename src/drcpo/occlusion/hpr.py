@@ -33,10 +33,10 @@ Methods (``method=``):
   ``R`` where those (and hence Qhull and Open3D) lose precision. Its cost grows with the
   number of points per neighbourhood: it is at its best on LiDAR sweeps and loses its lead
   over one hull on dense volumetric blobs (thousands of points per degree).
-* ``"sectors"``: the reference hull split into overlapping azimuth sectors, the hulls spread
-  over threads; a sector's verdict on one of its core points is used only when it is provably the
-  whole set's (hidden in a subset implies hidden; visible needs a hull facet whose danger cone
-  lies inside the sector), the rest go to ``"local"``.
+* ``"sectors"``: the reference hull split into overlapping azimuth sectors; a sector's verdict
+  on one of its core points is used only when it is provably the whole set's (hidden in a
+  subset implies hidden; visible needs a hull facet whose danger cone lies inside the sector),
+  the rest go to ``"local"``.
 * ``"auto"`` (default): ``"reference"`` for small inputs (at most :data:`AUTO_REFERENCE_MAX`
   points, such as one object for s-HPR), when ``R`` is not far above the ranges (every
   neighbourhood is then a wide cone and one hull is cheaper) and when the points crowd the
@@ -75,7 +75,6 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
@@ -86,11 +85,10 @@ from drcpo.occlusion.checks import (
     _check_query,
     _check_radius,
     _check_viewpoint,
-    _check_workers,
 )
 from drcpo.occlusion.flip import _AT_VIEWPOINT, _hull_vertices, _Setup
 from drcpo.occlusion.hull import hpr_hull_visible
-from drcpo.occlusion.local import _PARALLEL_MIN, _local, _LocalState
+from drcpo.occlusion.local import _local, _LocalState
 
 __all__ = [
     "AUTO_CROWDED",
@@ -122,7 +120,6 @@ def hidden_point_removal(
     *,
     method: str = "auto",
     query: np.ndarray | None = None,
-    workers: int | None = None,
 ) -> np.ndarray:
     """Katz et al.'s hidden point removal: which points are visible from ``viewpoint``.
 
@@ -135,8 +132,6 @@ def hidden_point_removal(
         query: optional ``bool (N,)`` mask or integer indices of the points whose visibility is
             wanted; the others are still potential occluders but are reported ``True`` without
             being decided. ``None``: all points.
-        workers: threads to use (``None``: up to two of the CPUs this process may use; ``1``
-            inside data-loader workers that already share the cores).
 
     Returns:
         ``bool (N,)``: ``True`` for visible points (and for points outside ``query``).
@@ -151,7 +146,6 @@ def hidden_point_removal(
     if method not in HPR_METHODS:
         raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
     wanted = _check_query(query, len(xyz))
-    workers = _check_workers(workers)
     visible = np.ones(len(xyz), dtype=bool)
     if len(xyz) == 0 or not wanted.any():
         return visible
@@ -163,11 +157,11 @@ def hidden_point_removal(
     if chosen == "reference":
         decided = _reference(setup, wanted_hull)
     elif chosen == "sectors":
-        decided = _sectors(setup, wanted_hull, workers)
+        decided = _sectors(setup, wanted_hull)
     elif method == "auto":
-        decided = _auto_local(setup, wanted_hull, workers)
+        decided = _auto_local(setup, wanted_hull)
     else:
-        decided = _local(setup, wanted_hull, workers)
+        decided = _local(setup, wanted_hull)
     visible[setup.index] = decided | ~wanted_hull
     return visible
 
@@ -201,27 +195,27 @@ def _crowded(starts: np.ndarray, setup: _Setup) -> bool:
     return float(sizes @ sizes) > AUTO_CROWDED * max(setup.size, 1)
 
 
-def _auto_local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+def _auto_local(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     """``"auto"``'s verdicts where :func:`_resolve_method` chose ``"local"``: the per-point test,
     unless the points crowd its neighbourhoods; then one hull, or (``R`` too large for one)
     the per-point test on the distinct points (copies share a verdict and do not constrain
     each other's planes, so the answer is the same)."""
     state = _LocalState.build(setup)
     if not _crowded(state.starts, setup):
-        return state.visible(wanted, workers)
+        return state.visible(wanted)
     if _precise(setup):
         return _reference(setup, wanted)
-    return _distinct_local(setup, wanted, workers)
+    return _distinct_local(setup, wanted)
 
 
-def _distinct_local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+def _distinct_local(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     """:func:`_local`'s verdicts, computed once per distinct point."""
     distinct, inverse = setup.distinct()
     if distinct is setup:
-        return _local(setup, wanted, workers)
+        return _local(setup, wanted)
     wanted_distinct = np.zeros(distinct.size, dtype=bool)
     wanted_distinct[inverse[wanted]] = True
-    return _local(distinct, wanted_distinct, workers)[inverse] & wanted
+    return _local(distinct, wanted_distinct)[inverse] & wanted
 
 
 # ----------------------------------------------------------------------------------------------
@@ -268,7 +262,7 @@ def _degenerate_fallback(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     """Verdicts when Qhull cannot build the hull: "local" (once per distinct point: many
     copies of one point would make it quadratic), else joggled Qhull, else all."""
     if setup.local_ok:
-        return _distinct_local(setup, wanted, 1)
+        return _distinct_local(setup, wanted)
     distinct, inverse = setup.distinct()
     cloud = np.vstack([distinct.flipped(), np.zeros((1, 3))])
     try:
@@ -287,18 +281,18 @@ def _degenerate_fallback(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------
-# Sectors: Qhull per overlapping azimuth sector, verdicts certified, threads
+# Sectors: Qhull per overlapping azimuth sector, verdicts certified
 # ----------------------------------------------------------------------------------------------
 _SECTOR_POINTS = 3000  # target core points per sector
 
 
-def _sectors(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+def _sectors(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     """Visible flags ``(M,)`` from per-sector hulls; uncertified points go to :func:`_local`."""
     distinct, inverse = setup.distinct()
     if distinct is not setup:
         chosen = np.zeros(distinct.size, dtype=bool)
         chosen[inverse[wanted]] = True
-        return _sectors(distinct, chosen, workers)[inverse] & wanted
+        return _sectors(distinct, chosen)[inverse] & wanted
     ranges, radius = setup.ranges, setup.radius
     r_min = float(ranges.min())
     rho_max = 2.0 * radius - r_min
@@ -327,11 +321,7 @@ def _sectors(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
     tasks = [
         (lo, hi, order, sorted_azimuth, flipped, margin, rho_max, setup.size) for lo, hi in jobs
     ]
-    if workers > 1 and len(tasks) > 1 and setup.size >= _PARALLEL_MIN:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            results = list(pool.map(_sector_verdicts, tasks))
-    else:
-        results = [_sector_verdicts(task) for task in tasks]
+    results = [_sector_verdicts(task) for task in tasks]
     visible = np.zeros(setup.size, dtype=bool)
     uncertain = np.zeros(setup.size, dtype=bool)
     for core, vertex, certified in results:
@@ -339,7 +329,7 @@ def _sectors(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
         uncertain[core] = vertex & ~certified
     uncertain &= wanted
     if uncertain.any():
-        visible[uncertain] = _local(setup, uncertain, 1)[uncertain]
+        visible[uncertain] = _local(setup, uncertain)[uncertain]
     return visible & wanted
 
 

@@ -1,7 +1,6 @@
 """The ``"local"`` method's driver: the set-up's points sorted into the per-point test's grid
-(:class:`_LocalState`), the pre-filter and the plane test over threads, and the fallbacks for
-points the test gives up on. Imports the grid, flip, kernel and thread modules of
-:mod:`drcpo.occlusion` only.
+(:class:`_LocalState`), the pre-filter and the plane test, and the fallbacks for points the test
+gives up on. Imports the grid, flip and kernel modules of :mod:`drcpo.occlusion` only.
 """
 
 from __future__ import annotations
@@ -19,18 +18,13 @@ from drcpo.occlusion.kernels import (
     _classify,
     _radial_pass,
 )
-from drcpo.occlusion.threads import _in_threads
 
 __all__: list[str] = []  # internal to drcpo.occlusion, whose __init__ has the API
 
-# Parallel work only pays above this many points: below it, handing work to a second thread
-# costs more than it saves (docs/measurements.md).
-_PARALLEL_MIN = 2000
 
-
-def _local(setup: _Setup, wanted: np.ndarray, workers: int) -> np.ndarray:
+def _local(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     """Visible flags ``(M,)`` (``False`` where not wanted) by the per-point plane test."""
-    return _LocalState.build(setup).visible(wanted, workers)
+    return _LocalState.build(setup).visible(wanted)
 
 
 def _first_cones(ranges: np.ndarray, r_min: float, rho_max: float) -> np.ndarray:
@@ -112,20 +106,16 @@ class _LocalState:
         )
         return cls(setup, order, first_cone[order], scene)
 
-    def visible(self, wanted: np.ndarray, workers: int) -> np.ndarray:
+    def visible(self, wanted: np.ndarray) -> np.ndarray:
         """Visible flags ``(M,)`` of the set-up's points (``False`` where not wanted)."""
         order, scene, cones = self.order, self.scene, self.first_cone
         todo = np.flatnonzero(wanted[order])
-        parts = workers if len(todo) >= _PARALLEL_MIN else 1
-        settled = np.concatenate(_in_threads(lambda c: _radial_pass(c, cones, scene), todo, parts))
+        settled = _radial_pass(todo, cones, scene)
         pending = todo[~settled]
         visible_sorted = np.zeros(self.size, dtype=bool)
         visible_sorted[todo[settled]] = True
         if len(pending):
-            parts = workers if len(pending) >= _PARALLEL_MIN // 8 else 1
-            state = np.concatenate(
-                _in_threads(lambda c: _classify(c, cones, scene, _BRUTE_BUDGET), pending, parts)
-            )
+            state = _classify(pending, cones, scene, _BRUTE_BUDGET)
             unresolved = state == _STATE_UNRESOLVED
             if unresolved.any():
                 state[unresolved] = _resolve_unresolved(pending[unresolved], self)

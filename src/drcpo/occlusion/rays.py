@@ -22,7 +22,6 @@ modules as private kernels.
 from __future__ import annotations
 
 import math
-from concurrent.futures import Executor
 
 import numba
 import numpy as np
@@ -43,7 +42,6 @@ from drcpo.occlusion.render import (
     point_cells,
     sensor_tables,
 )
-from drcpo.occlusion.threads import _halves, _shared_chunks
 from drcpo.sensor import Sensor
 
 __all__ = ["PlacedView", "RangeImage", "RayOcclusion", "element_radii", "ray_occlusion"]
@@ -307,9 +305,7 @@ class RayOcclusion:
     little more (:meth:`without`).
 
     Args: as :func:`ray_occlusion`, and ``cells``: the points' ray cells and distances
-    (:func:`~drcpo.occlusion.render.point_cells` of them), when known; found here otherwise;
-    ``pool``: a running one-thread pool whose thread takes half of the elements' windows and
-    of each verdict's points when it is free (the verdicts do not depend on it).
+    (:func:`~drcpo.occlusion.render.point_cells` of them), when known; found here otherwise.
 
     Attributes:
         removed: ``bool (N,)`` :func:`ray_occlusion` of all the points (read-only).
@@ -323,9 +319,7 @@ class RayOcclusion:
         radii: np.ndarray | None = None,
         tolerance: float = 0.1,
         cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-        pool: Executor | None = None,
     ) -> None:
-        self._pool = pool
         array = _frame_points(points)
         self._owner = owner = _check_owner(owner, len(array))
         self._tolerance = _check_tolerance(tolerance)
@@ -350,8 +344,8 @@ class RayOcclusion:
         """The inserted points' beams, columns, distances, offsets from the mount, objects and
         windows of cells, and per column the object whose windows reach it (-2: several, -1:
         none), whether it holds inserted returns and the elevation tangents that matter
-        there (:func:`_element_windows`): in two halves, one on the pool's thread when it is
-        free. Raises :class:`DataError` for a non-finite inserted point."""
+        there (:func:`_element_windows`). Raises :class:`DataError` for a non-finite inserted
+        point."""
         inserted, radii, tables = self._inserted, self._radii, self._tables.geometry
         m, columns = len(inserted), len(self._tables.column_cos)
         elements = (
@@ -359,24 +353,13 @@ class RayOcclusion:
             np.empty(m, np.int64), np.empty((m, 4), np.int64),
         )  # fmt: skip
 
-        def part(start: int, stop: int) -> tuple[int, tuple[np.ndarray, ...]]:
-            own = (np.full(columns, -1, np.int64), np.zeros(columns, np.bool_),
-                   np.full(columns, np.inf), np.full(columns, -np.inf))  # fmt: skip
-            bad = _element_windows(array, owner, inserted, radii, *known, start, stop,
-                                   *elements, *own, *tables)  # fmt: skip
-            return bad, own
-
-        parts = _halves(part, m, self._pool, _SPLIT_ELEMENTS)
-        bad = [row for row, _ in parts if row >= 0]
-        if bad:
-            raise DataError(f"points hold NaN/inf coordinates (first: row {bad[0]})")
-        covered, wanted, low, high = parts[0][1]
-        for _, (other, also, below, above) in parts[1:]:
-            covered = np.where(
-                (covered == -1) | (covered == other), other, np.where(other == -1, covered, -2)
-            )
-            wanted, low, high = wanted | also, np.minimum(low, below), np.maximum(high, above)
-        return elements, (covered, wanted, low, high)
+        own = (np.full(columns, -1, np.int64), np.zeros(columns, np.bool_),
+               np.full(columns, np.inf), np.full(columns, -np.inf))  # fmt: skip
+        bad = _element_windows(array, owner, inserted, radii, *known, 0, m,
+                               *elements, *own, *tables)  # fmt: skip
+        if bad >= 0:
+            raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
+        return elements, own
 
     def without(self, objects: np.ndarray) -> np.ndarray:
         """``bool (N,)``: what :func:`ray_occlusion` removes of the points without those of
@@ -404,37 +387,26 @@ class RayOcclusion:
 
     def _decide(self, alive: np.ndarray, pending: np.ndarray | None) -> np.ndarray:
         """The verdict with the objects ``alive`` only, deciding the points of ``pending``
-        (``bool (N,)``; ``None``: all); in two interleaved halves, one on the pool's
-        thread when it is free."""
+        (``bool (N,)``; ``None``: all)."""
         removed = np.zeros(len(self._owner), dtype=bool)
         if pending is None:
             pending = np.ones(len(self._owner), dtype=bool)
         tables, index = self._tables.geometry, self._index
         nearest = _inserted_nearest(*index[:3], *index[4:5], *index[6:10], alive)
-        parts = 1 if self._pool is None else 2
-
-        def decide(part: int) -> None:
-            _ray_decide(
-                self._inserted,
-                self._radii,
-                *index,
-                *nearest,
-                alive,
-                pending,
-                part,
-                parts,
-                self._tolerance,
-                removed,
-                tables[4],  # offsets
-                tables[1],  # edge_lut
-                tables[-1],  # constants
-            )
-
-        _shared_chunks(decide, range(parts), self._pool)
+        _ray_decide(
+            self._inserted,
+            self._radii,
+            *index,
+            *nearest,
+            alive,
+            pending,
+            self._tolerance,
+            removed,
+            tables[4],  # offsets
+            tables[1],  # edge_lut
+            tables[-1],  # constants
+        )
         return removed
-
-
-_SPLIT_ELEMENTS = 2000  # inserted points from which their windows are found in two halves
 
 
 def element_radii(points: np.ndarray, owner: np.ndarray) -> np.ndarray:
@@ -1296,8 +1268,6 @@ def _ray_decide(
     other,
     alive,
     pending,
-    part,
-    parts,
     tolerance,
     removed,
     offsets,
@@ -1305,30 +1275,28 @@ def _ray_decide(
     constants,
 ):  # pragma: no cover - numba
     # Sets `removed` of the points of `pending` from _ray_index's work, with the objects
-    # `alive` only (the points of the others are removed), for every `parts`-th original
-    # candidate and inserted point from `part` on (the parts write disjoint entries, so
-    # threads may take them at once). The windows and original points that _ray_index kept
-    # for all the objects cover those of any of them: a column's `covered` may name several
-    # objects where one is left, which only costs a look. nearest, nearest_owner, other: per
-    # cell, _inserted_nearest of the objects alive.
+    # `alive` only (the points of the others are removed). The windows and original points
+    # that _ray_index kept for all the objects cover those of any of them: a column's `covered`
+    # may name several objects where one is left, which only costs a look. nearest,
+    # nearest_owner, other: per cell, _inserted_nearest of the objects alive.
     m = inserted.shape[0]
     # The original points: behind an element along their own ray.
     found = candidates.shape[0]
     ask = np.zeros(found, np.bool_)
-    for q in range(part, found, parts):
+    for q in range(found):
         ask[q] = pending[candidates[q]]
     hidden = _behind_elements(
         near, beam, column, distance, np.full(found, -1, np.int64), ask, alive, covered, slot,
         used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
         edge_lut, constants,
     )  # fmt: skip
-    for q in range(part, found, parts):
+    for q in range(found):
         if ask[q]:
             removed[candidates[q]] = hidden[q]
     # The inserted returns: behind the frame or another object in their cell, or else behind
     # another object's elements along their ray.
     ask = np.zeros(m, np.bool_)
-    for j in range(part, m, parts):
+    for j in range(m):
         i = inserted[j]
         if not alive[element_owner[j]]:
             removed[i] = True
@@ -1348,7 +1316,7 @@ def _ray_decide(
         used, top, bottom, offsets, rel, radii, element_owner, entries, start, tolerance,
         edge_lut, constants,
     )  # fmt: skip
-    for j in range(part, m, parts):
+    for j in range(m):
         if ask[j]:
             removed[inserted[j]] = hidden[j]
 

@@ -6,13 +6,12 @@ between them; near the outline an element reaches past the box that holds the ob
 would hide frame points beside it that the sensor saw. An object lies in its box, so a point
 whose sight line (the segment from the sensor to it) enters no object's box is never hidden by
 one: :func:`sight_lines_cross` finds the points that may be. Imports :mod:`drcpo.errors`,
-:mod:`drcpo.geometry`, :mod:`drcpo.occlusion.rays` and :mod:`drcpo.occlusion.threads` only.
+:mod:`drcpo.geometry` and :mod:`drcpo.occlusion.rays` only.
 """
 
 from __future__ import annotations
 
 import math
-from concurrent.futures import Executor
 
 import numba
 import numpy as np
@@ -20,7 +19,6 @@ import numpy as np
 from drcpo.errors import DataError
 from drcpo.geometry import heading_terms
 from drcpo.occlusion.rays import _slab
-from drcpo.occlusion.threads import _halves
 
 __all__ = ["sight_lines_cross"]
 
@@ -31,7 +29,6 @@ def sight_lines_cross(
     boxes: np.ndarray,
     own: np.ndarray | None = None,
     margin: float = 0.0,
-    pool: Executor | None = None,
 ) -> np.ndarray:
     """``bool (N,)``: whether the segment from ``origin`` to each point enters a box before it.
 
@@ -43,8 +40,6 @@ def sight_lines_cross(
         own: ``int (N,)`` the box each point belongs to, which its own sight line may cross
             (-1: none); by default none.
         margin: metres, >= 0.
-        pool: a running one-thread pool whose thread takes half of the points when it is
-            free (the answer does not depend on it).
 
     A segment enters a box when the ray from ``origin`` through the point meets it (slab
     test) at a distance less than the point's; a point inside a box is entered.
@@ -67,17 +62,8 @@ def sight_lines_cross(
     if not (isinstance(margin, (int, float)) and margin >= 0.0):
         raise DataError(f"margin must be a distance >= 0, got {margin!r}")
     crossed = np.zeros(len(xyz), dtype=bool)
-    cos, sin = heading_terms(boxes)
-
-    def part(start: int, stop: int) -> None:
-        rows = slice(start, stop)
-        _cross(xyz[rows], origin, boxes, cos, sin, own[rows], float(margin), crossed[rows])
-
-    _halves(part, len(xyz), pool, _SPLIT_POINTS)
+    _cross(xyz, origin, boxes, *heading_terms(boxes), own, float(margin), crossed)
     return crossed
-
-
-_SPLIT_POINTS = 4000  # points from which the test is taken in two halves
 
 
 @numba.njit(cache=True, nogil=True)

@@ -4,7 +4,7 @@ One module per step: :mod:`~drcpo.transforms.base` (the contract, composition, s
 registry), :mod:`~drcpo.transforms.global_aug` (flip, rotation, scaling),
 :mod:`~drcpo.transforms.gt_sampling` (the conventional ground-truth sampling),
 :mod:`~drcpo.transforms.drcpo` (DR.CPO) and the helpers they share
-(:mod:`~drcpo.transforms.insertion`, :mod:`~drcpo.transforms.work_queue`).
+(:mod:`~drcpo.transforms.insertion`).
 """
 
 from drcpo.transforms.base import (

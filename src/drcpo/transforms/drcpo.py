@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from functools import cache, partial
 from typing import Any
 
@@ -20,11 +19,11 @@ from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
 from drcpo.index import indexed_mask
 from drcpo.occlusion.render import radius_cap
-from drcpo.occlusion.view_windows import box_windows, grown_boxes, window_spans
+from drcpo.occlusion.view_windows import grown_boxes, window_spans
 from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
 from drcpo.transforms import sensor_steps, sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
-from drcpo.transforms.drcpo_parts import Insertion, Placed
+from drcpo.transforms.drcpo_parts import Insertion
 from drcpo.transforms.insertion import (
     BOX_SOURCE,
     BoxQuery,
@@ -35,14 +34,12 @@ from drcpo.transforms.insertion import (
     update_box_metadata,
     with_box_sources,
 )
-from drcpo.transforms.work_queue import WorkQueue, result_if_done, spare_core
 
 __all__ = [
     "DRCPO",
 ]
 
 
-_CHUNK = 6  # objects built per compiled call while s-HPR works on the ones before
 _FIT_PAD = 1e-4  # metres between a label's moved face and the point beyond it (see box_holding)
 
 
@@ -96,9 +93,6 @@ class DRCPO(Transform):
         index: its :class:`~drcpo.index.CandidateIndex`.
         config: a :class:`~drcpo.config.DRCPOConfig` (the paper defaults when ``None``) or a
             mapping of its keys.
-        workers: threads a call may use, 1 or 2; ``None`` (default): two when the process may
-            use a second CPU, checked on every call (a forked data-loader worker pinned to one
-            core gets one). The output does not depend on it; it is not part of the config.
 
     The transform holds only read-only state (database, index, config, per-class row pools),
     so it is safe to share with forked workers.
@@ -111,11 +105,7 @@ class DRCPO(Transform):
         database: GroundTruthDatabase,
         index: Any,
         config: DRCPOConfig | Mapping[str, Any] | None = None,
-        workers: int | None = None,
     ) -> None:
-        if workers not in (None, 1, 2):
-            raise ConfigError(f"DRCPO workers = {workers!r}; allowed: 1, 2 or None (auto)")
-        self.workers = workers
         if isinstance(config, Mapping) or config is None:
             config = from_dict(DRCPOConfig, config, "drcpo")
         if not isinstance(config, DRCPOConfig):
@@ -176,14 +166,6 @@ class DRCPO(Transform):
         if not self._render_objects:
             return None
         return rng.integers(0, 2**63 - 1, size=count, dtype=np.int64)
-
-    def _two_threads(self) -> bool:
-        """Whether this call runs work on a second thread (see ``workers``)."""
-        return self.workers == 2 or (self.workers is None and spare_core())
-
-    def _hpr_workers(self) -> int | None:
-        """The ``workers`` of the HPR calls: one thread when this transform has one."""
-        return 1 if self.workers == 1 else None
 
     def _check_index(self, classes: Sequence[str]) -> None:
         """The index must partition and mirror each class as construction does (it does when
@@ -266,87 +248,64 @@ class DRCPO(Transform):
             for name in gone:  # (the last step would drop them: they hold no room meanwhile)
                 stats.label_dropped(str(name))
         objects: list[Any] = []
-        placed: Future | None = None  # of a Placed
         dim = frame.points.shape[1]
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            frame_grid = self._frame_grid(frame, rows, pool)
-            # s-HPR of each object, done by this thread and the pool's when it is free.
-            s_hpr = WorkQueue(pool if self._two_threads() else None)
-            if self.config.construction.mode == "partition":
-                with stats.stage("drcpo.placement", len(frame)):
-                    boxes, accepted, owners = self._place(
-                        frame, rows, None, rng, stats, frame_grid, pool, seen
-                    )
-                    rows = rows[accepted]
-                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
-                seeds = self._render_seeds(len(boxes), rng)
-                # With placement first, objects go to s-HPR chunk by chunk as they are built
-                # (the answers do not depend on it); the construction stage's time then
-                # includes the s-HPR work done meanwhile.
-                with stats.stage("drcpo.construction", 0) as record:
-                    queue = partial(self._queue_s_hpr, s_hpr, boxes, dim, seen, seeds)
-                    objects = self._construct(rows, rng, stats, queue)
-                    record["points_out"] = sum(len(o.points) for o in objects)
-            else:  # whole: the box grows while constructing, so place with the final size
-                with stats.stage("drcpo.construction", 0) as record:
-                    objects = self._construct(rows, rng, stats)
-                    record["points_out"] = sum(len(o.points) for o in objects)
-                with stats.stage("drcpo.placement", len(frame)):
-                    dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
-                    boxes, accepted, owners = self._place(
-                        frame, rows, dims, rng, stats, frame_grid, pool, seen
-                    )
-                    rows, objects = rows[accepted], [objects[i] for i in accepted]
-                    placed = self._placed_task(frame, boxes, rows, owners, frame_grid, pool)
-                seeds = self._render_seeds(len(boxes), rng)
-                self._queue_s_hpr(s_hpr, boxes, dim, seen, seeds, 0, objects)
-            if seen is not None and seen.after_placing is not None:  # (displace_attempts)
-                seen, frame = seen.after_placing, seen.after_placing.frame
-            points_in = sum(len(o.points) for o in objects)
-            with stats.stage("drcpo.self_occlusion", points_in) as record:
-                done = s_hpr.results()
-                visible = [done[k] for k in range(len(rows))]
-                if seen is not None and seen.placing is not None:  # (repose_attempts)
-                    boxes, visible = seen.placing.repose(seen, boxes, visible, lambda k, box: (
-                        self._object_s_hpr(objects[k].points, box, dim, seen.sensor, seeds[k])
-                    ), self.config.min_points_after)  # fmt: skip
-                insertions = self._insertions(rows, boxes, visible, stats)
-                record["points_out"] = sum(len(i.points) for i in insertions)
-            with stats.stage("drcpo.insert", len(frame)) as record:
-                points, owner, cleared_by = self._insert(
-                    frame, insertions, result_if_done(placed), clear=seen is None
+        frame_grid = self._frame_grid(frame, rows)
+        if self.config.construction.mode == "partition":
+            with stats.stage("drcpo.placement", len(frame)):
+                boxes, accepted = self._place(frame, rows, None, rng, stats, frame_grid, seen)
+                rows = rows[accepted]
+            seeds = self._render_seeds(len(boxes), rng)
+            with stats.stage("drcpo.construction", 0) as record:
+                objects = self._construct(rows, rng, stats)
+                record["points_out"] = sum(len(o.points) for o in objects)
+        else:  # whole: the box grows while constructing, so place with the final size
+            with stats.stage("drcpo.construction", 0) as record:
+                objects = self._construct(rows, rng, stats)
+                record["points_out"] = sum(len(o.points) for o in objects)
+            with stats.stage("drcpo.placement", len(frame)):
+                dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
+                boxes, accepted = self._place(frame, rows, dims, rng, stats, frame_grid, seen)
+                rows, objects = rows[accepted], [objects[i] for i in accepted]
+            seeds = self._render_seeds(len(boxes), rng)
+        if seen is not None and seen.after_placing is not None:  # (displace_attempts)
+            seen, frame = seen.after_placing, seen.after_placing.frame
+        points_in = sum(len(o.points) for o in objects)
+        with stats.stage("drcpo.self_occlusion", points_in) as record:
+            sensor = seen.sensor if seeds is not None else None
+            visible = [
+                self._object_s_hpr(
+                    built.points, boxes[k], dim, sensor, None if seeds is None else int(seeds[k])
                 )
-                record["points_out"] = len(points)
-            with stats.stage("drcpo.external_occlusion", len(points)) as record:
-                grid = frame_grid() if frame_grid is not None and insertions else None
-                helper = pool if self._two_threads() else None
-                keep, dropped = self._external_occlusion(
-                    points,
-                    owner,
-                    insertions,
-                    grid,
-                    cleared_by,
-                    helper,
-                    result_if_done(placed),
-                    seen,
-                )
-                record["points_out"] = int(keep.sum())
-            with stats.stage("drcpo.labels", int(keep.sum())) as record:
-                out = self._settle(
-                    frame, points, owner, keep, dropped, cleared_by, insertions, stats
-                )
-                record["points_out"] = len(out)
+                for k, built in enumerate(objects)
+            ]
+            if seen is not None and seen.placing is not None:  # (repose_attempts)
+                boxes, visible = seen.placing.repose(seen, boxes, visible, lambda k, box: (
+                    self._object_s_hpr(objects[k].points, box, dim, seen.sensor, seeds[k])
+                ), self.config.min_points_after)  # fmt: skip
+            insertions = self._insertions(rows, boxes, visible, stats)
+            record["points_out"] = sum(len(i.points) for i in insertions)
+        with stats.stage("drcpo.insert", len(frame)) as record:
+            points, owner, cleared_by = self._insert(frame, insertions, clear=seen is None)
+            record["points_out"] = len(points)
+        with stats.stage("drcpo.external_occlusion", len(points)) as record:
+            grid = frame_grid() if frame_grid is not None and insertions else None
+            keep, dropped = self._external_occlusion(
+                points, owner, insertions, grid, cleared_by, seen
+            )
+            record["points_out"] = int(keep.sum())
+        with stats.stage("drcpo.labels", int(keep.sum())) as record:
+            out = self._settle(frame, points, owner, keep, dropped, cleared_by, insertions, stats)
+            record["points_out"] = len(out)
         if seen is not None and (used := seen.record()) is not None:
             stats.sensor_used(used)
         return out
 
     def _frame_grid(
-        self, frame: Frame, rows: np.ndarray, pool: ThreadPoolExecutor
+        self, frame: Frame, rows: np.ndarray
     ) -> Callable[[], occlusion.FrameGrid] | None:
         """e-HPR's grid of the frame's points (scope ``inserted``, and the ``occluded`` test
-        of placement), as a call that returns it: on two cores it is built on ``pool``
-        meanwhile (it does not depend on the objects), else when first asked for. ``None``
-        when nothing will need it."""
+        of placement), as a call that builds it when first asked for and then returns it;
+        ``None`` when nothing will need it."""
         settings = self.config.external_occlusion
         needed = settings.enabled and settings.mode == "hpr"
         needed &= (
@@ -355,32 +314,11 @@ class DRCPO(Transform):
         if not needed or len(rows) == 0:
             return None
         radius, viewpoint = self.e_hpr_setting()
-        # In this thread's memory, wherever built: the previous call's grid is done with.
+        # In this thread's memory: the previous call's grid is done with.
         memory = occlusion.thread_grid_memory()
-        build = partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius, memory=memory)
-        return pool.submit(build).result if self._two_threads() else cache(build)
-
-    def _placed_task(
-        self,
-        frame: Frame,
-        boxes: np.ndarray,
-        rows: np.ndarray,
-        owners: np.ndarray | None,
-        frame_grid: Callable[[], occlusion.FrameGrid] | None,
-        pool: ThreadPoolExecutor,
-    ) -> Future | None:
-        """On two cores, start on ``pool`` working out the :class:`Placed` of the placed
-        ``boxes`` (of source ``rows``; ``owners``: the room each frame point lies in, if known)
-        while the objects are built; its future, or ``None`` when nothing is started."""
-        if frame_grid is None or len(boxes) == 0 or not self._two_threads():
-            return None
-        _, viewpoint = self.e_hpr_setting()
-
-        def place() -> Placed:
-            rooms = owners if owners is not None else self._room_owners(frame, boxes)
-            return Placed(boxes, rooms, rows, box_windows(grown_boxes(boxes), viewpoint))
-
-        return pool.submit(place)
+        return cache(
+            partial(occlusion.FrameGrid.build, frame.points, viewpoint, radius, memory=memory)
+        )
 
     def _sample(self, rng: np.random.Generator, stats: Stats) -> np.ndarray:
         """Source rows ``int64 (S,)``: per class, without replacement, from its pool."""
@@ -402,56 +340,40 @@ class DRCPO(Transform):
         rng: np.random.Generator,
         stats: Stats,
         frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
-        pool: ThreadPoolExecutor | None = None,
         seen: sensor_steps.SensorFrame | None = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Placed boxes ``(A, 7)``, the indices (into ``rows``) of the placed objects and, when
-        worked out, the room (see :attr:`room`) each frame point lies in (``int64 (N,)``, -1:
-        none). With ``seen`` (the sensor-true steps), the ground is the frame's before earlier
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects. With
+        ``seen`` (the sensor-true steps), the ground is the frame's before earlier
         stages added objects, and with e-HPR mode ``sensor`` the occlusion test counts the rays
         that would reach each box."""
         if len(rows) == 0:
-            return np.zeros((0, 7)), np.zeros(0, np.int64), None
+            return np.zeros((0, 7)), np.zeros(0, np.int64)
         source = np.asarray(self.database.boxes[rows], dtype=np.float64)
         dims = source[:, 3:6] if dims is None else dims
         camera = self.config.placement.camera_fov
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        # No ground given: placement estimates it from the frame's points (on this thread; see
-        # docs/measurements.md for why not on the second one).
+        # No ground given: placement estimates it from the frame's points.
         ground = seen.ground if seen is not None else None
         rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
         if self._occlusion_along_rays:
             occluding = self.config.external_occlusion
-            holes = pool if occluding.fill_holes and self._two_threads() else None
             settings = (rng, self._placement[fov], occluding.min_visible_rays)
-            settings += (1.0 if limit is None else limit, holes)
+            settings += (1.0 if limit is None else limit,)
             seen.placing = sensor_steps.Placing(seen, rounds, dims, source, *settings)
             result, gone = seen.placing.first_pass()
             for name in gone:
                 stats.label_dropped(str(name))
-            return (*self._placement_result(result, rows, stats), None)
-        last = None  # the occlusion test's last round: boxes placed before, owners, verdicts
+            return self._placement_result(result, rows, stats)
         while (drawn := rounds.next_round()) is not None:
             hidden = None
             if check and len(drawn.boxes):
                 everything = np.concatenate([drawn.placed, drawn.boxes])
                 owners = self._room_owners(frame, everything)
-                hidden = self._occluded(
-                    frame, drawn.boxes, everything, owners, frame_grid, limit, pool
-                )
-                last = (len(drawn.placed), owners, hidden)
+                hidden = self._occluded(frame, drawn.boxes, everything, owners, frame_grid, limit)
             rounds.settle(hidden)
-        boxes, accepted = self._placement_result(rounds.result(), rows, stats)
-        if last is None or not len(boxes):
-            return boxes, accepted, None
-        before, owners, hidden = last
-        if before or len(boxes) != int((~hidden).sum()):  # placed over several tries
-            return boxes, accepted, self._room_owners(frame, boxes)
-        renumber = np.full(len(hidden) + 1, -1, dtype=np.int64)  # (index -1: no room)
-        renumber[np.flatnonzero(~hidden)] = np.arange(len(boxes))
-        return boxes, accepted, renumber[owners]
+        return self._placement_result(rounds.result(), rows, stats)
 
     def _placement_result(
         self, result: placement.PlacementResult, rows: np.ndarray, stats: Stats
@@ -475,7 +397,6 @@ class DRCPO(Transform):
         owners: np.ndarray,
         frame_grid: Callable[[], occlusion.FrameGrid] | None,
         limit: float,
-        pool: ThreadPoolExecutor | None = None,
     ) -> np.ndarray:
         """``bool (B,)``: ``boxes`` whose sensor-facing surface e-HPR would hide behind the
         frame's points by at least ``limit``; the points in the rooms of ``everything`` placed
@@ -491,56 +412,23 @@ class DRCPO(Transform):
             grid = frame_grid()
             if not grid.groups_apply(samples):
                 return np.zeros(len(boxes), dtype=bool)
-            helper = pool if self._two_threads() else None
-            return grid.hidden_groups(samples, offsets, owners >= 0, limit, helper)
+            return grid.hidden_groups(samples, offsets, owners >= 0, limit)
         z_buffer = OcclusionMap(frame.points, viewpoint)
         return z_buffer.occluded(boxes, cleared=everything) >= limit
 
-    def _construct(
-        self,
-        rows: np.ndarray,
-        rng: np.random.Generator,
-        stats: Stats,
-        on_chunk: Callable[[int, list[Any]], None] | None = None,
-    ) -> list[Any]:
-        """Constructed objects; with ``on_chunk``, built :data:`_CHUNK` at a time and handed to
-        it as they come (see :func:`~drcpo.construction.construct_chunks`)."""
-        chunks = construction.construct_chunks(
+    def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
+        """The sampled objects of source ``rows`` constructed."""
+        objects = construction.construct_objects(
             self.database,
             rows,
             self.index.candidates[rows],
             rng,
             self.config.construction,
             self.index.max_counts,
-            chunk=_CHUNK if on_chunk is not None else None,
         )
-        objects: list[Any] = []
-        for first, built in chunks:
-            objects += built
-            if on_chunk is not None:
-                on_chunk(first, built)
         for name, built in zip(self.database.names[rows], objects, strict=True):
             stats.construction(str(name), built.iterations)
         return objects
-
-    def _queue_s_hpr(
-        self,
-        work: WorkQueue,
-        boxes: np.ndarray,
-        dim: int,
-        seen: sensor_steps.SensorFrame | None,
-        seeds: np.ndarray | None,
-        first: int,
-        objects: Sequence[Any],
-    ) -> None:
-        """Queue on ``work`` the s-HPR of ``objects`` (numbers ``first``, ``first + 1``, ... of
-        ``boxes``), placed with the frame's ``dim`` columns; mode ``sensor``: rendered through
-        ``seen``'s sensor, object ``k`` with ``seeds[k]``."""
-        sensor = seen.sensor if seeds is not None else None
-        for k, built in enumerate(objects, first):
-            seed = None if seeds is None else int(seeds[k])
-            work.add(k, partial(self._object_s_hpr, built.points, boxes[k], dim, sensor, seed))
-        work.start()
 
     def _object_s_hpr(
         self,
@@ -567,7 +455,6 @@ class DRCPO(Transform):
                 settings.radius_factor,
                 viewpoint=self._mount,
                 method="reference",
-                workers=1,
             )
             points = take_rows(points, visible)
         return points, box_holding(box, points, _FIT_PAD)
@@ -595,21 +482,17 @@ class DRCPO(Transform):
         self,
         frame: Frame,
         insertions: Sequence[Insertion],
-        placed: Placed | None = None,
         clear: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points after insertion (the frame's points outside the objects' room, see
         :attr:`room`, then the objects'), each point's owner (-1: an original point, else the
         insertion's number) and, per frame point, the insertion it had to make room for (-1:
-        none). ``placed``: see :meth:`_placed_task`; its owners are reused when every placed
-        object is inserted. ``clear=False`` (e-HPR mode ``sensor``, which decides each frame
+        none). ``clear=False`` (e-HPR mode ``sensor``, which decides each frame
         point along its ray instead): no room is cleared."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
-        if clear and placed is not None and len(placed.boxes) == len(insertions):  # same boxes
-            cleared_by = placed.owners
-        elif clear:
+        if clear:
             cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
         original = cleared_by < 0
         points = np.concatenate(
@@ -629,8 +512,6 @@ class DRCPO(Transform):
         insertions: Sequence[Insertion],
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
-        pool: ThreadPoolExecutor | None = None,
-        placed: Placed | None = None,
         seen: sensor_steps.SensorFrame | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
@@ -644,15 +525,14 @@ class DRCPO(Transform):
         the original points behind the boxes of the objects that keep enough points, in their
         view windows (the directions they cover), those hidden with the objects but visible
         without them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
-        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again;
-        ``pool`` may lend a thread; ``placed``: see :meth:`_placed_task`."""
+        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again."""
         settings = self.config.external_occlusion
         if self._occlusion_along_rays and len(points):
             first = int(np.count_nonzero(owner < 0))
             count = partial(self._dropped, points[first:], owner[first:], insertions)
             boxes = [i.box for i in insertions]
             minimum = self.config.min_points_after
-            return seen.occlusion(points, owner, count, minimum, settings.fill_holes, boxes, pool)
+            return seen.occlusion(points, owner, count, minimum, settings.fill_holes, boxes)
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()
         if settings.enabled and len(points) and settings.scope == "frame":
@@ -663,7 +543,6 @@ class DRCPO(Transform):
                 radius=radius,
                 viewpoint_z=viewpoint[2],
                 viewpoint_xy=viewpoint[:2] if self._mounted else None,
-                workers=self._hpr_workers(),
             )
         if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
             return keep, self._dropped(points, owner, insertions, keep)
@@ -676,19 +555,11 @@ class DRCPO(Transform):
             mode=settings.mode,
             grid=grid if cleared_by is not None else None,
             cleared=None if cleared_by is None else cleared_by >= 0,
-            workers=self._hpr_workers(),
-            pool=pool,
         )
         # The label rule on the inserted points left; the view windows of the objects kept.
         dropped = self._dropped(points[first:], owner[first:], insertions, ~scope.removed_inserted)
         kept = np.flatnonzero(~dropped)
-        known = placed.windows_of(insertions) if placed is not None else None
-        windows = window_spans(
-            grown_boxes([insertions[k].placed for k in kept]),
-            viewpoint,
-            True,
-            None if known is None else [w[kept] for w in known],
-        )
+        windows = window_spans(grown_boxes([insertions[k].placed for k in kept]), viewpoint, True)
         removed = np.concatenate([scope.removed_behind(windows), scope.removed_inserted])
         return ~removed, dropped
 

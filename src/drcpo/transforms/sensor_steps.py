@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from functools import cache, cached_property, partial
 from typing import Any
@@ -65,12 +64,6 @@ __all__ = [
 _ADDED_MARGIN = 0.2  # metres around an added box whose points count as the added object's
 _REPOSE_PASSES = 2  # new poses for the objects hidden once rendered: passes at most
 
-#: the holes of some inserted objects' returns (``gaps float64 (G, 3)``, ``gap_owner int64
-#: (G,)``, as :func:`~drcpo.occlusion.silhouettes.silhouette_gaps` gives them) and the
-#: surface-element radii of their points (``float64 (P,)``, in order, as
-#: :func:`~drcpo.occlusion.rays.element_radii` gives them)
-Surfaces = tuple[np.ndarray, np.ndarray, np.ndarray]
-
 
 def added_boxes(frame: Frame) -> np.ndarray:
     """``bool (M,)``: the frame's boxes that an earlier stage added (``box_source`` not ``""``)."""
@@ -97,7 +90,6 @@ class SensorFrame:
     #: the placement of the call (kept through :meth:`without_added`, for its new poses)
     placing: Placing | None = field(default=None, init=False, repr=False)
     _view: tuple[tuple[int, float], PlacedView] | None = field(default=None, init=False, repr=False)
-    _surfaces: Callable[[], Surfaces] | None = field(default=None, init=False, repr=False)
 
     @cached_property
     def added(self) -> np.ndarray:
@@ -203,25 +195,6 @@ class SensorFrame:
         keep = ~_behind_other_owner(cell, distance, self.added_owner, float(tolerance), cells)
         return self.added_counts(keep) < min_points
 
-    def find_added_surfaces(self, pool: Executor | None) -> None:
-        """Start finding :meth:`added_surfaces` on ``pool``'s thread (the answer does not
-        depend on it; nothing is started without a pool or added objects)."""
-        if pool is None or self._surfaces is not None or not self.added.any():
-            return
-        _ = self.cells, self.added_owner  # (found here: the pool's thread only reads them)
-        self._surfaces = pool.submit(self._own_surfaces).result
-
-    def added_surfaces(self) -> Surfaces | None:
-        """The holes and surface-element radii of the added objects (:data:`Surfaces`, as
-        :func:`with_silhouette_gaps` finds them, numbered among the added ones), when
-        :meth:`find_added_surfaces` started finding them; ``None`` otherwise."""
-        return None if self._surfaces is None else self._surfaces()
-
-    def _own_surfaces(self) -> Surfaces:
-        points, owner = self.frame.points, self.added_owner
-        gaps, gap_owner = silhouette_gaps(points, owner, self.sensor, self.cells)
-        return gaps, gap_owner, element_radii(points, owner)
-
     def without_hidden_added(self, min_points: int) -> tuple[SensorFrame, np.ndarray]:
         """This frame without the added objects of :meth:`hidden_added` (see
         :meth:`without_added`) and the names of those dropped."""
@@ -263,9 +236,6 @@ class SensorFrame:
             pair = points[point] & ~drop[box]
             row = np.cumsum(points) - 1
             out.__dict__["_added_members"] = (row[point[pair]], number[box[pair]])
-        if self._surfaces is not None:  # (per object: the kept ones' own)
-            kept_points = ~drop[self.added_owner[self.added_owner >= 0]]
-            out._surfaces = cache(partial(_kept_surfaces, self._surfaces, ~drop, kept_points))
         return out, frame.names[boxes]
 
     def occlusion(
@@ -276,12 +246,11 @@ class SensorFrame:
         min_points: int,
         fill_holes: bool,
         boxes: Sequence[np.ndarray],
-        pool: Executor | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """:func:`sensor_occlusion` of this frame after insertion (``points``: its points
         first, all of them, then DR.CPO's objects', whose ``boxes`` these are), with what
         it knows: its points' cells, the added object holding each, the added objects'
-        boxes, counts and surfaces."""
+        boxes and counts."""
         return sensor_occlusion(
             points,
             owner,
@@ -293,8 +262,6 @@ class SensorFrame:
             fill_holes,
             self.boxes_with(boxes),
             self.cells,
-            pool,
-            self.added_surfaces(),
         )
 
     def hidden(
@@ -347,16 +314,12 @@ class Placing:
     config: PlacementConfig
     min_rays: int
     max_hidden: float
-    #: lends its thread to find the added objects' holes meanwhile (see
-    #: :meth:`SensorFrame.find_added_surfaces`); ``None``: none are found before
-    pool: Executor | None = None
     #: the objects the first pass placed (indices into ``dims``), once it ran
     accepted: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def first_pass(self) -> tuple[PlacementResult, np.ndarray]:
         """The placement and the names of the added objects displaced (see
         :func:`displace_added`; none with ``displace_attempts`` 0)."""
-        self.seen.find_added_surfaces(self.pool)
         result = place_along_rays(self.rounds, self.seen, self.min_rays, self.max_hidden)
         gone = np.zeros(0, dtype=str)
         if self.config.displace_attempts:
@@ -541,7 +504,7 @@ def render(
     points: np.ndarray, sensor: Sensor, seed: int, max_radius: float | None = None
 ) -> np.ndarray:
     """An object's placed ``points`` as ``sensor`` records them (its own generator from
-    ``seed``, so the answer does not depend on which thread renders it); ``max_radius``: the
+    ``seed``, so the answer does not depend on when it is rendered); ``max_radius``: the
     upper clip of its surface elements' radii (see :func:`~drcpo.occlusion.render.radius_cap`)."""
     rng = np.random.default_rng(seed)
     returns, _ = render_object(points, sensor, rng, max_radius=max_radius)
@@ -559,8 +522,6 @@ def sensor_occlusion(
     fill_holes: bool = False,
     boxes: np.ndarray | None = None,
     frame_cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    pool: Executor | None = None,
-    added_surfaces: Surfaces | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """e-HPR along the sensor's rays: points kept ``bool (N,)`` and DR.CPO's objects dropped
     ``bool (A,)``.
@@ -587,10 +548,6 @@ def sensor_occlusion(
             a box reaches it (:func:`~drcpo.occlusion.sightlines.sight_lines_cross`).
         frame_cells: the frame points' ray cells and distances, when known
             (:attr:`SensorFrame.cells`; found here otherwise).
-        pool: lends a thread for the surface elements' radii while the holes are found, and
-            for half of each verdict's points.
-        added_surfaces: the earlier-added objects' holes and radii, when found before
-            (:meth:`SensorFrame.added_surfaces`).
 
     Two passes: the first decides which objects keep too few returns (dropped); the second,
     without them, decides every point, so a dropped object hides nothing (the work of the
@@ -603,19 +560,16 @@ def sensor_occlusion(
     count, radii = len(points), None
     cells = cache(partial(_point_cell_arrays, points, first, sensor, frame_cells))
     if fill_holes:
-        known = None if added_surfaces is None else (first, added_surfaces)
-        points, combined, radii = with_silhouette_gaps(
-            points, combined, sensor, cells(), pool, known
-        )
+        points, combined, radii = with_silhouette_gaps(points, combined, sensor, cells())
     rays = RayOcclusion(
-        points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor), pool=pool
+        points, combined, sensor, radii, cells=_with_cells_of(cells(), points, sensor)
     )
     objects = int(combined.max(initial=-1)) + 1  # (those with points)
     if boxes is not None and len(boxes) < objects:
         raise DataError(f"boxes must hold one box per object, {objects}, got {len(boxes)}")
     gone = np.zeros(objects if boxes is None else len(boxes), dtype=bool)  # per object
     sight = partial(_in_sight, owner=combined[:count], points=points, boxes=boxes, cells=cells,
-                    sensor=sensor, pool=pool)  # fmt: skip
+                    sensor=sensor)  # fmt: skip
     removed = sight(rays.removed[:count], gone=gone)
     dropped = count_kept(~removed[first:])
     gone[:num_drcpo] = dropped
@@ -666,14 +620,12 @@ def _in_sight(
     cells: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]],
     sensor: Sensor,
     tolerance: float = 0.1,
-    pool: Executor | None = None,
 ) -> np.ndarray:
     """``removed`` (``bool (N,)``, points of object ``owner``, -1: the frame's own) with the
     points restored whose sight line from the mount enters no box of an object not ``gone``
     but their own, unless (an object's point) its ray cell (``cells()``: beam, column and
     distance of each) holds a return of another owner (the frame's included) nearer by
-    more than ``tolerance`` metres; ``removed`` itself without ``boxes``. ``pool``: lends a
-    thread for half of the sight lines."""
+    more than ``tolerance`` metres; ``removed`` itself without ``boxes``."""
     if boxes is None:
         return removed
     alive = (owner < 0) | ~gone[owner.clip(0)]
@@ -681,9 +633,7 @@ def _in_sight(
     kept = np.flatnonzero(~gone)
     number = np.full(len(gone) + 1, -1, dtype=np.int64)  # (index -1: none)
     number[kept] = np.arange(len(kept))
-    crossed = sight_lines_cross(
-        points[rows], sensor.mount, boxes[kept], number[owner[rows]], pool=pool
-    )
+    crossed = sight_lines_cross(points[rows], sensor.mount, boxes[kept], number[owner[rows]])
     free = rows[~crossed]
     if (owner[free] >= 0).any():
         beam, column, distance = cells()
@@ -701,8 +651,6 @@ def with_silhouette_gaps(
     owner: np.ndarray,
     sensor: Sensor,
     cells: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-    pool: Executor | None = None,
-    known: tuple[int, Surfaces] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``points`` ``(N, F)`` and ``owner`` ``(N,)`` with the holes of each inserted object's
     returns (:func:`~drcpo.occlusion.silhouettes.silhouette_gaps`) appended as points of that
@@ -710,41 +658,14 @@ def with_silhouette_gaps(
     default ones (:func:`~drcpo.occlusion.rays.element_radii`) for the points given, half an
     azimuth step across at its distance for a gap, so that a gap hides the rays of its own
     cell and not its neighbours'. The rows after the first ``N`` are never returns. ``cells``:
-    the points' ray cells, when known (see :func:`silhouette_gaps`); ``pool``: finds the
-    radii of the points given on its thread meanwhile. ``known``: ``(rows, surfaces)``, the
-    :data:`Surfaces` of the objects whose points all lie among the first ``rows``, numbered
-    there from 0 and here after every other object, found before (both are per object)."""
-    rows, found_before = (0, None) if known is None else known
-    rest = owner
-    if found_before is not None:
-        rest = owner.copy()
-        rest[:rows] = -1
-        if len(found_before[2]) != np.count_nonzero(owner[:rows] >= 0):
-            raise DataError(f"known radii must be one per inserted point of the first {rows}")
-    found = pool.submit(element_radii, points, rest) if pool is not None else None
-    gaps, gap_owner = silhouette_gaps(points, rest, sensor, cells)
-    given = element_radii(points, rest) if found is None else found.result()
-    if found_before is not None:  # (numbered after the others: by object, as found at once)
-        offset = int(rest.max(initial=-1)) + 1
-        gaps = np.concatenate([gaps, found_before[0]])
-        gap_owner = np.concatenate([gap_owner, found_before[1] + offset])
-        given = np.concatenate([found_before[2], given])
+    the points' ray cells, when known (see :func:`silhouette_gaps`)."""
+    gaps, gap_owner = silhouette_gaps(points, owner, sensor, cells)
+    given = element_radii(points, owner)
     extra = np.zeros((len(gaps), points.shape[1]), dtype=points.dtype)
     extra[:, :3] = gaps
     reach = np.linalg.norm(gaps - np.asarray(sensor.mount, dtype=np.float64), axis=1)
     radii = np.concatenate([given, reach * (sensor.azimuth_step / 2.0)])
     return np.concatenate([points, extra]), np.concatenate([owner, gap_owner]), radii
-
-
-def _kept_surfaces(
-    surfaces: Callable[[], Surfaces], kept: np.ndarray, kept_points: np.ndarray
-) -> Surfaces:
-    """Of ``surfaces()`` (of ``K`` objects), those of the objects ``kept`` (``bool (K,)``),
-    renumbered among them; ``kept_points``: whether each of the points' object is kept."""
-    gaps, gap_owner, radii = surfaces()
-    number = np.cumsum(kept) - 1
-    rows = kept[gap_owner]
-    return gaps[rows], number[gap_owner[rows]], radii[kept_points]
 
 
 @numba.njit(cache=True, nogil=True)
