@@ -167,3 +167,31 @@ def test_every_layered_package_is_in_the_architecture_document():
         package = (SRC / prefix.replace(".", "/")).is_dir()
         shown = f"{name}/" if package else f"{name}.py"
         assert shown in text or (not package and shown.split("/")[-1] in text), shown
+
+
+def threads_started(path: Path) -> list[str]:
+    """Where ``path`` starts threads: a thread pool or a ``threading.Thread``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            name = ast.unparse(node.func)
+            if name.split(".")[-1] in ("ThreadPoolExecutor", "Thread", "ThreadPool"):
+                found.append(f"{path.name}:{node.lineno} {name}")
+    return found
+
+
+def test_no_threads_inside_a_call():
+    # Parallelism comes from worker processes (data loaders, drcpo augment --workers, Ray).
+    started = [where for path in MODULES.values() for where in threads_started(path)]
+    assert started == []
+
+
+def test_the_thread_finder_finds_threads(tmp_path):
+    source = tmp_path / "threads.py"
+    source.write_text(
+        "import threading\nfrom concurrent.futures import ThreadPoolExecutor\n"
+        "pool = ThreadPoolExecutor(2)\nworker = threading.Thread(target=print)\n"
+    )
+    assert threads_started(source) == [
+        "threads.py:3 ThreadPoolExecutor", "threads.py:4 threading.Thread"
+    ]  # fmt: skip
