@@ -652,7 +652,41 @@ def summarise(
                     float(np.mean([r["seconds"]["cpu"] for r in mine])), 1
                 ),
             }
-    return {"ap": ap, "paired": paired, "controls": controls, "per_arm": per_arm}
+    decision = decide(paired, plan.arms) if "cda" in plan.arms else None
+    return {
+        "ap": ap, "paired": paired, "controls": controls, "per_arm": per_arm,
+        "decision": decision,
+    }  # fmt: skip
+
+
+#: Arms that never become the default: the floor and the negative control.
+NOT_CANDIDATES = ("none", "broken")
+DECISION_RULE = (
+    "the default is, of cda and the arms compared with it, one no worse than cda at any "
+    "subset (3D mean AP, paired 95 % interval) with the best paired mean 3D AP difference to "
+    "cda averaged over the subsets (cda: 0; a tie goes to cda, the simpler)"
+)
+
+
+def decide(paired: dict[str, Any], arms: tuple[str, ...]) -> dict[str, Any]:
+    """The default by :data:`DECISION_RULE`, with each candidate's mean difference to ``cda``
+    over the subsets and the subsets where it was worse or better."""
+    candidates: dict[str, Any] = {"cda": {"mean_difference": 0.0, "worse_at": [], "better_at": []}}
+    for arm in arms:
+        rows = paired.get(f"{arm} - cda")
+        if arm in ("cda", *NOT_CANDIDATES) or not rows:
+            continue
+        verdicts = {int(size): row["3d"]["mean"]["verdict"] for size, row in rows.items()}
+        candidates[arm] = {
+            "mean_difference": round(
+                float(np.mean([row["3d"]["mean"]["mean"] for row in rows.values()])), 2
+            ),
+            "worse_at": sorted(k for k, v in verdicts.items() if v == "worse"),
+            "better_at": sorted(k for k, v in verdicts.items() if v == "better"),
+        }
+    eligible = [arm for arm, c in candidates.items() if not c["worse_at"]]
+    chosen = max(eligible, key=lambda a: (candidates[a]["mean_difference"], a == "cda"))
+    return {"chosen": chosen, "rule": DECISION_RULE, "candidates": candidates}
 
 
 def mean_of_added(rows: list[dict[str, Any]], transform: str) -> dict[str, float]:
@@ -695,6 +729,14 @@ def print_table(summary: dict[str, Any], plan: Plan) -> None:
             f"control {control['pair']} at {control['frames']} frames: expected "
             f"{control['expected']}, got {control['verdict']} ({mark})"
         )
+    if summary.get("decision"):
+        decision = summary["decision"]
+        print(f"decision ({decision['rule']}): {decision['chosen']}")
+        for arm, c in decision["candidates"].items():
+            print(
+                f"{arm:>24}: mean 3D difference to cda {c['mean_difference']:+5.1f}, worse at "
+                f"{c['worse_at'] or 'no subset'}, better at {c['better_at'] or 'no subset'}"
+            )
     print("per training frame the detector saw (labels with >= 5 points; points; augmentation ms):")
     for arm, per_size in summary["per_arm"].items():
         for size, row in per_size.items():

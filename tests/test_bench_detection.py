@@ -116,6 +116,29 @@ def test_a_run_key_changes_with_what_the_run_depends_on():
     assert alias not in others and len(set(others)) == len(others)
 
 
+def _row(mean: float, verdict: str) -> dict:
+    return {"3d": {"mean": {"mean": mean, "verdict": verdict}}}
+
+
+def test_the_default_is_the_best_arm_never_worse_than_cda():
+    paired = {
+        "paper - cda": {"24": _row(1.0, "no difference"), "240": _row(0.5, "no difference")},
+        "bold - cda": {"24": _row(6.0, "better"), "240": _row(-3.0, "worse")},
+        "shy - cda": {"24": _row(0.2, "no difference"), "240": _row(0.0, "no difference")},
+        "none - cda": {"24": _row(9.0, "better"), "240": _row(9.0, "better")},  # never a default
+    }
+    decision = bench.decide(paired, ("none", "cda", "paper", "bold", "shy"))
+    assert decision["chosen"] == "paper"
+    assert decision["candidates"]["paper"]["mean_difference"] == 0.75
+    assert decision["candidates"]["bold"]["worse_at"] == [240]
+    assert decision["candidates"]["bold"]["better_at"] == [24]
+    assert "none" not in decision["candidates"]
+    # every arm below cda on average, or worse somewhere: cda stays; a tie goes to cda too
+    paired["paper - cda"]["240"] = _row(-2.5, "no difference")
+    paired["shy - cda"] = {"24": _row(0.0, "no difference")}
+    assert bench.decide(paired, ("cda", "paper", "bold", "shy"))["chosen"] == "cda"
+
+
 def test_comparisons_pair_each_arm_with_cda_and_drcpo_arms_with_paper():
     pairs = bench.comparisons(("none", "cda", "paper", "broken", "realistic"))
     assert pairs == [
@@ -158,6 +181,8 @@ def test_quick_grid_runs_end_to_end_and_reuses_finished_runs(tmp_path):
     )
     assert per_arm["cda"]["12"]["points_per_frame"] > 0
     assert set(result["environment"]) >= {"torch", "numpy", "numba", "torch_threads"}
+    assert result["decision"]["chosen"] in ("cda", "paper")  # never none nor broken
+    assert set(result["decision"]["candidates"]) == {"cda", "paper"}
     assert result["revision"]["code"] and result["runs_cached"] == 0
     assert (out / "detection.png").stat().st_size > 0
     runs = json.loads((out / "detection.json").read_text())["runs"]
