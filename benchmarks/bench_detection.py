@@ -433,9 +433,11 @@ def run_grid(work: Path, plan: Plan, data: dict[str, Any]) -> list[dict[str, Any
     context = multiprocessing.get_context("spawn")
     cores = context.Queue()
     available = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [None]
-    workers = 1 if plan.device != "cpu" else plan.workers
+    # With a GPU too: each process augments its samples on its core, then trains on the shared
+    # GPU (the detector is small), so several runs keep it busy.
+    workers = plan.workers
     for k in range(workers):
-        cores.put(available[k % len(available)] if plan.device == "cpu" else None)
+        cores.put(available[k % len(available)])
     runs = []
     with context.Pool(workers, initializer=_pin, initargs=(cores,)) as pool:
         for run in pool.imap_unordered(run_one, tasks):
@@ -800,7 +802,7 @@ def parse_plan(argv: list[str] | None) -> tuple[Plan, argparse.Namespace]:
     parser.add_argument("--seeds", type=int, nargs="+", help="seeds (default 0 1 2)")
     parser.add_argument("--steps", type=int, help="optimiser steps per run")
     parser.add_argument("--batch-size", type=int)
-    parser.add_argument("--workers", type=int, help="processes, one core each")
+    parser.add_argument("--workers", type=int, help="processes, one core each (also with cuda)")
     parser.add_argument("--street-angle", type=float, help="max |street yaw|, degrees")
     parser.add_argument("--curve-every", type=int, help="validation AP every N steps (a curve)")
     parser.add_argument("--replicates", type=int, help="bootstrap replicates")
