@@ -387,10 +387,12 @@ def run_one(task: dict[str, Any]) -> dict[str, Any]:
 
 
 def _settings(plan: Plan, frames: int, seed: int) -> dict[str, Any]:
+    # A GPU's arithmetic differs from the CPU's: its runs are its own (CPU keys as they were).
+    device = {} if plan.device == "cpu" else {"device": plan.device}
     return {
         "frames": frames, "seed": seed, "pool": plan.frames, "val_frames": plan.val_frames,
         "street_angle": plan.street_angle, "steps": plan.steps, "batch_size": plan.batch_size,
-        "curve_every": plan.curve_every,
+        "curve_every": plan.curve_every, **device,
     }  # fmt: skip
 
 

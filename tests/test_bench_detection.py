@@ -104,6 +104,7 @@ def test_a_run_key_changes_with_what_the_run_depends_on():
         bench.run_key(plan, 60, 0, "samples", "trainers", "val"),
         bench.run_key(plan, 60, 0, "samples", "trainer", "vals"),
         bench.run_key(bench.Plan(steps=7), 60, 0, "samples", "trainer", "val"),
+        bench.run_key(bench.Plan(device="cuda"), 60, 0, "samples", "trainer", "val"),
     ]
     assert key not in others and len(set(others)) == len(others)
     alias = bench.alias_key(plan, "cda", 60, 0, "abc")
