@@ -4,7 +4,7 @@
 # so a grid stopped half-way (or run again after a change that leaves augmentation alone) goes
 # on where it was. Extra arguments go to bench_detection.py, e.g.
 #   bash benchmarks/run_ablation.sh --work /tmp/det --seeds 0 1          # screening, CPU
-#   bash benchmarks/run_ablation.sh --work /tmp/det --device cuda        # a lent GPU, 3 seeds
+#   bash benchmarks/run_ablation.sh --work /tmp/det --device cuda --workers 12   # a lent GPU
 set -euo pipefail
 cd "$(dirname "$0")/.."
 arms=(
