@@ -30,6 +30,7 @@ arms=(
   # labels: construction keeps no point outside the source box, so the label is the source box
   # (by default points up to 5 cm outside are kept and the label grows to hold them)
   paper:construction.margin=0.0
+  paper:before_gt_sampling=true,placement.attempts=10,construction.margin=0.0
   # count parity: DR.CPO first, ground-truth sampling tops each class up
   paper:before_gt_sampling=true,placement.attempts=10
   realistic:before_gt_sampling=true
