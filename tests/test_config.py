@@ -303,6 +303,8 @@ BAD_VALUES = {
     "drcpo.placement.x_range": [200, 200],
     "drcpo.placement.y_range": [10, -10],
     "drcpo.placement.height": "sky",
+    "drcpo.placement.location": "anywhere",
+    "drcpo.placement.heading_range": 4.0,
     "drcpo.placement.max_non_ground_points": -1,
     "drcpo.placement.ground_tolerance": float("inf"),
     "drcpo.placement.attempts": 0,
