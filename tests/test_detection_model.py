@@ -234,6 +234,7 @@ def test_training_repeats_exactly_for_a_seed_and_hands_each_sample_its_generator
 
 
 def test_the_samples_digest_changes_with_any_point_box_or_name_and_only_then():
+    pytest.importorskip("torch", reason="the detector needs torch (pip install -e '.[detection]')")
     from detection.train import TrainConfig, augment_samples
 
     frames = _frames(2)
