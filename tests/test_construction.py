@@ -3,8 +3,10 @@ import pytest
 
 from drcpo.construction import (
     ConstructionConfig,
-    _gather,  # test seam: the numba gather kernel, against partition_index
+    _Box,  # test seam: the numba gather kernel, against partition_index
+    _gather,
     _numpy_sum,  # test seam: numpy.mean's pairwise sum, checked bit for bit
+    _stored,
     construct_chunks,
     construct_object,
     construct_objects,
@@ -198,29 +200,19 @@ def test_gather_kernel_matches_partition_index(database, rng):
     grid = (10, 4, 3)
     rows = rng.integers(0, 60, 40)
     cells = rng.integers(0, 120, 40)
+    stored = _stored(database)
     for mirror in (False, True):
         refs, count, near = np.zeros(1, np.int64), 0, np.zeros(1, np.int64)
         per_pair = []
         for row, cell in zip(rows, cells, strict=True):
-            refs, after, near = _gather(
-                np.asarray(database.points),
-                database.offsets,
-                row,
-                cell,
-                2 if mirror else 1,
-                dims,
-                np.array(grid),
-                0.05,
-                refs,
-                count,
-                near,
-            )
+            box = _Box(dims, np.array(grid), 0.05, 2 if mirror else 1)
+            refs, after, near = _gather(stored, row, cell, box, refs, count, near)
             per_pair.append(refs[count:after])
             count = after
         for row, cell, got in zip(rows, cells, per_pair, strict=True):
-            stored = np.arange(database.offsets[row], database.offsets[row + 1])
+            own = np.arange(database.offsets[row], database.offsets[row + 1])
             # Each point, then its mirror image (odd reference), in stored order.
-            want = np.stack([2 * stored, 2 * stored + 1], axis=1)[:, : 2 if mirror else 1]
+            want = np.stack([2 * own, 2 * own + 1], axis=1)[:, : 2 if mirror else 1]
             want = want.reshape(-1)
             np.testing.assert_array_equal(got, want[partition_mask(database, want, dims, cell)])
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -234,25 +235,16 @@ def _chunks(
     """The objects of :func:`construct_chunks`, ``step`` per compiled call."""
     if len(rows) == 0:
         return
-    points, offsets = _database_arrays(database)
+    stored = _stored(database)
+    limits = _Limits(float(config.margin), int(config.max_iterations), float(config.coverage))
     for first in range(0, len(rows), step):
         part = slice(first, first + step)
-        own = tuple(values[part] for values in settings)
+        sources = _Sources(rows[part], *(values[part] for values in settings))
         if config.mode == "partition":
-            out = _construct_partition(
-                points,
-                offsets,
-                rows[part],
-                candidates[part],
-                *own,
-                float(config.margin),
-                config.max_iterations,
-                float(config.coverage),
-                rng,
-            )
+            out = _construct_partition(stored, sources, candidates[part], limits, rng)
         else:
             orders = _whole_orders(candidates[part], rng, config.max_iterations)
-            out = _construct_whole(points, offsets, rows[part], orders, *own, config.coverage)
+            out = _construct_whole(stored, sources, orders, limits.coverage)
         yield first, _objects(*out)
 
 
@@ -362,9 +354,41 @@ def _objects(points, point_offsets, dims, iterations, added, added_offsets, init
     ]
 
 
-def _database_arrays(database) -> tuple[np.ndarray, np.ndarray]:
-    """Plain ndarray views (no copy) of the database's points and offsets, for numba."""
-    return np.asarray(database.points), np.asarray(database.offsets, dtype=np.int64)
+class _Stored(NamedTuple):
+    """The database as the kernels read it: plain ndarray views (no copy)."""
+
+    points: np.ndarray  # (P, 3 + C) float32, every object in its canonical pose
+    offsets: np.ndarray  # (n + 1,) int64: object k's points are points[offsets[k]:offsets[k + 1]]
+
+
+class _Sources(NamedTuple):
+    """The source objects of one compiled call, one row each."""
+
+    rows: np.ndarray  # (S,) int64 database rows
+    dims: np.ndarray  # (S, 3) float64 box sizes
+    grids: np.ndarray  # (S, 3) int64 partition grids
+    mirror: np.ndarray  # (S,) bool: the class is mirrored across the x axis
+    scales: np.ndarray  # (S, P_max) float64 density normalisers per partition
+    own_scale: np.ndarray  # (S,) bool: normalise by the object's own largest count instead
+
+
+class _Limits(NamedTuple):
+    margin: float  # metres outside the source box that points may lie (partition mode)
+    max_iterations: int
+    coverage: float  # share of fillable partitions above the threshold that ends an object
+
+
+class _Box(NamedTuple):
+    """One source object's box as the kernels cut it."""
+
+    dims: np.ndarray  # (3,) float64
+    grid: np.ndarray  # (3,) int64
+    margin: float
+    copies: int  # 2: each point and its mirror image
+
+
+def _stored(database) -> _Stored:
+    return _Stored(np.asarray(database.points), np.asarray(database.offsets, dtype=np.int64))
 
 
 # Compiled kernels -------------------------------------------------------------------------
@@ -373,43 +397,28 @@ def _database_arrays(database) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True, nogil=True)
-def _construct_partition(
-    points,
-    offsets,
-    rows,
-    candidates,
-    dims,
-    grids,
-    mirror,
-    scales,
-    own_scale,
-    margin,
-    max_iterations,
-    coverage,
-    rng,
-):
-    """``partition`` mode for every object of ``rows`` in turn (see the module docstring).
+def _construct_partition(stored, sources, candidates, limits, rng):
+    """``partition`` mode for every object of ``sources`` in turn (see the module docstring).
 
     Each iteration draws one candidate per deficient partition (ascending partition order, as
     ``rng.integers(0, K, size)`` draws), then adds the points that each drawn candidate (and
     its mirror image) has in that partition of the source box, in stored order, each mirror
     image right after its point. Returns what :func:`_objects` takes.
     """
-    n = rows.shape[0]
-    refs = np.empty(_capacity(offsets, rows), dtype=np.int64)
+    n = sources.rows.shape[0]
+    refs = np.empty(_capacity(stored.offsets, sources.rows), dtype=np.int64)
     added = np.empty(64, dtype=np.int64)
     n_refs = n_added = 0
     ref_offsets, added_offsets, iterations, initial, final = _per_object(n)
-    slot = np.empty(offsets.shape[0] - 1, dtype=np.int64)  # see _add_once
+    slot = np.empty(stored.offsets.shape[0] - 1, dtype=np.int64)  # see _add_once
     pool = np.empty(candidates.shape[1], dtype=np.int64)
     near = np.empty(1024, dtype=np.int64)
     for s in range(n):
-        copies = 2 if mirror[s] else 1
-        counts = np.zeros(grids[s, 0] * grids[s, 1] * grids[s, 2], dtype=np.int64)
-        refs, n_refs = _add_source(
-            points, offsets, rows[s], copies, dims[s], grids[s], margin, counts, refs, n_refs
-        )
-        scale, fillable = _normalisers(counts, scales[s], own_scale[s])
+        grid = sources.grids[s]
+        box = _Box(sources.dims[s], grid, limits.margin, 2 if sources.mirror[s] else 1)
+        counts = np.zeros(grid[0] * grid[1] * grid[2], dtype=np.int64)
+        refs, n_refs = _add_source(stored, sources.rows[s], box, counts, refs, n_refs)
+        scale, fillable = _normalisers(counts, sources.scales[s], sources.own_scale[s])
         threshold = _threshold(counts, scale, fillable)
         current = initial[s] = _coverage(counts, scale, fillable, threshold)
         n_pool = 0
@@ -418,7 +427,7 @@ def _construct_partition(
                 pool[n_pool] = candidates[s, j]
                 n_pool += 1
         rounds = 0
-        while n_pool > 0 and rounds < max_iterations and current < coverage:
+        while n_pool > 0 and rounds < limits.max_iterations and current < limits.coverage:
             deficient = _deficient(counts, scale, fillable, threshold)
             drawn = np.empty(deficient.shape[0], dtype=np.int64)
             for j in range(drawn.shape[0]):
@@ -426,19 +435,7 @@ def _construct_partition(
             for j in range(drawn.shape[0]):
                 cell = deficient[j]
                 before = n_refs
-                refs, n_refs, near = _gather(
-                    points,
-                    offsets,
-                    drawn[j],
-                    cell,
-                    copies,
-                    dims[s],
-                    grids[s],
-                    margin,
-                    refs,
-                    n_refs,
-                    near,
-                )
+                refs, n_refs, near = _gather(stored, drawn[j], cell, box, refs, n_refs, near)
                 counts[cell] += n_refs - before
                 if n_refs > before:
                     added, n_added = _add_once(added, n_added, added_offsets[s], drawn[j], slot)
@@ -446,18 +443,20 @@ def _construct_partition(
             current = _coverage(counts, scale, fillable, threshold)
         ref_offsets[s + 1], added_offsets[s + 1] = n_refs, n_added
         iterations[s], final[s] = rounds, current
-    out = _copy_rows(points, refs, n_refs)
-    return out, ref_offsets, dims.copy(), iterations, added[:n_added], added_offsets, initial, final
+    out = _copy_rows(stored.points, refs, n_refs)
+    dims = sources.dims.copy()
+    return out, ref_offsets, dims, iterations, added[:n_added], added_offsets, initial, final
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_source(points, offsets, row, copies, dims, grid, margin, counts, refs, n_refs):
-    """Adds the points of ``row`` within ``margin`` of the box (then, with 2 ``copies``, their
-    mirror images) and counts them in ``grid`` cells."""
-    d0, d1, d2 = dims[0], dims[1], dims[2]
-    nx, ny, nz = grid[0], grid[1], grid[2]
-    hx, hy, hz = d0 / 2.0 + margin, d1 / 2.0 + margin, d2 / 2.0 + margin
-    start, stop = offsets[row], offsets[row + 1]
+def _add_source(stored, row, box, counts, refs, n_refs):
+    """Adds the points of ``row`` within the margin of its box (then, with 2 copies, their
+    mirror images) and counts them in the box's grid cells."""
+    points, copies = stored.points, box.copies
+    d0, d1, d2 = box.dims[0], box.dims[1], box.dims[2]
+    nx, ny, nz = box.grid[0], box.grid[1], box.grid[2]
+    hx, hy, hz = d0 / 2.0 + box.margin, d1 / 2.0 + box.margin, d2 / 2.0 + box.margin
+    start, stop = stored.offsets[row], stored.offsets[row + 1]
     refs = _reserve(refs, n_refs + copies * (stop - start))
     kept = 0
     for i in range(start, stop):
@@ -491,17 +490,17 @@ def _add_once(added, n_added, first, row, slot):
 
 
 @numba.njit(cache=True, nogil=True)
-def _gather(points, offsets, row, cell, copies, dims, grid, margin, refs, n_refs, near):
-    """Appends to ``refs`` the points of ``row`` (and, with 2 ``copies``, their mirror images)
-    that lie in ``cell`` of a box of size ``dims`` cut by ``grid`` and within ``margin`` of the
-    box, in stored order. ``near`` is scratch space; returns ``(refs, n_refs, near)`` (either
-    may have been replaced by a longer copy)."""
-    d0, d1, d2 = dims[0], dims[1], dims[2]
-    nx, ny, nz = grid[0], grid[1], grid[2]
+def _gather(stored, row, cell, box, refs, n_refs, near):
+    """Appends to ``refs`` the points of ``row`` (and, with 2 copies, their mirror images)
+    that lie in ``cell`` of ``box`` and within its margin, in stored order. ``near`` is scratch
+    space; returns ``(refs, n_refs, near)`` (either may have been replaced by a longer copy)."""
+    points, copies = stored.points, box.copies
+    d0, d1, d2 = box.dims[0], box.dims[1], box.dims[2]
+    nx, ny, nz = box.grid[0], box.grid[1], box.grid[2]
     tx, ty, tz = cell // (ny * nz), (cell // nz) % ny, cell % nz
-    hx, hy, hz = d0 / 2.0 + margin, d1 / 2.0 + margin, d2 / 2.0 + margin
+    hx, hy, hz = d0 / 2.0 + box.margin, d1 / 2.0 + box.margin, d2 / 2.0 + box.margin
     bx, by, bz = _band(tx, d0, nx, hx), _band(ty, d1, ny, hy), _band(tz, d2, nz, hz)
-    start, stop = offsets[row], offsets[row + 1]
+    start, stop = stored.offsets[row], stored.offsets[row + 1]
     refs = _reserve(refs, n_refs + copies * (stop - start))
     near = _reserve(near, stop - start)
     # First the points near the cell in x and z, without a branch (the outcome is a coin
@@ -530,25 +529,24 @@ def _gather(points, offsets, row, cell, copies, dims, grid, margin, refs, n_refs
 
 
 @numba.njit(cache=True, nogil=True)
-def _construct_whole(points, offsets, rows, orders, dims, grids, mirror, scales, own_scale, goal):
-    """``whole`` mode for every object of ``rows``: the candidates of ``orders[s]`` (``-1``
+def _construct_whole(stored, sources, orders, goal):
+    """``whole`` mode for every object of ``sources``: the candidates of ``orders[s]`` (``-1``
     padded) are added whole, source first, each object's points then their mirror images."""
-    n = rows.shape[0]
-    refs = np.empty(_capacity(offsets, rows), dtype=np.int64)
+    points, offsets = stored.points, stored.offsets
+    n = sources.rows.shape[0]
+    refs = np.empty(_capacity(offsets, sources.rows), dtype=np.int64)
     added = np.empty(64, dtype=np.int64)
     n_refs = n_added = 0
     ref_offsets, added_offsets, iterations, initial, final = _per_object(n)
     slot = np.empty(offsets.shape[0] - 1, dtype=np.int64)  # see _add_once
-    out_dims = dims.copy()
+    out_dims = sources.dims.copy()
     for s in range(n):
-        copies = 2 if mirror[s] else 1
-        nx, ny, nz = grids[s, 0], grids[s, 1], grids[s, 2]
-        counts = np.zeros(nx * ny * nz, dtype=np.int64)
+        grid = sources.grids[s]
+        box = _Box(sources.dims[s], grid, 0.0, 2 if sources.mirror[s] else 1)
+        counts = np.zeros(grid[0] * grid[1] * grid[2], dtype=np.int64)
         start = n_refs
-        refs, n_refs = _add_whole(
-            points, offsets, rows[s], copies, dims[s], grids[s], counts, refs, n_refs
-        )
-        scale, fillable = _normalisers(counts, scales[s], own_scale[s])
+        refs, n_refs = _add_whole(stored, sources.rows[s], box, counts, refs, n_refs)
+        scale, fillable = _normalisers(counts, sources.scales[s], sources.own_scale[s])
         threshold = _threshold(counts, scale, fillable)
         current = initial[s] = _coverage(counts, scale, fillable, threshold)
         rounds = 0
@@ -556,9 +554,7 @@ def _construct_whole(points, offsets, rows, orders, dims, grids, mirror, scales,
             row = orders[s, j]
             if row < 0 or current >= goal:
                 break
-            refs, n_refs = _add_whole(
-                points, offsets, row, copies, dims[s], grids[s], counts, refs, n_refs
-            )
+            refs, n_refs = _add_whole(stored, row, box, counts, refs, n_refs)
             rounds += 1
             if offsets[row + 1] > offsets[row]:
                 added, n_added = _add_once(added, n_added, added_offsets[s], row, slot)
@@ -575,17 +571,18 @@ def _construct_whole(points, offsets, rows, orders, dims, grids, mirror, scales,
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_whole(points, offsets, row, copies, dims, grid, counts, refs, n_refs):
-    """Adds all points of ``row`` (then their mirror images) and counts them in ``grid`` cells
-    (:func:`drcpo.partitions.flat_cell`: clipped to the grid)."""
-    start, stop = offsets[row], offsets[row + 1]
-    refs = _reserve(refs, n_refs + copies * (stop - start))
-    for c in range(copies):
+def _add_whole(stored, row, box, counts, refs, n_refs):
+    """Adds all points of ``row`` (then their mirror images) and counts them in the box's grid
+    cells (:func:`drcpo.partitions.flat_cell`: clipped to the grid)."""
+    start, stop = stored.offsets[row], stored.offsets[row + 1]
+    refs = _reserve(refs, n_refs + box.copies * (stop - start))
+    d, g = box.dims, box.grid
+    for c in range(box.copies):
         for i in range(start, stop):
-            x, y, z = _xyz(points, i, c)
+            x, y, z = _xyz(stored.points, i, c)
             refs[n_refs] = 2 * i + c
             n_refs += 1
-            counts[flat_cell(x, y, z, dims[0], dims[1], dims[2], grid[0], grid[1], grid[2])] += 1
+            counts[flat_cell(x, y, z, d[0], d[1], d[2], g[0], g[1], g[2])] += 1
     return refs, n_refs
 
 
