@@ -6,6 +6,7 @@ mode keeps. See :mod:`drcpo.index` for the whole method."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -17,6 +18,34 @@ __all__ = ["SimilaritySearch", "similarity_recall"]
 _BOUND_SLACK = 1e-9  # relative safety margin on IoU upper bounds against rounding
 _OCCUPANCY_DIVISOR = 48.0  # typical cell holds s / this objects
 _MAX_CELLS = 1 << 22  # cap on the u-space grid (the cell table costs 8 bytes per cell)
+
+
+class _Boxes(NamedTuple):
+    """Every object of the search, by local id."""
+
+    u: np.ndarray  # (M, 3) log box sizes
+    dims: np.ndarray  # (M, 3) box sizes
+    vol: np.ndarray  # (M,) volumes
+    cells: np.ndarray  # (M, 3) int64: the grid cell of each
+
+
+class _Grid(NamedTuple):
+    """The grid over log-size space; the searchable objects sorted by cell."""
+
+    origin: np.ndarray  # (3,) lower corner
+    h: float  # cell size
+    shape: np.ndarray  # (3,) int64 cells per axis
+    cell_start: np.ndarray  # (cells + 1,) int64: cell c's objects are at [start[c], start[c + 1])
+    ids: np.ndarray  # int32 local ids in cell order
+    dims: np.ndarray  # (n, 3) their sizes
+    vol: np.ndarray  # (n,) their volumes
+
+
+class _Heap(NamedTuple):
+    """The best ``s`` (IoU, id) pairs so far, worst at the root."""
+
+    iou: np.ndarray  # (s,) float64
+    id: np.ndarray  # (s,) int32
 
 
 # --------------------------------------------------------------------------------------------
@@ -97,12 +126,8 @@ class SimilaritySearch:
             _, near = self.tree.query(self.u[queries], k=self.neighbours, p=1, workers=1)
             near = self.pool[np.asarray(near, np.int64).reshape(len(queries), -1)]
             return _rerank(queries, near, self.dims, self.vol, self.s)
-        return _grid_search(
-            queries,
-            self.u,
-            self.dims,
-            self.vol,
-            self.cells,
+        boxes = _Boxes(self.u, self.dims, self.vol, self.cells)
+        grid = _Grid(
             self.origin,
             float(self.h),
             self.shape,
@@ -110,8 +135,8 @@ class SimilaritySearch:
             self.sorted_ids,
             self.sorted_dims,
             self.sorted_vol,
-            self.s,
         )
+        return _grid_search(queries, boxes, grid, self.s)
 
 
 def _searchable(dims: np.ndarray, s: int) -> np.ndarray:
@@ -235,27 +260,30 @@ def _out_of_reach(e_p, e_q, worst, full):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _scan_cell(t0, t1, q, d0, d1, d2, vq, s_ids, s_dims, s_vol, h_iou, h_id, size, s):
-    for t in range(t0, t1):
-        j = s_ids[t]
+def _scan_cell(grid, cell, q, boxes, heap, size):
+    """Offers every object of ``cell`` but ``q`` itself to ``heap`` (``size`` items of at most
+    ``len(heap.iou)``); returns the heap's new size."""
+    d0, d1, d2 = boxes.dims[q, 0], boxes.dims[q, 1], boxes.dims[q, 2]
+    vq, cap = boxes.vol[q], heap.iou.shape[0]
+    for t in range(grid.cell_start[cell], grid.cell_start[cell + 1]):
+        j = grid.ids[t]
         if j == q:
             continue
-        inter = (min(d0, s_dims[t, 0]) * min(d1, s_dims[t, 1])) * min(d2, s_dims[t, 2])
-        iou = inter / ((vq + s_vol[t]) - inter)
-        size = _heap_offer(h_iou, h_id, size, s, iou, j)
+        inter = (min(d0, grid.dims[t, 0]) * min(d1, grid.dims[t, 1])) * min(d2, grid.dims[t, 2])
+        iou = inter / ((vq + grid.vol[t]) - inter)
+        size = _heap_offer(heap.iou, heap.id, size, cap, iou, j)
     return size
 
 
 @nb.njit(cache=True, nogil=True)
-def _grid_search(
-    queries, u, dims, vol, cells, origin, h, shape, cell_start, s_ids, s_dims, s_vol, s
-):  # pragma: no cover - numba
+def _grid_search(queries, boxes, grid, s):  # pragma: no cover - numba
     nq = len(queries)
     out_id = np.empty((nq, s), np.int32)
     out_iou = np.empty((nq, s), np.float64)
-    h_iou = np.empty(s, np.float64)
-    h_id = np.empty(s, np.int32)
-    gx, gy, gz = shape[0], shape[1], shape[2]
+    heap = _Heap(np.empty(s, np.float64), np.empty(s, np.int32))
+    h_iou = heap.iou
+    u, cells, origin, h = boxes.u, boxes.cells, grid.origin, grid.h
+    gx, gy, gz = grid.shape[0], grid.shape[1], grid.shape[2]
     g = max(gx, gy, gz)
     # e_lo[a, k]: exp of the least log-size gap along axis a to a cell k + 1 below q's cell
     # (such objects are smaller, so the gap adds to p); e_hi likewise above (adds to q).
@@ -265,8 +293,6 @@ def _grid_search(
     above = np.empty(3, np.float64)
     for b in range(nq):
         q = queries[b]
-        d0, d1, d2 = dims[q, 0], dims[q, 1], dims[q, 2]
-        vq = vol[q]
         c0, c1, c2 = cells[q, 0], cells[q, 1], cells[q, 2]
         for a in range(3):
             face = origin[a] + cells[q, a] * h
@@ -305,23 +331,8 @@ def _grid_search(
                         e_q = ey_q * (e_hi[2, z - c2 - 1] if z > c2 else 1.0)
                         if _out_of_reach(e_p, e_q, h_iou[0], size == s):
                             continue
-                        size = _scan_cell(
-                            cell_start[column + z],
-                            cell_start[column + z + 1],
-                            q,
-                            d0,
-                            d1,
-                            d2,
-                            vq,
-                            s_ids,
-                            s_dims,
-                            s_vol,
-                            h_iou,
-                            h_id,
-                            size,
-                            s,
-                        )
-        _heap_drain(h_iou, h_id, size, out_iou[b], out_id[b])
+                        size = _scan_cell(grid, column + z, q, boxes, heap, size)
+        _heap_drain(heap.iou, heap.id, size, out_iou[b], out_id[b])
     return out_id, out_iou
 
 
