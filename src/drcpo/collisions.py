@@ -4,6 +4,7 @@ sampling's test), by a separating-axis test on the edge normals."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -11,6 +12,16 @@ import numpy as np
 from drcpo.geometry import heading_terms
 
 __all__ = ["bev_collisions", "first_come"]
+
+
+class _Footprints(NamedTuple):
+    boxes: np.ndarray  # (K, 7)
+    cos: np.ndarray  # (K,) of the headings, as drcpo.geometry.heading_terms gives them
+    sin: np.ndarray
+
+
+def _footprints(boxes: np.ndarray) -> _Footprints:
+    return _Footprints(boxes, *heading_terms(boxes))
 
 
 def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
@@ -25,7 +36,7 @@ def bev_collisions(boxes_a: np.ndarray, boxes_b: np.ndarray) -> np.ndarray:
     boxes_b = np.asarray(boxes_b, dtype=np.float64).reshape(-1, 7)
     out = np.zeros((len(boxes_a), len(boxes_b)), dtype=bool)
     if out.size:
-        _collisions(boxes_a, *heading_terms(boxes_a), boxes_b, *heading_terms(boxes_b), out)
+        _collisions(_footprints(boxes_a), _footprints(boxes_b), out)
     return out
 
 
@@ -36,7 +47,7 @@ def first_come(boxes: np.ndarray, objects: np.ndarray) -> np.ndarray:
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     kept = np.zeros(len(boxes), dtype=bool)
     if len(boxes):
-        _first_come(boxes, *heading_terms(boxes), np.asarray(objects, dtype=np.int64), kept)
+        _first_come(_footprints(boxes), np.asarray(objects, dtype=np.int64), kept)
     return kept
 
 
@@ -48,10 +59,14 @@ def _projected_half(u_x, u_y, length, width, c, s):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _overlap(ax, ay, al, aw, ca, sa, bx, by, bl, bw, cb, sb):  # pragma: no cover - numba
-    # Interiors intersect <=> on every edge normal of either footprint the projections overlap
-    # by more than zero (convex polygons: a separating line can be taken along an edge).
-    dx, dy = bx - ax, by - ay
+def _overlap(a, i, b, j):  # pragma: no cover - numba
+    # Interiors of footprint i of a and j of b intersect <=> on every edge normal of either
+    # the projections overlap by more than zero (convex polygons: a separating line can be
+    # taken along an edge).
+    box_a, box_b = a.boxes[i], b.boxes[j]
+    al, aw, ca, sa = box_a[3], box_a[4], a.cos[i], a.sin[i]
+    bl, bw, cb, sb = box_b[3], box_b[4], b.cos[j], b.sin[j]
+    dx, dy = box_b[0] - box_a[0], box_b[1] - box_a[1]
     reach = math.sqrt(al * al + aw * aw) / 2.0 + math.sqrt(bl * bl + bw * bw) / 2.0
     if dx * dx + dy * dy >= reach * reach:
         return False
@@ -65,25 +80,19 @@ def _overlap(ax, ay, al, aw, ca, sa, bx, by, bl, bw, cb, sb):  # pragma: no cove
 
 
 @numba.njit(cache=True, nogil=True)
-def _collisions(a, ca, sa, b, cb, sb, out):  # pragma: no cover - numba
-    for i in range(a.shape[0]):
-        for j in range(b.shape[0]):
-            out[i, j] = _overlap(
-                a[i, 0], a[i, 1], a[i, 3], a[i, 4], ca[i], sa[i],
-                b[j, 0], b[j, 1], b[j, 3], b[j, 4], cb[j], sb[j],
-            )  # fmt: skip
+def _collisions(a, b, out):  # pragma: no cover - numba
+    for i in range(a.boxes.shape[0]):
+        for j in range(b.boxes.shape[0]):
+            out[i, j] = _overlap(a, i, b, j)
 
 
 @numba.njit(cache=True, nogil=True)
-def _first_come(boxes, cos, sin, objects, kept):  # pragma: no cover - numba
+def _first_come(footprints, objects, kept):  # pragma: no cover - numba
     # Each box is kept unless it overlaps an earlier box of another object that was kept (an
     # object's own poses are alternatives: at most one is placed).
-    for i in range(boxes.shape[0]):
+    for i in range(footprints.boxes.shape[0]):
         kept[i] = True
         for j in range(i):
-            if kept[j] and objects[j] != objects[i] and _overlap(
-                boxes[i, 0], boxes[i, 1], boxes[i, 3], boxes[i, 4], cos[i], sin[i],
-                boxes[j, 0], boxes[j, 1], boxes[j, 3], boxes[j, 4], cos[j], sin[j],
-            ):  # fmt: skip
+            if kept[j] and objects[j] != objects[i] and _overlap(footprints, i, footprints, j):
                 kept[i] = False
                 break

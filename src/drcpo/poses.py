@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -229,6 +230,24 @@ def source_heights(source_boxes: np.ndarray | None, count: int, height: str) -> 
     return source_boxes[:, 2]
 
 
+class _Field(NamedTuple):
+    """Where centres may go: the area's bounds, and the field of view's half angle (< 0: none)."""
+
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+    half_angle: float
+
+
+class _Poses(NamedTuple):
+    """The poses being drawn: boxes ``(M, 7)``, written in place, and their headings' terms."""
+
+    boxes: np.ndarray
+    cos: np.ndarray
+    sin: np.ndarray
+
+
 def _draw_round(
     boxes: np.ndarray,
     rows: np.ndarray,
@@ -241,71 +260,75 @@ def _draw_round(
 ) -> np.ndarray:
     """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit);
     the rows to draw again (``half_angle`` < 0: no field of view)."""
+    poses, field = _Poses(boxes, cos, sin), _Field(*area, half_angle)
     if cells is None:
         u = rng.uniform(0.0, 1.0, (len(rows), 2))
-        return _centres(boxes, rows, cos, sin, u, *area, half_angle)
+        return _centres(poses, rows, u, field)
     if len(cells.corners) == 0:
         boxes[rows, :2] = np.nan
         return rows[:0]
     pick = rng.integers(0, len(cells.corners), len(rows))
     u = rng.uniform(0.0, 1.0, (len(rows), 2))
     corners = np.ascontiguousarray(cells.corners, dtype=np.float64)
-    return _cell_centres(
-        boxes, rows, cos, sin, corners, float(cells.size), pick, u, *area, half_angle
-    )
+    return _cell_centres(poses, rows, corners[pick], float(cells.size), u, field)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _centre_bounds(box, cos, sin, x0, x1, y0, y1):  # pragma: no cover - numba
-    # The centres whose footprint's bounds (half extents) stay in the area [x0, x1] x [y0, y1]:
+def _centre_bounds(poses, r, field):  # pragma: no cover - numba
+    # The centres whose footprint's bounds (half extents) stay in the field's area:
     # low_x, high_x, low_y, high_y (empty when a low exceeds its high).
-    c, s = abs(cos), abs(sin)
+    box, c, s = poses.boxes[r], abs(poses.cos[r]), abs(poses.sin[r])
     reach_x = (c * box[3] + s * box[4]) / 2.0
     reach_y = (s * box[3] + c * box[4]) / 2.0
-    return x0 + reach_x, x1 - reach_x, y0 + reach_y, y1 - reach_y
+    return field.x0 + reach_x, field.x1 - reach_x, field.y0 + reach_y, field.y1 - reach_y
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _leaves_fov(poses, r, field):  # pragma: no cover - numba
+    return field.half_angle >= 0 and not _corners_in_fov(
+        poses.boxes[r], poses.cos[r], poses.sin[r], field.half_angle
+    )
 
 
 @numba.njit(cache=True, nogil=True)
-def _centres(boxes, rows, cos, sin, u, x0, x1, y0, y1, half_angle):  # pragma: no cover - numba
+def _centres(poses, rows, u, field):  # pragma: no cover - numba
     # Uniform over the centres whose footprint's bounds (half extents) stay in the area.
+    boxes = poses.boxes
     outside = np.empty(rows.shape[0], np.int64)
     count = 0
     for k in range(rows.shape[0]):
         r = rows[k]
-        low_x, high_x, low_y, high_y = _centre_bounds(boxes[r], cos[r], sin[r], x0, x1, y0, y1)
+        low_x, high_x, low_y, high_y = _centre_bounds(poses, r, field)
         if low_x > high_x or low_y > high_y:
             boxes[r, 0] = boxes[r, 1] = np.nan
             continue
         boxes[r, 0] = low_x + u[k, 0] * (high_x - low_x)
         boxes[r, 1] = low_y + u[k, 1] * (high_y - low_y)
-        if half_angle >= 0 and not _corners_in_fov(boxes[r], cos[r], sin[r], half_angle):
+        if _leaves_fov(poses, r, field):
             outside[count] = r
             count += 1
     return outside[:count].copy()
 
 
 @numba.njit(cache=True, nogil=True)
-def _cell_centres(
-    boxes, rows, cos, sin, corners, size, pick, u, x0, x1, y0, y1, half_angle
-):  # pragma: no cover - numba
-    # A position uniform in the picked cell; drawn again when the footprint's bounds leave the
-    # area or a corner leaves the field of view (rejection keeps the draw uniform over the
-    # cells' positions that fit).
+def _cell_centres(poses, rows, corners, size, u, field):  # pragma: no cover - numba
+    # A position uniform in the picked cell (``corners[k]``: row k's cell's lower corner); drawn
+    # again when the footprint's bounds leave the area or a corner leaves the field of view
+    # (rejection keeps the draw uniform over the cells' positions that fit).
+    boxes = poses.boxes
     again = np.empty(rows.shape[0], np.int64)
     count = 0
     for k in range(rows.shape[0]):
         r = rows[k]
-        low_x, high_x, low_y, high_y = _centre_bounds(boxes[r], cos[r], sin[r], x0, x1, y0, y1)
+        low_x, high_x, low_y, high_y = _centre_bounds(poses, r, field)
         if low_x > high_x or low_y > high_y:
             boxes[r, 0] = boxes[r, 1] = np.nan
             continue
-        x = corners[pick[k], 0] + u[k, 0] * size
-        y = corners[pick[k], 1] + u[k, 1] * size
+        x = corners[k, 0] + u[k, 0] * size
+        y = corners[k, 1] + u[k, 1] * size
         boxes[r, 0], boxes[r, 1] = x, y
         fits = low_x <= x <= high_x and low_y <= y <= high_y
-        if not fits or (
-            half_angle >= 0 and not _corners_in_fov(boxes[r], cos[r], sin[r], half_angle)
-        ):
+        if not fits or _leaves_fov(poses, r, field):
             again[count] = r
             count += 1
     return again[:count].copy()
