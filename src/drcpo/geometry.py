@@ -140,26 +140,28 @@ def heading_terms(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def in_box(px, py, pz, cx, cy, cz, dx, dy, dz, cos, sin, margin):  # pragma: no cover - numba
-    """THE points-in-box rule: whether the float64 point ``(px, py, pz)`` lies in the box with
-    centre ``(cx, cy, cz)``, sizes ``(dx, dy, dz)`` and heading terms ``cos``, ``sin`` (from
-    :func:`heading_terms`), grown by ``margin`` metres on every side (negative shrinks it).
+def in_box(px, py, pz, box, cos, sin, margin):  # pragma: no cover - numba
+    """THE points-in-box rule: whether the float64 point ``(px, py, pz)`` lies in ``box`` (a
+    ``(7,)`` row or a tuple: centre x, y, z, sizes dx, dy, dz; its heading given by ``cos`` and
+    ``sin`` from :func:`heading_terms`), grown by ``margin`` metres on every side (negative
+    shrinks it).
 
     Closed boxes: in the box's own frame ``|x| <= dx/2 + margin``, ``|y| <= dy/2 + margin`` and
     ``|z| <= dz/2 + margin``, all in float64, so points exactly on a face count as inside (NaN
     never does). Every exact points-in-box test of drcpo calls this one; numba kernels inline
-    it. Scalars only: arrays passed to an inlined helper are reference-counted on every call,
-    which costs more than the arithmetic in hot loops. numba's disk cache only notices changes
+    it (once inlined, a box row passed in costs nothing measurable: :func:`points_in_boxes`,
+    :func:`box_members` and :func:`rows_in_box` time the same as with the six values passed
+    one by one). numba's disk cache only notices changes
     to a kernel's own file: after changing this rule, delete the cached kernels
     (``__pycache__/*.nbi``) of the modules that call it.
     """
-    ox, oy, oz = px - cx, py - cy, pz - cz
+    ox, oy, oz = px - box[0], py - box[1], pz - box[2]
     local_x = ox * cos + oy * sin
     local_y = -ox * sin + oy * cos
     return (
-        abs(local_x) <= dx / 2.0 + margin
-        and abs(local_y) <= dy / 2.0 + margin
-        and abs(oz) <= dz / 2.0 + margin
+        abs(local_x) <= box[3] / 2.0 + margin
+        and abs(local_y) <= box[4] / 2.0 + margin
+        and abs(oz) <= box[5] / 2.0 + margin
     )
 
 
@@ -261,20 +263,7 @@ def _members(points, boxes, cos, sin, margin, max_cells):  # pragma: no cover - 
         pz = np.float64(points[i, 2])
         for k in range(start[c], start[c + 1]):
             m = listed[k]
-            if in_box(
-                px,
-                py,
-                pz,
-                boxes[m, 0],
-                boxes[m, 1],
-                boxes[m, 2],
-                boxes[m, 3],
-                boxes[m, 4],
-                boxes[m, 5],
-                cos[m],
-                sin[m],
-                margin,
-            ):
+            if in_box(px, py, pz, boxes[m], cos[m], sin[m], margin):
                 if found == found_point.shape[0]:
                     found_point = np.concatenate((found_point, np.empty_like(found_point)))
                     found_box = np.concatenate((found_box, np.empty_like(found_box)))
@@ -302,7 +291,7 @@ def _rows_inside(points, rows, box, cos, sin, margin):  # pragma: no cover - num
     for k in range(rows.shape[0]):
         i = rows[k]
         px, py, pz = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
-        if in_box(px, py, pz, box[0], box[1], box[2], box[3], box[4], box[5], cos, sin, margin):
+        if in_box(px, py, pz, box, cos, sin, margin):
             out[kept] = i
             kept += 1
     return out[:kept]

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -657,9 +658,22 @@ class _Obstacles:
         if self._calls < _INDEX_AFTER:
             return box_members(self.points, boxes)
         if self._index is None:
-            self._index = _sort_into_cells(np.asarray(self.points), _INDEX_CELLS)
+            self._index = _CellIndex(*_sort_into_cells(np.asarray(self.points), _INDEX_CELLS))
         boxes = np.ascontiguousarray(boxes, dtype=np.float64)
-        return _indexed_members(*self._index, boxes, *heading_terms(boxes))
+        return _indexed_members(self._index, boxes, *heading_terms(boxes))
+
+
+class _CellIndex(NamedTuple):
+    """The frame's finite-(x, y) points sorted by BEV cell (:func:`_sort_into_cells`)."""
+
+    xyz: np.ndarray  # (P, 3) float64, in cell order
+    rows: np.ndarray  # (P,) their rows in the frame
+    start: np.ndarray  # (nx * ny + 1,) each cell's first slot
+    x0: float  # the grid's corner
+    y0: float
+    per_metre: float  # cells per metre
+    nx: int
+    ny: int
 
 
 _INDEX_AFTER = 3  # the round from which the frame's points are indexed
@@ -703,11 +717,11 @@ def _sort_into_cells(points, max_cells):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True)
-def _indexed_members(
-    xyz, rows, start, x0, y0, per_metre, nx, ny, boxes, cos, sin
-):  # pragma: no cover - numba
+def _indexed_members(index, boxes, cos, sin):  # pragma: no cover - numba
     # Per box, the points of the cells its BEV bounds cover (with the slack of
     # geometry.box_members, so that rounding never drops a point inside), tested exactly.
+    xyz, rows, start, x0, y0 = index.xyz, index.rows, index.start, index.x0, index.y0
+    per_metre, nx, ny = index.per_metre, index.nx, index.ny
     found_point = np.empty(64, np.int64)
     found_box = np.empty(64, np.int64)
     found = 0
@@ -723,12 +737,7 @@ def _indexed_members(
             continue
         for i in range(i0, i1 + 1):  # a row's cells j0..j1 are one run of slots
             for k in range(start[i * ny + j0], start[i * ny + j1 + 1]):
-                if in_box(
-                    xyz[k, 0], xyz[k, 1], xyz[k, 2],
-                    boxes[m, 0], boxes[m, 1], boxes[m, 2],
-                    boxes[m, 3], boxes[m, 4], boxes[m, 5],
-                    cos[m], sin[m], 0.0,
-                ):  # fmt: skip
+                if in_box(xyz[k, 0], xyz[k, 1], xyz[k, 2], boxes[m], cos[m], sin[m], 0.0):
                     if found == found_point.shape[0]:
                         found_point = np.concatenate((found_point, np.empty_like(found_point)))
                         found_box = np.concatenate((found_box, np.empty_like(found_box)))

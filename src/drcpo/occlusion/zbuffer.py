@@ -505,20 +505,7 @@ def _occluded_share(
         for k in range(cleared.shape[0]):
             if abs(px - cleared[k, 0]) > bounds[k, 0] or abs(py - cleared[k, 1]) > bounds[k, 1]:
                 continue
-            if in_box(
-                px,
-                py,
-                pz,
-                cleared[k, 0],
-                cleared[k, 1],
-                cleared[k, 2],
-                cleared[k, 3],
-                cleared[k, 4],
-                cleared[k, 5],
-                cleared_cos[k],
-                cleared_sin[k],
-                0.0,
-            ):
+            if in_box(px, py, pz, cleared[k], cleared_cos[k], cleared_sin[k], 0.0):
                 gone = True
                 break
         if not gone:
