@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from drcpo.construction import _add_source, _add_whole, _gather
+from drcpo.construction import _add_source, _add_whole, _Box, _gather, _Stored
 from drcpo.database import GroundTruthDatabase
 from drcpo.index import partition_occupancy
 from drcpo.partitions import (
@@ -99,7 +99,9 @@ def test_partition_index_and_counts_follow_the_rule(rng):
                     partition_counts(points, dims, grid),
                     np.bincount(want, minlength=num_partitions(grid)),
                 )
-                assert flat_cell(*points[0, :3].astype(np.float64), *dims, *grid) == want[0]
+                assert (
+                    flat_cell(*points[0, :3].astype(np.float64), dims, np.asarray(grid)) == want[0]
+                )
 
 
 def test_index_occupancy_follows_the_rule(rng):
@@ -145,23 +147,24 @@ def test_construction_kernels_follow_the_rule(rng, copies):
     for dims in DIMS:
         for grid in GRIDS:
             points, offsets, d, g = construction_inputs(dims, grid, rng)
+            stored = _Stored(points, offsets)
             refs, shown = mirrored_refs(points, copies)
             cells = np.array([naive_flat(p, dims, grid) for p in shown])
             near = (np.abs(shown[:, :3]) <= d / 2.0 + margin).all(axis=1)
             p = num_partitions(grid)
             # whole mode: every point counted, clipped into the outermost cells
             counts = np.zeros(p, np.int64)
-            _add_whole(points, offsets, 0, copies, d, g, counts, np.zeros(1, np.int64), 0)
+            _add_whole(stored, 0, _Box(d, g, 0.0, copies), counts, np.zeros(1, np.int64), 0)
             np.testing.assert_array_equal(counts, np.bincount(cells, minlength=p))
             # partition mode, the source: points within the margin of the box
+            box = _Box(d, g, margin, copies)
             counts = np.zeros(p, np.int64)
-            _add_source(points, offsets, 0, copies, d, g, margin, counts, np.zeros(1, np.int64), 0)
+            _add_source(stored, 0, box, counts, np.zeros(1, np.int64), 0)
             np.testing.assert_array_equal(counts, np.bincount(cells[near], minlength=p))
             # partition mode, a candidate's points in one cell (the band shortcut at borders)
             for cell in range(p):
                 got, n_refs, _ = _gather(
-                    points, offsets, 0, cell, copies, d, g, margin, np.zeros(1, np.int64), 0,
-                    np.zeros(1, np.int64),
-                )  # fmt: skip
+                    stored, 0, cell, box, np.zeros(1, np.int64), 0, np.zeros(1, np.int64)
+                )
                 want = refs[near & (cells == cell)]
                 np.testing.assert_array_equal(got[:n_refs], want)  # in stored order

@@ -576,13 +576,12 @@ def _add_whole(stored, row, box, counts, refs, n_refs):
     cells (:func:`drcpo.partitions.flat_cell`: clipped to the grid)."""
     start, stop = stored.offsets[row], stored.offsets[row + 1]
     refs = _reserve(refs, n_refs + box.copies * (stop - start))
-    d, g = box.dims, box.grid
     for c in range(box.copies):
         for i in range(start, stop):
             x, y, z = _xyz(stored.points, i, c)
             refs[n_refs] = 2 * i + c
             n_refs += 1
-            counts[flat_cell(x, y, z, d[0], d[1], d[2], g[0], g[1], g[2])] += 1
+            counts[flat_cell(x, y, z, box.dims, box.grid)] += 1
     return refs, n_refs
 
 

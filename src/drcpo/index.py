@@ -615,14 +615,12 @@ def _occupancy(xyz, sizes, dims, grid, mirrored, p_max):  # pragma: no cover - n
     start = 0
     for m in range(sizes.shape[0]):
         stop = start + sizes[m]
-        nx, ny, nz = grid[m, 0], grid[m, 1], grid[m, 2]
-        if nx > 0:
-            d0, d1, d2 = dims[m, 0], dims[m, 1], dims[m, 2]
+        if grid[m, 0] > 0:
             for i in range(start, stop):
                 x, y, z = np.float64(xyz[i, 0]), np.float64(xyz[i, 1]), np.float64(xyz[i, 2])
-                out[m, flat_cell(x, y, z, d0, d1, d2, nx, ny, nz)] += 1
+                out[m, flat_cell(x, y, z, dims[m], grid[m])] += 1
                 if mirrored[m]:
-                    out[m, flat_cell(x, -y, z, d0, d1, d2, nx, ny, nz)] += 1
+                    out[m, flat_cell(x, -y, z, dims[m], grid[m])] += 1
         start = stop
     return out
 

@@ -110,10 +110,12 @@ def cell_of(value, size, count):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def flat_cell(x, y, z, d0, d1, d2, nx, ny, nz):  # pragma: no cover - numba
+def flat_cell(x, y, z, dims, grid):  # pragma: no cover - numba
     """The cell number ``(ix * ny + iy) * nz + iz`` of canonical point ``(x, y, z)`` in a box
-    of size ``(d0, d1, d2)`` cut by grid ``(nx, ny, nz)`` (:func:`cell_of` along each axis)."""
-    return (cell_of(x, d0, nx) * ny + cell_of(y, d1, ny)) * nz + cell_of(z, d2, nz)
+    of size ``dims`` cut by ``grid`` ``(nx, ny, nz)`` (:func:`cell_of` along each axis)."""
+    ny, nz = grid[1], grid[2]
+    ix, iy, iz = cell_of(x, dims[0], grid[0]), cell_of(y, dims[1], ny), cell_of(z, dims[2], nz)
+    return (ix * ny + iy) * nz + iz
 
 
 def partition_index(points: np.ndarray, dims: np.ndarray, grid: Grid) -> np.ndarray:
@@ -138,7 +140,7 @@ def _partition_index(points, dims, grid):  # pragma: no cover - numba
     out = np.empty(points.shape[0], np.int64)
     for i in range(points.shape[0]):
         x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
-        out[i] = flat_cell(x, y, z, dims[0], dims[1], dims[2], grid[0], grid[1], grid[2])
+        out[i] = flat_cell(x, y, z, dims, grid)
     return out
 
 
