@@ -10,6 +10,7 @@ ray through the height band the field can occupy and refining the first crossing
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -74,6 +75,34 @@ class RayHits:
     normal: np.ndarray
 
 
+class _Field(NamedTuple):
+    """The ground's height field as the kernels read it (:class:`Ground`'s terms)."""
+
+    base: float
+    amp: np.ndarray
+    kx: np.ndarray
+    ky: np.ndarray
+    ph: np.ndarray
+
+
+class _Solids(NamedTuple):
+    kind: np.ndarray  # (S,) BOX, ELLIPSOID or cylinder
+    centre: np.ndarray  # (S, 3)
+    half: np.ndarray  # (S, 3) half extents (a cylinder's radius in x)
+    cos_yaw: np.ndarray  # (S,)
+    sin_yaw: np.ndarray
+
+
+class _Bins(NamedTuple):
+    """Per azimuth bin the solids to test, nearest first (:func:`_bin_solids`)."""
+
+    start: np.ndarray  # (bins + 1,) CSR starts into items
+    items: np.ndarray  # solid rows
+    near: np.ndarray  # (S,) each solid's least horizontal distance
+    elev_lo: np.ndarray  # (S,) the elevations it spans
+    elev_hi: np.ndarray
+
+
 class Scene:
     """Solids (and optionally a ground) prepared for fast ray casting from the origin."""
 
@@ -81,9 +110,7 @@ class Scene:
         self.solids = solids
         self.ground = ground
         self.num_bins = int(num_bins)
-        self._bin_start, self._bin_items, self._near, self._elev_lo, self._elev_hi = _bin_solids(
-            solids, self.num_bins
-        )
+        self._bins = _Bins(*_bin_solids(solids, self.num_bins))
 
     def cast(self, directions: np.ndarray, t_max: np.ndarray | float) -> RayHits:
         """First hits of rays from the origin along unit ``directions (R, 3)`` up to ``t_max``.
@@ -98,25 +125,12 @@ class Scene:
         )
         ground = self.ground or Ground(-1.0, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
         s = self.solids
+        solids = _Solids(s.kind, s.centre, s.half, np.cos(s.yaw), np.sin(s.yaw))
+        field = _Field(
+            float(ground.base), ground.amplitude, ground.wave_x, ground.wave_y, ground.phase
+        )
         t, hit, normal = _cast(
-            directions,
-            t_max,
-            self._bin_start,
-            self._bin_items,
-            self._near,
-            self._elev_lo,
-            self._elev_hi,
-            s.kind,
-            s.centre,
-            s.half,
-            np.cos(s.yaw),
-            np.sin(s.yaw),
-            self.ground is not None,
-            float(ground.base),
-            ground.amplitude,
-            ground.wave_x,
-            ground.wave_y,
-            ground.phase,
+            directions, t_max, self._bins, solids, field, self.ground is not None
         )
         return RayHits(t, hit, normal)
 
@@ -155,23 +169,26 @@ def _bin_solids(solids: Solids, num_bins: int):
 
 
 @numba.njit(cache=True)
-def _ground_z(x, y, base, amp, kx, ky, ph):
-    z = base
+def _ground_z(x, y, field):
+    z = field.base
+    amp, kx, ky, ph = field.amp, field.kx, field.ky, field.ph
     for k in range(amp.shape[0]):
         z += amp[k] * np.sin(kx[k] * x + ky[k] * y + ph[k])
     return z
 
 
 @numba.njit(cache=True)
-def _ground_hit(dx, dy, dz, t_max, base, amp, kx, ky, ph):
+def _ground_hit(d, t_max, field):
     """First crossing of the ray with the height field, by Lipschitz-safe marching.
 
     ``f(t) = ray height - ground height`` changes at most ``|dz| + G |d_xy|`` per metre (G: the
     field's largest slope), so a step of ``f / L`` cannot pass the crossing; near it the step
     falls to ``_MIN_GROUND_STEP`` and the bracketed crossing is refined by the Illinois method.
     """
+    dx, dy, dz = d
     if dz >= 0.0:
         return np.inf
+    base, amp, kx, ky = field.base, field.amp, field.kx, field.ky
     bound, slope = 0.0, 0.0
     for k in range(amp.shape[0]):
         bound += abs(amp[k])
@@ -182,25 +199,28 @@ def _ground_hit(dx, dy, dz, t_max, base, amp, kx, ky, ph):
     t_hi = min((base - bound) / dz, t_max)
     lipschitz = -dz + slope * np.sqrt(dx * dx + dy * dy)
     a = t_lo
-    fa = a * dz - _ground_z(a * dx, a * dy, base, amp, kx, ky, ph)
+    fa = a * dz - _ground_z(a * dx, a * dy, field)
     while a < t_hi:
         b = min(a + max(fa / lipschitz, _MIN_GROUND_STEP), t_hi)
-        fb = b * dz - _ground_z(b * dx, b * dy, base, amp, kx, ky, ph)
+        fb = b * dz - _ground_z(b * dx, b * dy, field)
         if fb <= 0.0:
-            return _refine_crossing(a, fa, b, fb, dx, dy, dz, base, amp, kx, ky, ph, t_max)
+            return _refine_crossing((a, fa), (b, fb), d, field, t_max)
         a, fa = b, fb
     return np.inf
 
 
 @numba.njit(cache=True)
-def _refine_crossing(a, fa, b, fb, dx, dy, dz, base, amp, kx, ky, ph, t_max):
-    """Illinois regula falsi on a bracket with ``fa > 0 >= fb``; returns the crossing distance."""
+def _refine_crossing(above, below, d, field, t_max):
+    """Illinois regula falsi on a bracket ``(a, fa)``, ``(b, fb)`` with ``fa > 0 >= fb``;
+    returns the crossing distance."""
+    (a, fa), (b, fb) = above, below
+    dx, dy, dz = d
     side = 0
     for _ in range(_REFINE_ITERATIONS):
         if b - a < 1e-9 or fb == 0.0:
             break
         m = (a * fb - b * fa) / (fb - fa)
-        fm = m * dz - _ground_z(m * dx, m * dy, base, amp, kx, ky, ph)
+        fm = m * dz - _ground_z(m * dx, m * dy, field)
         if fm <= 0.0:
             b, fb = m, fm
             if side == -1:
@@ -215,10 +235,12 @@ def _refine_crossing(a, fa, b, fb, dx, dy, dz, base, amp, kx, ky, ph, t_max):
 
 
 @numba.njit(cache=True)
-def _hit_solid(s, dx, dy, dz, kind, centre, half, cos_yaw, sin_yaw):
+def _hit_solid(s, d, solids):
     """Distance along the ray to solid s (inf on a miss) and the local axis code of the face."""
+    dx, dy, dz = d
+    kind, centre, half = solids.kind, solids.centre, solids.half
     ox, oy, oz = -centre[s, 0], -centre[s, 1], -centre[s, 2]
-    c, sn = cos_yaw[s], sin_yaw[s]
+    c, sn = solids.cos_yaw[s], solids.sin_yaw[s]
     lox, loy = c * ox + sn * oy, -sn * ox + c * oy
     ldx, ldy = c * dx + sn * dy, -sn * dx + c * dy
     hx, hy, hz = half[s, 0], half[s, 1], half[s, 2]
@@ -275,8 +297,10 @@ def _hit_solid(s, dx, dy, dz, kind, centre, half, cos_yaw, sin_yaw):
 
 
 @numba.njit(cache=True)
-def _solid_normal(s, t, code, dx, dy, dz, kind, centre, half, cos_yaw, sin_yaw):
-    c, sn = cos_yaw[s], sin_yaw[s]
+def _solid_normal(s, t, code, d, solids):
+    dx, dy, dz = d
+    kind, centre, half = solids.kind, solids.centre, solids.half
+    c, sn = solids.cos_yaw[s], solids.sin_yaw[s]
     px, py, pz = t * dx - centre[s, 0], t * dy - centre[s, 1], t * dz - centre[s, 2]
     lx, ly = c * px + sn * py, -sn * px + c * py
     ldx, ldy = c * dx + sn * dy, -sn * dx + c * dy
@@ -302,26 +326,9 @@ def _solid_normal(s, t, code, dx, dy, dz, kind, centre, half, cos_yaw, sin_yaw):
 
 
 @numba.njit(cache=True)
-def _cast(
-    dirs,
-    t_max,
-    bin_start,
-    bin_items,
-    near,
-    elev_lo,
-    elev_hi,
-    kind,
-    centre,
-    half,
-    cos_yaw,
-    sin_yaw,
-    use_ground,
-    base,
-    amp,
-    kx,
-    ky,
-    ph,
-):
+def _cast(dirs, t_max, bins, solids, field, use_ground):
+    bin_start, bin_items, near = bins.start, bins.items, bins.near
+    amp, kx, ky, ph = field.amp, field.kx, field.ky, field.ph
     n = dirs.shape[0]
     num_bins = bin_start.shape[0] - 1
     t_out = np.full(n, np.inf)
@@ -330,9 +337,10 @@ def _cast(
     inv_width = num_bins / (2.0 * np.pi)
     for r in range(n):
         dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        d = (dx, dy, dz)
         best, hit, code = t_max[r], MISS, 0
         if use_ground:
-            tg = _ground_hit(dx, dy, dz, best, base, amp, kx, ky, ph)
+            tg = _ground_hit(d, best, field)
             if tg < best:
                 best, hit = tg, GROUND
         b = int((np.arctan2(dy, dx) + np.pi) * inv_width)
@@ -342,9 +350,9 @@ def _cast(
             s = bin_items[k]
             if near[s] >= best:
                 break
-            if elevation < elev_lo[s] or elevation > elev_hi[s]:
+            if elevation < bins.elev_lo[s] or elevation > bins.elev_hi[s]:
                 continue
-            t, c = _hit_solid(s, dx, dy, dz, kind, centre, half, cos_yaw, sin_yaw)
+            t, c = _hit_solid(s, d, solids)
             if t < best:
                 best, hit, code = t, s, c
         if hit == MISS:
@@ -360,8 +368,6 @@ def _cast(
             norm = np.sqrt(gx * gx + gy * gy + 1.0)
             normal[r, 0], normal[r, 1], normal[r, 2] = -gx / norm, -gy / norm, 1.0 / norm
         else:
-            nx, ny, nz = _solid_normal(
-                hit, best, code, dx, dy, dz, kind, centre, half, cos_yaw, sin_yaw
-            )
+            nx, ny, nz = _solid_normal(hit, best, code, d, solids)
             normal[r, 0], normal[r, 1], normal[r, 2] = nx, ny, nz
     return t_out, hit_out, normal
