@@ -19,6 +19,7 @@ from drcpo.occlusion.kernels import (
     _STATE_HIDDEN,
     _STATE_VISIBLE,
     _decide,
+    _new_work,
     _radial_clear,
     _row_runs,
 )
@@ -31,20 +32,18 @@ _WITHOUT_CLEAR, _WITHOUT_HIDDEN, _WITHOUT_VISIBLE, _WITHOUT_UNRESOLVED = range(1
 
 
 @nb.njit(cache=True, nogil=True)
-def _without_state(i, cone, scene, s1, s2, t, brutes, brute_budget):
+def _without_state(i, cone, scene, work, brutes, brute_budget):
     """State of sorted frame point ``i`` among the frame's points (first cone ``cone``):
     clear (the plane normal to its ray), hidden, visible (a tilted plane) or unresolved; with
     the full scans made so far and the buffers, as :func:`_decide`."""
     if _radial_clear(i, cone, _ORIGINALS, scene):
-        return _WITHOUT_CLEAR, brutes, s1, s2, t
-    state, brutes, s1, s2, t = _decide(
-        i, cone, _ORIGINALS | _CERTIFY, scene, s1, s2, t, brutes, brute_budget
-    )
+        return _WITHOUT_CLEAR, brutes, work
+    state, brutes, work = _decide(i, cone, _ORIGINALS | _CERTIFY, scene, work, brutes, brute_budget)
     if state == _STATE_HIDDEN:
-        return _WITHOUT_HIDDEN, brutes, s1, s2, t
+        return _WITHOUT_HIDDEN, brutes, work
     if state == _STATE_VISIBLE:
-        return _WITHOUT_VISIBLE, brutes, s1, s2, t
-    return _WITHOUT_UNRESOLVED, brutes, s1, s2, t
+        return _WITHOUT_VISIBLE, brutes, work
+    return _WITHOUT_UNRESOLVED, brutes, work
 
 
 @nb.njit(cache=True, nogil=True)
@@ -60,17 +59,13 @@ def _insertion_verdicts(queries, cones, n_original, scene, brute_budget):
     otherwise each set is decided as :func:`_classify` does.
     """
     verdicts = np.empty(queries.shape[0], dtype=np.int8)
-    s1 = np.empty(256)
-    s2 = np.empty(256)
-    t = np.empty(256)
+    work = _new_work(256)
     brutes = 0
     for slot in range(queries.shape[0]):
         i = queries[slot]
         cone = cones[slot]
         if i < n_original:
-            state, brutes, s1, s2, t = _without_state(
-                i, cone, scene, s1, s2, t, brutes, brute_budget
-            )
+            state, brutes, work = _without_state(i, cone, scene, work, brutes, brute_budget)
             if state == _WITHOUT_HIDDEN:
                 verdicts[slot] = _VERDICT_KEEP
                 continue
@@ -84,9 +79,7 @@ def _insertion_verdicts(queries, cones, n_original, scene, brute_budget):
         elif _radial_clear(i, cone, _BOTH, scene):
             verdicts[slot] = _VERDICT_KEEP
             continue
-        state, brutes, s1, s2, t = _decide(
-            i, cone, _BOTH | _CERTIFY, scene, s1, s2, t, brutes, brute_budget
-        )
+        state, brutes, work = _decide(i, cone, _BOTH | _CERTIFY, scene, work, brutes, brute_budget)
         if state == _STATE_HIDDEN:
             verdicts[slot] = _VERDICT_REMOVE
         elif state == _STATE_VISIBLE:
@@ -102,9 +95,7 @@ def _hidden_groups(
 ):  # pragma: no cover - numba
     # FrameGrid.hidden_groups: per group, the samples' radial planes first (cheap, and one
     # visible sample more than ``allowed`` settles the group), then the full test.
-    s1 = np.empty(256)
-    s2 = np.empty(256)
-    t = np.empty(256)
+    work = _new_work(256)
     for m in range(offsets.shape[0] - 1):
         lo, hi = offsets[m], offsets[m + 1]
         if hi == lo:
@@ -125,8 +116,8 @@ def _hidden_groups(
             continue
         for b in range(n_blocked):
             k = blocked[b]
-            state, brutes, s1, s2, t = _decide(
-                position[k], cones[k], _ORIGINALS | _CERTIFY, scene, s1, s2, t, brutes, brute_budget
+            state, brutes, work = _decide(
+                position[k], cones[k], _ORIGINALS | _CERTIFY, scene, work, brutes, brute_budget
             )
             if state != _STATE_HIDDEN:
                 visible += 1

@@ -244,25 +244,40 @@ def _quadrant(s1, s2):
     return 0
 
 
+class _Work(NamedTuple):
+    """Scratch buffers for a point's plane constraints ``a s1_j + b s2_j <= t_j``
+    (:func:`_gather`), replaced by larger ones when they overflow."""
+
+    s1: np.ndarray
+    s2: np.ndarray
+    t: np.ndarray
+
+
 @nb.njit(cache=True, nogil=True)
-def _gather_grown(i, cone, members, scene, s1, s2, t):
-    """:func:`_gather` into buffers that are replaced by larger ones until every constraint
-    fits; returns the count and the (possibly new) buffers."""
+def _new_work(size):
+    return _Work(np.empty(size), np.empty(size), np.empty(size))
+
+
+@nb.njit(cache=True, nogil=True)
+def _gather_grown(i, cone, members, scene, work):
+    """:func:`_gather` into the :class:`_Work` buffers, replaced by larger ones until every
+    constraint fits; returns the count and the (possibly new) buffers."""
     while True:
-        count = _gather(i, cone, False, members, scene, s1, s2, t)
-        if count <= t.shape[0]:
-            return count, s1, s2, t
-        s1 = np.empty(2 * count)
-        s2 = np.empty(2 * count)
-        t = np.empty(2 * count)
+        count = _gather(i, cone, False, members, scene, work.s1, work.s2, work.t)
+        if count <= work.t.shape[0]:
+            return count, work
+        work = _new_work(2 * count)
 
 
 @nb.njit(cache=True, nogil=True)
-def _line_interval(a, b, c, fa, fb, da, db, lo, hi):
-    """Clip the parameter interval ``[lo, hi]`` of the line ``f + lam d`` by the constraint
-    ``a x + b y <= c``. Returns ``(lo, hi, ok)``; ``ok`` is False when the constraint excludes
-    the whole line (a parallel constraint that coincides with the line up to rounding counts as
-    satisfied)."""
+def _line_interval(constraint, f, d, lo, hi):
+    """Clip the parameter interval ``[lo, hi]`` of the line ``f + lam d`` (``f = (fa, fb)``,
+    ``d = (da, db)``) by the ``constraint`` ``(a, b, c)``: ``a x + b y <= c``. Returns
+    ``(lo, hi, ok)``; ``ok`` is False when the constraint excludes the whole line (a parallel
+    constraint that coincides with the line up to rounding counts as satisfied)."""
+    a, b, c = constraint
+    fa, fb = f
+    da, db = d
     along = a * da + b * db
     room = c - (a * fa + b * fb)
     scale = abs(a) + abs(b)
@@ -306,13 +321,14 @@ def _min_tilt(s1, s2, t, count):
         da, db = -b, a
         lo, hi, inside = -math.inf, math.inf, True
         for side in range(4):
-            lo, hi, ok = _line_interval(_BOX_A[side], _BOX_B[side], box, fa, fb, da, db, lo, hi)
+            side_constraint = (_BOX_A[side], _BOX_B[side], box)
+            lo, hi, ok = _line_interval(side_constraint, (fa, fb), (da, db), lo, hi)
             inside = inside and ok
         if not inside:
             return 0, 0.0, 0.0
         for previous in range(k):
             i = (previous * stride) % count
-            lo, hi, ok = _line_interval(s1[i], s2[i], t[i] - _SLACK, fa, fb, da, db, lo, hi)
+            lo, hi, ok = _line_interval((s1[i], s2[i], t[i] - _SLACK), (fa, fb), (da, db), lo, hi)
             if not ok:
                 return 0, 0.0, 0.0
         if lo > hi:
@@ -334,7 +350,7 @@ def _danger_cone(alpha_tan, ri, r_min, rho_max):
 
 
 @nb.njit(cache=True, nogil=True)
-def _decide(i, first_cone, members, scene, s1, s2, t, brutes, brute_budget):
+def _decide(i, first_cone, members, scene, work, brutes, brute_budget):
     """State (hidden 0, visible 1, unresolved 2) of sorted point ``i`` among the member sets
     ``members``, which the plane normal to its ray leaves undecided (see :func:`_radial_pass`).
     Returns it with the full scans made so far and the (possibly grown) buffers.
@@ -349,27 +365,27 @@ def _decide(i, first_cone, members, scene, s1, s2, t, brutes, brute_budget):
     # nearest, and the full one can hold many times more.
     probe = _PROBE_NARROWING * first_cone
     if probe > 1e-6:
-        count, s1, s2, t = _gather_grown(i, probe, members, scene, s1, s2, t)
-        if count == _NO_PLANE or _min_tilt(s1, s2, t, count)[0] == 0:
-            return _STATE_HIDDEN, brutes, s1, s2, t
+        count, work = _gather_grown(i, probe, members, scene, work)
+        if count == _NO_PLANE or _min_tilt(work.s1, work.s2, work.t, count)[0] == 0:
+            return _STATE_HIDDEN, brutes, work
     while True:
         everything = cone >= _BRUTE_ANGLE
         if everything:
             if brutes >= brute_budget:
-                return _STATE_UNRESOLVED, brutes, s1, s2, t
+                return _STATE_UNRESOLVED, brutes, work
             brutes += 1
             cone = math.pi
-        count, s1, s2, t = _gather_grown(i, cone, members, scene, s1, s2, t)
+        count, work = _gather_grown(i, cone, members, scene, work)
         if count == _NO_PLANE:
-            return _STATE_HIDDEN, brutes, s1, s2, t
-        status, a, b = _min_tilt(s1, s2, t, count)
+            return _STATE_HIDDEN, brutes, work
+        status, a, b = _min_tilt(work.s1, work.s2, work.t, count)
         if status == 0:
-            return _STATE_HIDDEN, brutes, s1, s2, t
+            return _STATE_HIDDEN, brutes, work
         if everything:
-            return _STATE_VISIBLE, brutes, s1, s2, t
+            return _STATE_VISIBLE, brutes, work
         alpha, gamma = _danger_cone(math.sqrt(a * a + b * b), ri, scene.r_min, scene.rho_max)
         if alpha + gamma <= cone * (1.0 - 1e-9):
-            return _STATE_VISIBLE, brutes, s1, s2, t
+            return _STATE_VISIBLE, brutes, work
         cone = max(2.0 * cone, 1.05 * (alpha + gamma))
 
 
@@ -379,14 +395,12 @@ def _classify(todo, first_cone, scene, brute_budget):
     plane normal to their ray leaves undecided (see :func:`_radial_pass`); at most
     ``brute_budget`` full scans, the points that need more are left unresolved."""
     state = np.empty(todo.shape[0], dtype=np.int64)
-    s1 = np.empty(256)
-    s2 = np.empty(256)
-    t = np.empty(256)
+    work = _new_work(256)
     brutes = 0
     for slot in range(todo.shape[0]):
         i = todo[slot]
-        state[slot], brutes, s1, s2, t = _decide(
-            i, first_cone[i], _ORIGINALS, scene, s1, s2, t, brutes, brute_budget
+        state[slot], brutes, work = _decide(
+            i, first_cone[i], _ORIGINALS, scene, work, brutes, brute_budget
         )
     return state
 
