@@ -284,9 +284,12 @@ def _insertion_order(flipped, ranges, radius, axis):  # pragma: no cover - numba
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _set_plane(points, f, a, b, c, verts, normals, offsets, taus, rho, diam):  # pragma: no cover
-    """Facet ``f = (a, b, c)`` (counter-clockwise seen from outside), its plane and the quick
-    margin ``taus[f]`` that a height must exceed to keep its sign under the perturbation."""
+def _set_plane(points, f, corners, facets, rho, diam):  # pragma: no cover - numba
+    """Facet ``f`` with ``corners`` ``(a, b, c)`` (counter-clockwise seen from outside): its
+    plane in ``facets`` and the quick margin ``facets.taus[f]`` that a height must exceed to
+    keep its sign under the perturbation."""
+    a, b, c = corners
+    verts, normals, offsets, taus = facets
     verts[f, 0] = a
     verts[f, 1] = b
     verts[f, 2] = c
@@ -330,18 +333,10 @@ def _close_call(points, f, q, h, verts, rho, maxabs):  # pragma: no cover - numb
     b = verts[f, 1]
     c = verts[f, 2]
     return _tight_sign(
-        points[a, 0],
-        points[a, 1],
-        points[a, 2],
-        points[b, 0],
-        points[b, 1],
-        points[b, 2],
-        points[c, 0],
-        points[c, 1],
-        points[c, 2],
-        points[q, 0],
-        points[q, 1],
-        points[q, 2],
+        (points[a, 0], points[a, 1], points[a, 2]),
+        (points[b, 0], points[b, 1], points[b, 2]),
+        (points[c, 0], points[c, 1], points[c, 2]),
+        (points[q, 0], points[q, 1], points[q, 2]),
         h,
         rho,
         maxabs,
@@ -349,9 +344,14 @@ def _close_call(points, f, q, h, verts, rho, maxabs):  # pragma: no cover - numb
 
 
 @nb.njit(cache=True, nogil=True)
-def _tight_sign(a0, a1, a2, b0, b1, b2, c0, c1, c2, q0, q1, q2, h, rho, maxabs):  # pragma: no cover
+def _tight_sign(a, b, c, q, h, rho, maxabs):  # pragma: no cover - numba
     """Sign of ``h = det(b - a, c - a, q - a)`` when it holds under the perturbation, else 0.
-    Scalars only: a call from the hot loops then costs nothing until it is taken."""
+    The points are tuples of three floats (values, not arrays: a call from the hot loops then
+    costs nothing until it is taken)."""
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    c0, c1, c2 = c
+    q0, q1, q2 = q
     x0 = b0 - a0
     x1 = b1 - a1
     x2 = b2 - a2
@@ -451,7 +451,8 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
     a = order[0]
     b = order[1]
     c = order[2]
-    _set_plane(points, 0, a, b, c, verts, normals, offsets, taus, rho, diam)
+    facets = (verts, normals, offsets, taus)
+    _set_plane(points, 0, (a, b, c), facets, rho, diam)
     h = -offsets[0]  # the apex's height
     if not abs(h) > taus[0] and _close_call(points, 0, apex, h, verts, rho, maxabs) == 0:
         return UNSURE
@@ -460,18 +461,9 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
     corners = (a, b, c, apex)
     faces = ((0, 1, 2), (0, 3, 1), (1, 3, 2), (2, 3, 0))
     for f in range(4):
+        face = faces[f]
         _set_plane(
-            points,
-            f,
-            corners[faces[f][0]],
-            corners[faces[f][1]],
-            corners[faces[f][2]],
-            verts,
-            normals,
-            offsets,
-            taus,
-            rho,
-            diam,
+            points, f, (corners[face[0]], corners[face[1]], corners[face[2]]), facets, rho, diam
         )
         opposite = corners[6 - faces[f][0] - faces[f][1] - faces[f][2]]
         h = _height(points, f, opposite, normals, offsets)
@@ -531,18 +523,10 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
                     u = verts[f, i]
                     v = verts[f, i + 1 if i < 2 else 0]
                     sign = _tight_sign(
-                        0.0,
-                        0.0,
-                        0.0,
-                        points[u, 0],
-                        points[u, 1],
-                        points[u, 2],
-                        points[v, 0],
-                        points[v, 1],
-                        points[v, 2],
-                        q0,
-                        q1,
-                        q2,
+                        (0.0, 0.0, 0.0),
+                        (points[u, 0], points[u, 1], points[u, 2]),
+                        (points[v, 0], points[v, 1], points[v, 2]),
+                        (q0, q1, q2),
                         e,
                         rho,
                         maxabs,
@@ -651,7 +635,7 @@ def _apex_hull(points, order, rel_tol, vertex, copies, cap):  # pragma: no cover
                 top += 1
             else:
                 return _FULL
-            _set_plane(points, nf, u, v, q, verts, normals, offsets, taus, rho, diam)
+            _set_plane(points, nf, (u, v, q), facets, rho, diam)
             alive[nf] = True
             is_far[nf] = u != apex and v != apex
             if is_far[nf]:
