@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -216,21 +217,9 @@ def _build_frame_grid(
         _cell_numbers(elevation, azimuth, origin, height, rows, columns, cells)
         _counting_sort_to(cells, starts[0], 0, order)
         _sort_cells(order, ranges, starts[0], 0)
-        _scatter_sorted(
-            order,
-            rel,
-            ranges,
-            elevation,
-            azimuth,
-            2.0 * radius,
-            out_rel,
-            out_ranges,
-            out_rho,
-            out_rays,
-            out_elevation,
-            out_azimuth,
-            position,
-        )
+        sorted_out = _Sorted(out_rel, out_ranges, out_rho, out_rays, out_elevation, out_azimuth)
+        points = _Directions(rel, ranges, elevation, azimuth)
+        _scatter_sorted(order, points, 2.0 * radius, sorted_out, position)
     else:
         order = order[:0]
     return (
@@ -255,24 +244,32 @@ def _build_frame_grid(
     )
 
 
+class _Directions(NamedTuple):
+    """The frame's points as seen from the viewpoint, in input order."""
+
+    rel: np.ndarray  # (n, 3) offsets from the viewpoint
+    ranges: np.ndarray  # (n,)
+    elevation: np.ndarray  # (n,)
+    azimuth: np.ndarray  # (n,)
+
+
+class _Sorted(NamedTuple):
+    """FrameGrid's copies of the points in cell order (rows beyond the frame's are zeroed)."""
+
+    rel: np.ndarray
+    ranges: np.ndarray
+    rho: np.ndarray  # the HPR diameter minus the range
+    rays: np.ndarray  # unit directions
+    elevation: np.ndarray
+    azimuth: np.ndarray
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _scatter_sorted(
-    order,
-    rel,
-    ranges,
-    elevation,
-    azimuth,
-    diameter,
-    out_rel,
-    out_ranges,
-    out_rho,
-    out_rays,
-    out_elevation,
-    out_azimuth,
-    position,
-):  # pragma: no cover - numba
+def _scatter_sorted(order, points, diameter, out, position):  # pragma: no cover - numba
     # FrameGrid's sorted copies in one pass (rays rel / range: NaN at the viewpoint, as numpy
     # would give), and each point's sorted position; the rows after the frame's are zeroed.
+    rel, ranges, elevation, azimuth = points
+    out_rel, out_ranges, out_rho, out_rays, out_elevation, out_azimuth = out
     for k in range(order.shape[0]):
         i = order[k]
         r = ranges[i]
