@@ -8,7 +8,7 @@ other processes hits both alike:
 * ``open3d``: ``open3d.geometry.PointCloud.hidden_point_removal`` (when open3d imports; install
   the ``bench`` extra),
 
-and, for the record, each of our methods on its own (``reference`` = one Qhull hull, ``sectors``,
+and, for the record, each of our methods on its own (``reference`` = one Qhull hull,
 ``local``). Every result is checked against the fixture's visible set
 (Jaccard index). Without the fixtures it runs on a sweep of drcpo's synthetic LiDAR world.
 
@@ -44,7 +44,6 @@ from drcpo.occlusion import hidden_point_removal, hpr
 DEFAULT_FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "hpr"
 VARIANTS = {
     "reference": {"method": "reference"},
-    "sectors": {"method": "sectors"},
     "local": {"method": "local"},
 }
 

@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--points", type=int, default=30000)
     parser.add_argument("--local", action="store_true", help="also time method='local'")
     args = parser.parse_args(argv)
-    methods = ["reference", "sectors", "auto", *(["local"] if args.local else [])]
+    methods = ["reference", "auto", *(["local"] if args.local else [])]
     hidden_point_removal(np.eye(4, 3) + 1.0, method="reference")  # compile outside the timing
     for name, (points, radius) in scenes(args.points).items():
         seconds, answers = {}, {}

@@ -29,7 +29,7 @@ from drcpo.occlusion import (
     self_occlusion,
 )
 
-FAST_METHODS = ("local", "sectors", "auto")
+FAST_METHODS = ("local", "auto")
 ALL_METHODS = ("reference", *FAST_METHODS)
 
 
@@ -113,9 +113,7 @@ def test_frame_fixture_through_external_occlusion_preset(hpr_fixtures):
 # Fast paths == plain path
 # ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("seed", range(6))
-def test_fast_paths_equal_reference_on_random_scenes(seed, monkeypatch):
-    # test seam: small sectors, so that scenes of a few thousand points are split into many
-    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)
+def test_fast_paths_equal_reference_on_random_scenes(seed):
     rng = np.random.default_rng(seed)
     points = street_scene(rng, int(rng.integers(1500, 4000)), fov=[None, 0.8][seed % 2])
     radius = [1e3, 1e4, 1e5, 3e5, 1e6, 1e9][seed]
@@ -144,9 +142,8 @@ def test_local_equals_reference_on_random_clouds(seed, count, log_ratio):
 
 
 @pytest.mark.parametrize("seed", range(4))
-def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
+def test_fast_paths_equal_reference_on_lattices(seed):
     # integer lattices: duplicates, points on one ray, many coplanar quadruples
-    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 60)  # test seam: many small sectors
     rng = np.random.default_rng(100 + seed)
     for trial in range(25):
         points = rng.integers(-6, 7, size=(int(rng.integers(4, 400)), 3)).astype(float)
@@ -156,14 +153,12 @@ def test_fast_paths_equal_reference_on_lattices(seed, monkeypatch):
         reach = np.linalg.norm(points - viewpoint, axis=1).max()
         radius = float(reach * 10 ** rng.uniform(0.05, 5))
         reference = hidden_point_removal(points, viewpoint, radius, method="reference")
-        for method in ("local", "sectors"):
-            got = hidden_point_removal(points, viewpoint, radius, method=method)
-            assert np.array_equal(got, reference), (trial, method)
+        got = hidden_point_removal(points, viewpoint, radius, method="local")
+        assert np.array_equal(got, reference), trial
 
 
 @pytest.mark.parametrize("method", ALL_METHODS)
-def test_invariant_to_point_order(method, monkeypatch):
-    monkeypatch.setattr(hpr, "_SECTOR_POINTS", 300)  # test seam: many small sectors
+def test_invariant_to_point_order(method):
     rng = np.random.default_rng(7)
     points = street_scene(rng, 3000)
     first = hidden_point_removal(points, (0, 0, 1.0), 3e5, method=method)
@@ -304,7 +299,7 @@ def test_runs_in_forked_workers():
     rng = np.random.default_rng(9)
     points = street_scene(rng, 25000)
     # run in the parent first: compiled kernels and Qhull state exist before fork
-    expected = {m: _worker_job((points, m)) for m in ("local", "sectors", "reference")}
+    expected = {m: _worker_job((points, m)) for m in ("local", "reference")}
     context = multiprocessing.get_context("fork")
     with context.Pool(2) as pool:
         jobs = [(points, m) for m in expected for _ in range(2)]
@@ -865,11 +860,9 @@ def test_auto_sends_crowded_sets_to_one_hull(rng, monkeypatch, scene):
     if points is None:
         points = np.concatenate([sphere, copies, sphere[:50]])
     reference = hidden_point_removal(points, radius=100.0, method="reference")
-    sectors = hidden_point_removal(points, radius=100.0, method="sectors")
     _no_per_point_test(monkeypatch)
     auto = hidden_point_removal(points, radius=100.0)
     np.testing.assert_array_equal(auto, reference)
-    np.testing.assert_array_equal(auto, sectors)
     query = rng.random(len(points)) < 0.3
     np.testing.assert_array_equal(
         hidden_point_removal(points, radius=100.0, query=query), reference | ~query

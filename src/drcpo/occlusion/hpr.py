@@ -33,10 +33,6 @@ Methods (``method=``):
   ``R`` where those (and hence Qhull and Open3D) lose precision. Its cost grows with the
   number of points per neighbourhood: it is at its best on LiDAR sweeps and loses its lead
   over one hull on dense volumetric blobs (thousands of points per degree).
-* ``"sectors"``: the reference hull split into overlapping azimuth sectors; a sector's verdict
-  on one of its core points is used only when it is provably the whole set's (hidden in a
-  subset implies hidden; visible needs a hull facet whose danger cone lies inside the sector),
-  the rest go to ``"local"``.
 * ``"auto"`` (default): ``"reference"`` for small inputs (at most :data:`AUTO_REFERENCE_MAX`
   points, such as one object for s-HPR), when ``R`` is not far above the ranges (every
   neighbourhood is then a wide cone and one hull is cheaper) and when the points crowd the
@@ -98,7 +94,7 @@ __all__ = [
     "hidden_point_removal",
 ]
 
-HPR_METHODS: tuple[str, ...] = ("auto", "local", "sectors", "reference")
+HPR_METHODS: tuple[str, ...] = ("auto", "local", "reference")
 AUTO_REFERENCE_MAX = 2000  # "auto" runs one Qhull hull up to this many points
 # "auto" runs one hull when more points than this, on average, share a point's cell of the
 # per-point test's grid (cells about a first neighbourhood wide): that test's time grows with
@@ -128,7 +124,7 @@ def hidden_point_removal(
             computed in float64.
         viewpoint: ``(3,)`` viewpoint (metres), the origin of the spherical flip.
         radius: ``R`` of the spherical flip (metres), Open3D's ``radius`` argument.
-        method: ``"auto"``, ``"local"``, ``"sectors"`` or ``"reference"`` (module docstring).
+        method: ``"auto"``, ``"local"`` or ``"reference"`` (module docstring).
         query: optional ``bool (N,)`` mask or integer indices of the points whose visibility is
             wanted; the others are still potential occluders but are reported ``True`` without
             being decided. ``None``: all points.
@@ -156,8 +152,6 @@ def hidden_point_removal(
     chosen = _resolve_method(method, setup)
     if chosen == "reference":
         decided = _reference(setup, wanted_hull)
-    elif chosen == "sectors":
-        decided = _sectors(setup, wanted_hull)
     elif method == "auto":
         decided = _auto_local(setup, wanted_hull)
     else:
@@ -278,114 +272,3 @@ def _degenerate_fallback(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
     vertex = np.zeros(len(cloud), dtype=bool)
     vertex[hull.vertices] = True
     return vertex[:-1][inverse]
-
-
-# ----------------------------------------------------------------------------------------------
-# Sectors: Qhull per overlapping azimuth sector, verdicts certified
-# ----------------------------------------------------------------------------------------------
-_SECTOR_POINTS = 3000  # target core points per sector
-
-
-def _sectors(setup: _Setup, wanted: np.ndarray) -> np.ndarray:
-    """Visible flags ``(M,)`` from per-sector hulls; uncertified points go to :func:`_local`."""
-    distinct, inverse = setup.distinct()
-    if distinct is not setup:
-        chosen = np.zeros(distinct.size, dtype=bool)
-        chosen[inverse[wanted]] = True
-        return _sectors(distinct, chosen)[inverse] & wanted
-    ranges, radius = setup.ranges, setup.radius
-    r_min = float(ranges.min())
-    rho_max = 2.0 * radius - r_min
-    rays = setup.rays
-    azimuth = np.arctan2(rays[:, 1], rays[:, 0])
-    elevation = np.arcsin(np.clip(rays[:, 2], -1.0, 1.0))
-    # Margin: the widest danger cone of a facet normal to the ray, in azimuth, with room for
-    # some tilt; facets that need more are not certified and their points go to "local".
-    widest = 2.0 * math.asin(math.sqrt(min(2.0, (float(ranges.max()) - r_min) / rho_max) / 2.0))
-    top = min(float(np.abs(elevation).max()) + widest, 1.2)
-    margin = 1.5 * math.asin(min(1.0, math.sin(widest) / math.cos(top))) + 1e-6
-    count = int(np.clip(setup.size // _SECTOR_POINTS, 1, 64))
-    count = min(count, max(1, int(2 * math.pi / (4 * margin))))
-    if count < 2:
-        decided = _reference(setup, wanted)
-        return decided
-    order = np.argsort(azimuth, kind="stable")
-    sorted_azimuth = azimuth[order]
-    bounds = np.linspace(0, setup.size, count + 1).astype(np.int64)
-    flipped = setup.flipped()
-    jobs = []
-    for k in range(count):
-        lo, hi = int(bounds[k]), int(bounds[k + 1])
-        if hi > lo and wanted[order[lo:hi]].any():
-            jobs.append((lo, hi))
-    tasks = [
-        (lo, hi, order, sorted_azimuth, flipped, margin, rho_max, setup.size) for lo, hi in jobs
-    ]
-    results = [_sector_verdicts(task) for task in tasks]
-    visible = np.zeros(setup.size, dtype=bool)
-    uncertain = np.zeros(setup.size, dtype=bool)
-    for core, vertex, certified in results:
-        visible[core] = vertex & certified
-        uncertain[core] = vertex & ~certified
-    uncertain &= wanted
-    if uncertain.any():
-        visible[uncertain] = _local(setup, uncertain)[uncertain]
-    return visible & wanted
-
-
-def _sector_verdicts(task: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Core points of one sector, whether each is a vertex of the sector's hull, and whether
-    that verdict is certified for the whole set."""
-    lo, hi, order, sorted_azimuth, flipped, margin, rho_max, total = task
-    extended = np.concatenate(
-        [sorted_azimuth - 2 * np.pi, sorted_azimuth, sorted_azimuth + 2 * np.pi]
-    )
-    start = int(np.searchsorted(extended, sorted_azimuth[lo] - margin, "left"))
-    stop = int(np.searchsorted(extended, sorted_azimuth[hi - 1] + margin, "right"))
-    if stop - start >= total:
-        positions = np.arange(total)
-        cover = None  # the sector's set is the whole set
-    else:
-        positions = np.arange(start, stop) % total
-        # every point with an azimuth strictly between these two is in the sector's set
-        cover = (float(extended[start - 1]), float(extended[stop]))
-    members = order[positions]
-    core_mask = (positions >= lo) & (positions < hi)
-    cloud = np.vstack([flipped[members], np.zeros((1, 3))])
-    try:
-        # Q5: skip Qhull's final outer-plane correction, which only tightens error bounds
-        # and takes time (docs/measurements.md); same vertices on every fixture and test scene.
-        hull = ConvexHull(cloud, qhull_options="Q5")
-    except (QhullError, ValueError):
-        count = int(core_mask.sum())
-        return members[core_mask], np.ones(count, bool), np.zeros(count, bool)
-    certified_facet = _certified_facets(hull.equations, rho_max, cover)
-    vertex = np.zeros(len(cloud), dtype=bool)
-    vertex[hull.simplices.ravel()] = True
-    certified = np.zeros(len(cloud), dtype=bool)
-    certified[hull.simplices[certified_facet].ravel()] = True
-    return members[core_mask], vertex[:-1][core_mask], certified[:-1][core_mask]
-
-
-def _certified_facets(
-    equations: np.ndarray, rho_max: float, cover: tuple[float, float] | None
-) -> np.ndarray:
-    """``bool (F,)``: hull facets whose plane provably bounds the whole set.
-
-    A flipped point at angle ``beta`` from the facet normal lies at most ``rho_max cos(beta)``
-    along it, so only points within ``arccos(offset / rho_max)`` of the normal can cross the
-    plane; the facet is certified when that cone lies inside the azimuth interval ``cover``
-    whose points all took part (``None``: all did).
-    """
-    normal, offset = equations[:, :3], -equations[:, 3]
-    if cover is None:
-        return np.ones(len(equations), dtype=bool)
-    cone = np.arccos(np.clip(offset / rho_max, -1.0, 1.0))
-    elevation = np.arcsin(np.clip(normal[:, 2], -1.0, 1.0))
-    ok = (offset > 0) & (cone + np.abs(elevation) < np.pi / 2 - 1e-9)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        spread = np.arcsin(np.clip(np.sin(cone) / np.cos(elevation), -1.0, 1.0))
-    middle, half = (cover[0] + cover[1]) / 2, (cover[1] - cover[0]) / 2
-    azimuth = np.arctan2(normal[:, 1], normal[:, 0])
-    offset_azimuth = (azimuth - middle + np.pi) % (2 * np.pi) - np.pi
-    return ok & (np.abs(offset_azimuth) + spread < half * (1 - 1e-12))
