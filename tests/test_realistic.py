@@ -426,3 +426,32 @@ def test_objects_hidden_once_rendered_get_new_poses(synthetic_world):  # noqa: F
     still, same = placing(0).repose(seen, boxes, rendered, render, 5)
     np.testing.assert_array_equal(still, boxes)
     assert same[1][0].shape == (0, 4)
+
+
+def test_new_poses_are_rendered_with_either_self_occlusion(synthetic_world, monkeypatch):  # noqa: F811
+    """``repose_attempts`` renders a moved object as the first pass does, with the paper's
+    s-HPR as with the sensor (with ``self_occlusion.mode=hpr`` it crashed: the per-object
+    render seeds exist only in mode ``sensor``)."""
+    from drcpo.transforms import sensor_steps
+
+    db, index, frames = synthetic_world
+    real = sensor_steps.Placing.repose
+    rendered = []
+
+    def repose(self, seen, boxes, visible, render, min_points):
+        if len(boxes):  # test seam: object 0 rendered again where it stands
+            rendered.append((render(0, boxes[0]), visible[0]))
+        return real(self, seen, boxes, visible, render, min_points)
+
+    monkeypatch.setattr(sensor_steps.Placing, "repose", repose)
+    for mode in ("hpr", "sensor"):
+        rendered.clear()
+        drcpo = _realistic(db, index, **{"self_occlusion.mode": mode})
+        drcpo(frames[0], np.random.default_rng(0))
+        assert rendered, mode  # the seam ran
+        (points, label), (first_points, first_label) = rendered[0]
+        np.testing.assert_array_equal(label, first_label)
+        if mode == "hpr":  # deterministic: the same points as the first pass
+            np.testing.assert_array_equal(points, first_points)
+        else:
+            assert points.shape[1] == first_points.shape[1]

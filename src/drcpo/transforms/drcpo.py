@@ -279,9 +279,14 @@ class DRCPO(Transform):
                 for k, built in enumerate(objects)
             ]
             if seen is not None and seen.placing is not None:  # (repose_attempts)
-                boxes, visible = seen.placing.repose(seen, boxes, visible, lambda k, box: (
-                    self._object_s_hpr(objects[k].points, box, dim, seen.sensor, seeds[k])
-                ), self.config.min_points_after)  # fmt: skip
+
+                def render(k: int, box: np.ndarray) -> np.ndarray:
+                    seed = None if seeds is None else int(seeds[k])
+                    return self._object_s_hpr(objects[k].points, box, dim, sensor, seed)
+
+                boxes, visible = seen.placing.repose(
+                    seen, boxes, visible, render, self.config.min_points_after
+                )
             insertions = self._insertions(rows, boxes, visible, stats)
             record["points_out"] = sum(len(i.points) for i in insertions)
         with stats.stage("drcpo.insert", len(frame)) as record:
