@@ -11,22 +11,12 @@ arms=(
   cda paper realistic
   # realistic minus each of its components
   realistic:self_occlusion.mode=hpr                 # sensor rendering
-  realistic:external_occlusion.mode=hpr             # occlusion along the rays
   realistic:placement.height=ground                 # standing on observed ground
   realistic:placement.max_non_ground_points=10      # no returns in the box
-  realistic:placement.drop_hidden_added=false       # dropping hidden sampled objects
-  realistic:placement.displace_attempts=0           # displacing
-  realistic:placement.repose_attempts=0             # new poses
-  realistic:external_occlusion.fill_holes=false     # filled holes
   # paper plus each
   paper:self_occlusion.mode=sensor,self_occlusion.radius_share=0.09
-  paper:external_occlusion.mode=sensor
   paper:placement.height=observed
   paper:placement.max_non_ground_points=0
-  paper:external_occlusion.mode=sensor,placement.drop_hidden_added=true
-  paper:external_occlusion.mode=sensor,placement.displace_attempts=20
-  paper:external_occlusion.mode=sensor,placement.repose_attempts=20
-  paper:external_occlusion.mode=sensor,external_occlusion.fill_holes=true
   # labels: construction keeps no point outside the source box, so the label is the source box
   # (by default points up to 5 cm outside are kept and the label grows to hold them)
   paper:construction.margin=0.0

@@ -33,9 +33,9 @@ def test_arms_are_built_in_names_presets_files_and_overrides(tmp_path):
     assert realistic.kind == "drcpo" and realistic.config["drcpo"]["placement"]["height"] == (
         "observed"
     )
-    changed = arms.parse_arm("realistic:placement.drop_hidden_added=false,placement.attempts=7")
+    changed = arms.parse_arm("realistic:placement.occluded_fraction=null,placement.attempts=7")
     placement = changed.config["drcpo"]["placement"]
-    assert placement["drop_hidden_added"] is False and placement["attempts"] == 7
+    assert placement["occluded_fraction"] is None and placement["attempts"] == 7
     assert placement["height"] == "observed"  # the rest of the preset stays
     full_path = arms.parse_arm("paper:drcpo.placement.attempts=9")
     assert full_path.config["drcpo"]["placement"]["attempts"] == 9

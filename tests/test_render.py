@@ -13,10 +13,8 @@ import pytest
 from drcpo.errors import DataError
 from drcpo.occlusion.render import (
     RADIUS_RANGE,
-    point_cells,
     radius_cap,
     render_object,
-    sensor_tables,
     surfel_radii,
 )
 from drcpo.sensor import Sensor, sensor_preset
@@ -393,56 +391,3 @@ def test_bad_input_is_a_data_error() -> None:
             surfel_radii(points, bad_cap)
     empty, source = render_object(np.zeros((0, 5), np.float32), EXACT, rng)
     assert empty.shape == (0, 5) and source.shape == (0,)
-
-
-def points_around(
-    rng: np.random.Generator, reach: float, heights: tuple[float, float]
-) -> np.ndarray:
-    """5,000 points 1 m to ``reach`` metres around the origin, at any azimuth and heights."""
-    radius = rng.uniform(1.0, reach, 5000)
-    angle = rng.uniform(-math.pi, math.pi, 5000)
-    height = rng.uniform(*heights, 5000)
-    return np.column_stack([radius * np.cos(angle), radius * np.sin(angle), height]).astype(
-        np.float32
-    )
-
-
-@pytest.mark.parametrize("name", ["hdl64e", "hdl32e", "small"])
-def test_point_cells_are_the_sensors_cells(name: str) -> None:
-    sensor = small_sensor() if name == "small" else sensor_preset(name)
-    points = points_around(np.random.default_rng(11), 80.0, (-4.0, 3.0))
-    beam, column, distance = point_cells(points, sensor)
-    want_beam, want_column, _ = sensor.cells(points)
-    np.testing.assert_array_equal(beam, want_beam)
-    inside = beam >= 0
-    assert inside.mean() > 0.2
-    np.testing.assert_array_equal(column[inside], want_column[inside])
-    origin = sensor.ray_origins(beam[inside])
-    np.testing.assert_allclose(
-        distance[inside], np.linalg.norm(points[inside].astype(np.float64) - origin, axis=1)
-    )
-
-
-def test_point_cells_where_several_beams_bands_hold_a_point() -> None:
-    """Origins far apart make the bands seen from them overlap: a point some beams' bands
-    both hold gets the beam Sensor.cells gives (the one nearest its elevation), as does a
-    point in one band only."""
-    base = sensor_preset("hdl64e")
-    sensor = dataclasses.replace(base, offsets=np.where(np.arange(64) % 2 == 0, 0.4, -0.4))
-    points = points_around(np.random.default_rng(12), 20.0, (-3.0, 1.0))
-    beam, _, _ = point_cells(points, sensor)
-    np.testing.assert_array_equal(beam, sensor.cells(points)[0])
-    edges = sensor_tables(sensor).geometry[0]
-    relative = points.astype(np.float64) - np.asarray(sensor.mount)
-    own = (relative[:, 2:3] - sensor.offsets) / np.hypot(relative[:, 0], relative[:, 1])[:, None]
-    holders = ((edges[1:] < own) & (own <= edges[:-1])).sum(axis=1)
-    assert (holders >= 2).sum() > 100 and (holders == 1).sum() > 100
-
-
-def test_point_cells_name_the_bad_row() -> None:
-    points = np.ones((4, 3), dtype=np.float32)
-    points[2, 1] = np.nan
-    with pytest.raises(DataError, match="row 2"):
-        point_cells(points, small_sensor())
-    with pytest.raises(DataError, match="shape"):
-        point_cells(np.ones(3), small_sensor())

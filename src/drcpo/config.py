@@ -105,7 +105,7 @@ DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
 #: circle around the sensor.
 PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "realistic", "nuscenes")
 SELF_OCCLUSION_MODES = ("hpr", "sensor")
-EXTERNAL_OCCLUSION_MODES = ("hpr", "range_image", "sensor")
+EXTERNAL_OCCLUSION_MODES = ("hpr", "range_image")
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
 PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
 #: The preset whose e-HPR settings the paper defaults use.
@@ -271,7 +271,7 @@ class ExternalOcclusionConfig(Checked):
         default="hpr",
         metadata=spec(
             "choice",
-            "hpr (the paper), range_image (z-buffer) or sensor (along the sensor's rays)",
+            "hpr (the paper) or range_image (z-buffer)",
             choices=EXTERNAL_OCCLUSION_MODES,
         ),
     )
@@ -293,24 +293,6 @@ class ExternalOcclusionConfig(Checked):
         default=None,
         metadata=spec(
             "float", "override viewpoint height (m)", low=-100.0, high=100.0, optional=True
-        ),
-    )
-    min_visible_rays: int = field(
-        default=12,
-        metadata=spec(
-            "int",
-            "mode sensor: placement rejects, before building it, a box that fewer of the "
-            "sensor's rays would reach in front of the frame and the boxes placed before",
-            low=0,
-            high=1_000_000,
-        ),
-    )
-    fill_holes: bool = field(
-        default=False,
-        metadata=spec(
-            "bool",
-            "mode sensor: the rays between an inserted object's returns of a beam or of a "
-            "column that return none of it are blocked by it too (a solid object has no holes)",
         ),
     )
 

@@ -98,7 +98,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first seventeen fields.
+    section ``drcpo.placement``, whose keys are the first fourteen fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -128,14 +128,6 @@ class PlacementConfig(Checked):
             its sensor-facing surface; ``None``: no test).
         camera_fov: when the caller sets ``fov_only``: ``"auto"`` (when the frame is cut to the
             camera's view), ``"always"`` or ``"never"``.
-        drop_hidden_added: for the caller (DR.CPO with e-HPR mode ``sensor``): before placing,
-            drop the objects earlier stages added that the frame's rays leave with too few
-            points (the last occlusion step would drop them anyway), so that they hold no room.
-        displace_attempts: for the caller (likewise): poses of a second pass for the objects
-            left unplaced, through earlier stages' objects, which make way (are dropped) where
-            one is placed (0: no second pass).
-        repose_attempts: for the caller (likewise): poses of another pass for the placed
-            objects that the frame and the others would hide once rendered (0: none).
 
     Set by the caller, not config keys:
         fov_only: restrict positions to the camera's field of view (see ``fov_half_angle``).
@@ -239,9 +231,7 @@ class PlacementConfig(Checked):
             "float",
             "reject a placed box before construction once this share of its sensor-facing "
             "surface e-HPR hides behind the frame's points (it would almost always drop the "
-            "object; 1.0: only fully hidden boxes; null: never); with e-HPR mode sensor, "
-            "the share of the sensor's rays crossing the box that the frame and the boxes "
-            "placed before hide",
+            "object; 1.0: only fully hidden boxes; null: never)",
             low=0.0,
             high=1.0,
             low_open=True,
@@ -255,20 +245,6 @@ class PlacementConfig(Checked):
             "place inside the camera view: auto = when the frame is cut to it",
             choices=CAMERA_FOV_MODES,
         ),
-    )
-    drop_hidden_added: bool = field(
-        default=False,
-        metadata=spec("bool", "mode sensor: drop earlier stages' objects the frame hides first"),
-    )
-    displace_attempts: int = field(
-        default=0,
-        metadata=spec(
-            "int", "poses per unplaced object that displace added ones", low=0, high=1000
-        ),
-    )
-    repose_attempts: int = field(
-        default=0,
-        metadata=spec("int", "poses per placed object hidden once rendered", low=0, high=1000),
     )
     fov_only: bool = field(
         default=False,

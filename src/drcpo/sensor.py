@@ -1,6 +1,6 @@
 """The LiDAR that recorded a frame: its beams, azimuth step, mount, range noise and dropout.
 
-Sensor-true augmentation (``self_occlusion.mode: sensor``, ``external_occlusion.mode: sensor``)
+Sensor-true augmentation (``self_occlusion.mode: sensor``)
 renders inserted objects through this model, so that they carry the frame's scan lines and the
 density its sensor gives at their distance. A beam ``b`` is a cone of rays leaving the point
 ``mount + (0, 0, offsets[b])`` at elevation ``elevations[b]`` above the horizontal, one ray per

@@ -29,10 +29,6 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
   and modes (``hpr``, ``range_image``).
 * :mod:`~drcpo.occlusion.render`: objects rendered through a :class:`~drcpo.sensor.Sensor`
   (``self_occlusion.mode: sensor``): :func:`render_object`, :func:`surfel_radii`.
-* :mod:`~drcpo.occlusion.rays`: occlusion along the sensor's rays (``external_occlusion.mode:
-  sensor``): :func:`ray_occlusion` (:class:`RayOcclusion`: the verdict again without some
-  objects, reusing the first pass), :class:`RangeImage` and :class:`PlacedView` (placement's
-  visible-ray verdicts of a round's boxes, the accepted ones painted in).
 
 Everything here runs on the calling thread and is safe in forked worker processes (PyTorch
 DataLoader workers): numba kernels are compiled without a threading layer.
@@ -58,7 +54,6 @@ from drcpo.occlusion.hpr import (
     hidden_point_removal,
 )
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
-from drcpo.occlusion.rays import PlacedView, RangeImage, RayOcclusion, ray_occlusion
 from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.occlusion.scopes import self_occlusion
 from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
@@ -75,16 +70,12 @@ __all__ = [
     "HPRPreset",
     "InsertedScope",
     "OcclusionMap",
-    "PlacedView",
-    "RangeImage",
-    "RayOcclusion",
     "azimuth_focus",
     "external_occlusion",
     "hidden_by_insertion",
     "hidden_point_removal",
     "inserted_scope",
     "range_image_occlusion",
-    "ray_occlusion",
     "render_object",
     "self_occlusion",
     "surface_samples",

@@ -7,8 +7,8 @@ with the sensor's range noise and dropout (:func:`render_object`). Density that 
 distance, scan lines and self-occlusion come out of this one step.
 
 The sensor's ray cells are found without trigonometry (a pseudo-angle table for the azimuth
-column, the tangents of the beam edges for the beam) by the rule of :meth:`Sensor.cells`;
-:mod:`~drcpo.occlusion.rays` shares these kernels. Imports :mod:`drcpo.errors`,
+column, the tangents of the beam edges for the beam) by the rule of :meth:`Sensor.cells`.
+Imports :mod:`drcpo.errors`,
 :mod:`drcpo.sensor` and :mod:`drcpo.occlusion.checks` only.
 """
 
@@ -28,7 +28,6 @@ __all__ = [
     "RADIUS_FACTOR",
     "RADIUS_RANGE",
     "VOXEL",
-    "point_cells",
     "radius_cap",
     "render_object",
     "surfel_radii",
@@ -137,25 +136,6 @@ def render_object(
     return _returns(*hits, noise, lost, features, limits, *tables.geometry)
 
 
-def point_cells(points: np.ndarray, sensor: Sensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:meth:`Sensor.cells` of ``points`` ``(N, 3+)`` (metres) by the kernels' rule (the same
-    cells, without trigonometry): ``beam int64 (N,)`` (-1 outside every beam), ``column int64
-    (N,)`` (-1 straight above or below the mount) and ``distance float64 (N,)`` from the beam's
-    own origin (the mount's outside every beam), metres.
-
-    Raises:
-        DataError: a point holds NaN or inf.
-    """
-    xyz = np.asarray(points)
-    if xyz.ndim != 2 or xyz.shape[1] < 3:
-        raise DataError(f"points must have shape (N, 3 + C), got {xyz.shape}")
-    rows = np.arange(len(xyz), dtype=np.int64)
-    beam, column, distance, _, bad = _point_cells(xyz, rows, *sensor_tables(sensor).geometry)
-    if bad >= 0:
-        raise DataError(f"points hold NaN/inf coordinates (first: row {bad})")
-    return beam, column, distance
-
-
 def _check_radii(radii: np.ndarray, count: int) -> np.ndarray:
     array = np.asarray(radii)
     if array.shape != (count,):
@@ -226,14 +206,6 @@ class SensorTables:
         )
         for array in self.geometry:
             array.setflags(write=False)
-
-    def directions(self, beam: np.ndarray, column: np.ndarray) -> np.ndarray:
-        """``float64 (K, 3)`` the unit directions of rays ``(beam, column)``, as the kernels
-        compute them (equal to :meth:`Sensor.ray_directions`)."""
-        cos_e = self.beam_cos[beam]
-        return np.column_stack(
-            [cos_e * self.column_cos[column], cos_e * self.column_sin[column], self.beam_sin[beam]]
-        )
 
 
 _TABLES: weakref.WeakKeyDictionary[Sensor, SensorTables] = weakref.WeakKeyDictionary()
@@ -478,109 +450,6 @@ def _render(
                 source_out[m] = source[b, w]
                 m += 1
     return beam_out, column_out, depth_out, source_out
-
-
-@numba.njit(cache=True, nogil=True)
-def _point_cells(
-    points,
-    index,
-    edge_slopes,
-    edge_lut,
-    beam_slopes,
-    beam_lut,
-    offsets,
-    mount,
-    beam_cos,
-    beam_sin,
-    column_cos,
-    column_sin,
-    first,
-    crosses,
-    bound_cos,
-    bound_sin,
-    constants,
-):  # pragma: no cover - numba
-    # Sensor.cells of points[index] (see _beam_at; columns without trigonometry): beam (-1
-    # outside every beam), column (-1 straight above or below the mount), distance from the
-    # beam's origin (the mount's outside every beam), offset from the mount (n, 3); and the
-    # first row with a non-finite coordinate, or -1.
-    n, columns, bins = index.shape[0], column_cos.shape[0], first.shape[0]
-    step, phase, low, high = constants[0], constants[1], constants[2], constants[3]
-    beam = np.empty(n, np.int64)
-    column = np.empty(n, np.int64)
-    distance = np.empty(n)
-    rel = np.empty((n, 3))
-    for q in range(n):
-        i = index[q]
-        x = np.float64(points[i, 0]) - mount[0]
-        y = np.float64(points[i, 1]) - mount[1]
-        z = np.float64(points[i, 2]) - mount[2]
-        if not np.isfinite(x + y + z):
-            return beam, column, distance, rel, i
-        rel[q, 0], rel[q, 1], rel[q, 2] = x, y, z
-        h2 = x * x + y * y
-        b, c, lift = -1, -1, 0.0
-        if h2 > 0.0:
-            k = _pseudo_bin(x, y, bins)
-            c = _column_at(
-                x, y, first[k], crosses[k], bound_cos[k], bound_sin[k], columns, step, phase
-            )
-            inverse = 1.0 / math.sqrt(h2)
-            b = _beam_at(
-                z, inverse, edge_slopes, edge_lut, beam_slopes, offsets, low, high, constants
-            )
-            lift = offsets[b] if b >= 0 else 0.0
-        beam[q], column[q] = b, c
-        dz = z - lift
-        distance[q] = math.sqrt(h2 + dz * dz)
-    return beam, column, distance, rel, -1
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _beam_at(
-    z, inverse, edge_slopes, edge_lut, beam_slopes, offsets, low, high, constants
-):  # pragma: no cover - numba
-    # Sensor.cells' beam of a point at height z over the mount, 1 / its horizontal distance:
-    # -1 outside every beam. With beam origins apart: of the beams between those its
-    # elevation seen from the lowest and the highest origin falls in, the band holding its
-    # elevation seen from the beam's own origin, nearest the beam's elevation.
-    beams, lut_bins = offsets.shape[0], edge_lut.shape[0]
-    lut_start, lut_scale = constants[5], constants[6]
-    if low == 0.0 and high == 0.0:
-        row = _edge_row(z * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
-        return row - 1 if 0 < row <= beams else -1
-    top = _edge_row((z - low) * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
-    bottom = _edge_row((z - high) * inverse, edge_lut, lut_start, lut_scale, lut_bins, beams)
-    lo, hi = max(top - 1, 0), min(bottom - 1, beams - 1)
-    # most points fall in one beam's band only: then no angle needs comparing
-    best, holding = -1, 0
-    for candidate in range(lo, hi + 1):
-        own = (z - offsets[candidate]) * inverse
-        if edge_slopes[candidate + 1] < own <= edge_slopes[candidate]:
-            holding += 1
-            if best < 0:
-                best = candidate
-    if holding <= 1:
-        return best
-    best, best_miss = -1, math.inf
-    for candidate in range(lo, hi + 1):
-        own = (z - offsets[candidate]) * inverse
-        if edge_slopes[candidate + 1] < own <= edge_slopes[candidate]:
-            miss = abs(math.atan(own) - math.atan(beam_slopes[candidate]))
-            if miss < best_miss:
-                best, best_miss = candidate, miss
-    return best
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _edge_row(slope, edge_lut, lut_start, lut_scale, lut_bins, beams):  # pragma: no cover
-    # 1 + the band holding a slope (z / d): 0 above the top edge, beams + 1 below the bottom
-    k = _lut_bin(slope, lut_start, lut_scale, lut_bins)
-    if k < 0:
-        return beams + 1
-    if k >= lut_bins:
-        return 0
-    return int(edge_lut[k, 0]) + (edge_lut[k, 1] > slope) + (edge_lut[k, 2] > slope)
 
 
 @numba.njit(cache=True, nogil=True)

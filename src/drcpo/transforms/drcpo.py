@@ -17,6 +17,7 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
 from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
+from drcpo.ground import GroundModel
 from drcpo.index import indexed_mask
 from drcpo.occlusion.render import radius_cap
 from drcpo.occlusion.view_windows import grown_boxes, window_spans
@@ -148,21 +149,16 @@ class DRCPO(Transform):
         """Whether a step uses the sensor model or the ground before earlier stages (see
         :mod:`drcpo.transforms.sensor_steps`)."""
         observed = self.config.placement.height == "observed"
-        return self._render_objects or self._occlusion_along_rays or observed
+        return self._render_objects or observed
 
     @property
     def _render_objects(self) -> bool:
         s = self.config.self_occlusion
         return s.enabled and s.mode == "sensor"
 
-    @property
-    def _occlusion_along_rays(self) -> bool:
-        e = self.config.external_occlusion
-        return e.enabled and e.mode == "sensor"
-
     def _render_seeds(self, count: int, rng: np.random.Generator) -> np.ndarray | None:
         """A seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in object
-        order whatever thread renders it; ``None`` (no draw) in the other modes."""
+        order; ``None`` (no draw) in the other modes."""
         if not self._render_objects:
             return None
         return rng.integers(0, 2**63 - 1, size=count, dtype=np.int64)
@@ -232,27 +228,24 @@ class DRCPO(Transform):
         # Multi-sweep: the steps on the key sweep, the others settled from their own origins.
         out = self._apply(split.key, rng, stats)
         settings = self.config.external_occlusion
-        mode = {"sensor": "range_image"}.get(settings.mode, settings.mode)
-        return split.join(
-            out, "drcpo", self.room, settings.setting, mode if settings.enabled else None
-        )
+        mode = settings.mode if settings.enabled else None
+        return split.join(out, "drcpo", self.room, settings.setting, mode)
 
     def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
-        seen = sensor_steps.SensorFrame(frame, self.config.sensor) if self._sensor_true else None
-        if self._occlusion_along_rays and self.config.placement.drop_hidden_added:
-            with stats.stage("drcpo.placement", len(frame)):
-                seen, gone = seen.without_hidden_added(self.config.min_points_after)
-            frame = seen.frame
-            for name in gone:  # (the last step would drop them: they hold no room meanwhile)
-                stats.label_dropped(str(name))
-        objects: list[Any] = []
+        # The sensor-true steps see the frame without the objects earlier stages added.
+        own = sensor_steps.own_points(frame) if self._sensor_true else None
+        sensor = None
+        if self._render_objects:
+            sensor, used = sensor_steps.frame_sensor(own, self.config.sensor)
+            stats.sensor_used(used)
+        ground = sensor_steps.own_ground(frame, own) if own is not None else None
         dim = frame.points.shape[1]
         frame_grid = self._frame_grid(frame, rows)
         if self.config.construction.mode == "partition":
             with stats.stage("drcpo.placement", len(frame)):
-                boxes, accepted = self._place(frame, rows, None, rng, stats, frame_grid, seen)
+                boxes, accepted = self._place(frame, rows, None, rng, stats, frame_grid, ground)
                 rows = rows[accepted]
             seeds = self._render_seeds(len(boxes), rng)
             with stats.stage("drcpo.construction", 0) as record:
@@ -264,45 +257,29 @@ class DRCPO(Transform):
                 record["points_out"] = sum(len(o.points) for o in objects)
             with stats.stage("drcpo.placement", len(frame)):
                 dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
-                boxes, accepted = self._place(frame, rows, dims, rng, stats, frame_grid, seen)
+                boxes, accepted = self._place(frame, rows, dims, rng, stats, frame_grid, ground)
                 rows, objects = rows[accepted], [objects[i] for i in accepted]
             seeds = self._render_seeds(len(boxes), rng)
-        if seen is not None and seen.after_placing is not None:  # (displace_attempts)
-            seen, frame = seen.after_placing, seen.after_placing.frame
         points_in = sum(len(o.points) for o in objects)
         with stats.stage("drcpo.self_occlusion", points_in) as record:
-            sensor = seen.sensor if seeds is not None else None
             visible = [
                 self._object_s_hpr(
                     built.points, boxes[k], dim, sensor, None if seeds is None else int(seeds[k])
                 )
                 for k, built in enumerate(objects)
             ]
-            if seen is not None and seen.placing is not None:  # (repose_attempts)
-
-                def render(k: int, box: np.ndarray) -> np.ndarray:
-                    seed = None if seeds is None else int(seeds[k])
-                    return self._object_s_hpr(objects[k].points, box, dim, sensor, seed)
-
-                boxes, visible = seen.placing.repose(
-                    seen, boxes, visible, render, self.config.min_points_after
-                )
             insertions = self._insertions(rows, boxes, visible, stats)
             record["points_out"] = sum(len(i.points) for i in insertions)
         with stats.stage("drcpo.insert", len(frame)) as record:
-            points, owner, cleared_by = self._insert(frame, insertions, clear=seen is None)
+            points, owner, cleared_by = self._insert(frame, insertions)
             record["points_out"] = len(points)
         with stats.stage("drcpo.external_occlusion", len(points)) as record:
             grid = frame_grid() if frame_grid is not None and insertions else None
-            keep, dropped = self._external_occlusion(
-                points, owner, insertions, grid, cleared_by, seen
-            )
+            keep, dropped = self._external_occlusion(points, owner, insertions, grid, cleared_by)
             record["points_out"] = int(keep.sum())
         with stats.stage("drcpo.labels", int(keep.sum())) as record:
             out = self._settle(frame, points, owner, keep, dropped, cleared_by, insertions, stats)
             record["points_out"] = len(out)
-        if seen is not None and (used := seen.record()) is not None:
-            stats.sensor_used(used)
         return out
 
     def _frame_grid(
@@ -345,12 +322,11 @@ class DRCPO(Transform):
         rng: np.random.Generator,
         stats: Stats,
         frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
-        seen: sensor_steps.SensorFrame | None = None,
+        ground: GroundModel | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects. With
-        ``seen`` (the sensor-true steps), the ground is the frame's before earlier
-        stages added objects, and with e-HPR mode ``sensor`` the occlusion test counts the rays
-        that would reach each box."""
+        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects, on
+        ``ground`` (a :class:`~drcpo.ground.GroundModel`; ``None``: placement estimates it from
+        the frame's points)."""
         if len(rows) == 0:
             return np.zeros((0, 7)), np.zeros(0, np.int64)
         source = np.asarray(self.database.boxes[rows], dtype=np.float64)
@@ -359,18 +335,7 @@ class DRCPO(Transform):
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        # No ground given: placement estimates it from the frame's points.
-        ground = seen.ground if seen is not None else None
         rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
-        if self._occlusion_along_rays:
-            occluding = self.config.external_occlusion
-            settings = (rng, self._placement[fov], occluding.min_visible_rays)
-            settings += (1.0 if limit is None else limit,)
-            seen.placing = sensor_steps.Placing(seen, rounds, dims, source, *settings)
-            result, gone = seen.placing.first_pass()
-            for name in gone:
-                stats.label_dropped(str(name))
-            return self._placement_result(result, rows, stats)
         while (drawn := rounds.next_round()) is not None:
             hidden = None
             if check and len(drawn.boxes):
@@ -487,18 +452,15 @@ class DRCPO(Transform):
         self,
         frame: Frame,
         insertions: Sequence[Insertion],
-        clear: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Points after insertion (the frame's points outside the objects' room, see
         :attr:`room`, then the objects'), each point's owner (-1: an original point, else the
         insertion's number) and, per frame point, the insertion it had to make room for (-1:
-        none). ``clear=False`` (e-HPR mode ``sensor``, which decides each frame
-        point along its ray instead): no room is cleared."""
+        none)."""
         cleared_by = np.full(len(frame), -1, dtype=np.int64)
         if not insertions:
             return frame.points, cleared_by.copy(), cleared_by
-        if clear:
-            cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
+        cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
         original = cleared_by < 0
         points = np.concatenate(
             [take_rows(frame.points, original), *(i.points for i in insertions)]
@@ -517,12 +479,9 @@ class DRCPO(Transform):
         insertions: Sequence[Insertion],
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
-        seen: sensor_steps.SensorFrame | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
         and the insertions left with too few points in their box, ``bool (len(insertions),)``.
-        Mode ``sensor``: along the sensor's rays, with the objects earlier stages added
-        (:func:`~drcpo.transforms.sensor_steps.sensor_occlusion`; the scope does not apply).
         e-HPR itself is :mod:`drcpo.occlusion.external`'s; this applies the label rule. Scope
         ``frame``: every hidden point goes (:func:`~drcpo.occlusion.external_occlusion`).
         Scope ``inserted`` (:func:`~drcpo.occlusion.inserted_scope`): the inserted points are
@@ -532,12 +491,6 @@ class DRCPO(Transform):
         without them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
         ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again."""
         settings = self.config.external_occlusion
-        if self._occlusion_along_rays and len(points):
-            first = int(np.count_nonzero(owner < 0))
-            count = partial(self._dropped, points[first:], owner[first:], insertions)
-            boxes = [i.box for i in insertions]
-            minimum = self.config.min_points_after
-            return seen.occlusion(points, owner, count, minimum, settings.fill_holes, boxes)
         keep = np.ones(len(points), dtype=bool)
         radius, viewpoint = self.e_hpr_setting()
         if settings.enabled and len(points) and settings.scope == "frame":

@@ -10,7 +10,7 @@ settled per sweep, each from its own origin: those inside an inserted object's r
 it now fills) go, and those the inserted objects hide, seen from that sweep's origin (its
 viewpoint: the origin raised by the e-HPR preset's height), go as e-HPR's ``inserted`` scope
 removes the key sweep's (hidden with the objects, visible without them, in the objects' view
-windows; e-HPR mode ``sensor``: a range image, the z-buffer nearest to its rays). Their other
+windows). Their other
 points and all their features are kept bit for bit, after the key sweep's. The label rule
 (original boxes left too sparse) counts the key sweep's points only.
 """
