@@ -7,8 +7,7 @@ their whole outer surface. Ray casting from the sensor says which samples it tru
 * **s-HPR** (``drcpo.occlusion.self_occlusion``, R = box diagonal x 200, viewpoint the sensor)
   is scored against the object's self-visibility (the object alone in the world).
 * **e-HPR** (``drcpo.occlusion.external_occlusion`` with each detector preset's R and
-  viewpoint height) and its **range-image mode** (``mode="range_image"``) are scored on the
-  frame after insertion: the frame's points in the KITTI detection range, minus those inside
+  viewpoint height) is scored on the frame after insertion: the frame's points in the KITTI detection range, minus those inside
   the inserted boxes, plus the inserted objects' truly self-visible samples (a perfect s-HPR).
   Truth: visible from the sensor in the world with the objects inserted.
 
@@ -120,12 +119,11 @@ def timed(fn, *args):
 
 
 def external_methods():
-    """e-HPR with each detector preset, and the range-image mode (from the sensor origin)."""
+    """e-HPR with each detector preset."""
     methods = {}
     for name, preset in occlusion.HPR_PRESETS.items():
         label = f"e-hpr {name} (R={preset.radius:g}, z={preset.viewpoint_z:g})"
         methods[label] = lambda p, n=name: occlusion.external_occlusion(p, n)
-    methods["range image"] = lambda p: occlusion.external_occlusion(p, mode="range_image")
     return methods
 
 

@@ -210,8 +210,6 @@ OVER_THE_LIMIT = {
     "drcpo.occlusion.render._column_at",
     "drcpo.occlusion.render._render",
     "drcpo.occlusion.render._returns",
-    "drcpo.occlusion.zbuffer._cells",
-    "drcpo.occlusion.zbuffer._occluded_share",
 }
 
 

@@ -40,7 +40,7 @@ def test_paper_defaults():
     assert d.placement.height == "ground" and d.placement.max_non_ground_points == 10
     assert d.self_occlusion.radius_factor == 200.0 and d.self_occlusion.min_points == 5
     assert d.external_occlusion.preset == "pv_rcnn_plusplus"
-    assert d.external_occlusion.scope == "inserted" and d.external_occlusion.mode == "hpr"
+    assert d.external_occlusion.scope == "inserted"
     assert d.min_points_after == 5
     assert config.gt_sampling.targets == {"Car": 20, "Pedestrian": 15, "Cyclist": 15}
     g = config.global_augmentation
@@ -320,7 +320,6 @@ BAD_VALUES = {
     "drcpo.self_occlusion.min_points": 10**7,
     "drcpo.self_occlusion.radius_share": 0,
     "drcpo.external_occlusion.enabled": None,
-    "drcpo.external_occlusion.mode": "zbuffer",
     "drcpo.external_occlusion.preset": "voxelnet",
     "drcpo.external_occlusion.scope": "all",
     "drcpo.external_occlusion.radius": 1e300,

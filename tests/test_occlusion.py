@@ -25,7 +25,6 @@ from drcpo.occlusion import (
     hidden_point_removal,
     hpr,
     local,
-    range_image_occlusion,
     self_occlusion,
 )
 
@@ -374,7 +373,7 @@ def test_external_occlusion_uses_the_preset(preset):
     with pytest.raises(ConfigError):
         external_occlusion(points, "pointpillars")
     with pytest.raises(ConfigError):
-        external_occlusion(points, preset, mode="raytrace")
+        external_occlusion(points, preset, method="raytrace")
 
 
 def test_external_occlusion_focus_is_exact_in_its_directions():
@@ -401,51 +400,6 @@ def test_azimuth_focus_selects_directions():
     assert np.isclose(degrees, 30).any()
     assert azimuth_focus(points, np.zeros(len(points), dtype=bool)).sum() == 0
     assert azimuth_focus(points, focus, margin=np.pi).all()
-
-
-# ----------------------------------------------------------------------------------------------
-# Range image
-# ----------------------------------------------------------------------------------------------
-def test_range_image_keeps_the_nearest_surface():
-    wall = np.column_stack([np.full(400, 20.0), np.linspace(-2, 2, 400), np.zeros(400)])
-    blocker = np.array([[10.0, 0.01, 0.0], [10.05, 0.01, 0.0]])
-    points = np.vstack([wall, blocker])
-    resolution = np.deg2rad(0.2)
-    visible = range_image_occlusion(points, azimuth_resolution=resolution, depth_tolerance=0.2)
-    assert visible[-2:].all()  # the blocker's two returns are one surface
-    column = np.floor((np.arctan2(points[:, 1], points[:, 0]) + np.pi) / resolution)
-    in_shadow = column[:-2] == column[-1]
-    assert 2 <= in_shadow.sum() < 20
-    assert not visible[:-2][in_shadow].any() and visible[:-2][~in_shadow].all()
-    tight = range_image_occlusion(points, azimuth_resolution=resolution, depth_tolerance=0.0)
-    assert tight[-2] and not tight[-1]
-
-
-def test_range_image_beams_and_modes():
-    rng = np.random.default_rng(15)
-    points = street_scene(rng, 3000)
-    beams = np.deg2rad(np.linspace(-25, 3, 64))
-    by_beam = range_image_occlusion(points, beam_elevations=beams)
-    assert by_beam.shape == (len(points),) and 0.3 < by_beam.mean() <= 1.0
-    via_external = external_occlusion(
-        points, mode="range_image", range_image={"beam_elevations": beams}
-    )
-    assert np.array_equal(via_external, by_beam)
-    # The range image looks from the preset's viewpoint (or the override), like e-HPR.
-    raised = range_image_occlusion(points, (0.0, 0.0, 2.0), beam_elevations=beams)
-    assert not np.array_equal(raised, by_beam)
-    for kwargs in ({"preset": "second"}, {"viewpoint_z": 2.0}):
-        np.testing.assert_array_equal(
-            external_occlusion(
-                points, mode="range_image", range_image={"beam_elevations": beams}, **kwargs
-            ),
-            raised,
-        )
-    assert range_image_occlusion(np.zeros((3, 3))).all()
-    with pytest.raises(ConfigError):
-        range_image_occlusion(points, azimuth_resolution=0.0)
-    with pytest.raises(DataError):
-        range_image_occlusion(np.full((2, 3), np.nan))
 
 
 def test_counting_sort_is_the_stable_argsort(rng):
@@ -580,13 +534,13 @@ def test_frame_grid_equals_the_two_passes(seed):
     assert not found[0][cleared].any()
 
 
-@pytest.mark.parametrize("path", ["grid", "own grid", "reference", "range_image"])
+@pytest.mark.parametrize("path", ["grid", "own grid", "reference"])
 def test_inserted_scope_steps_equal_the_definition(path, seed=1):
     # Step 1 decides the inserted points alone; the caller then picks the frame points to
     # decide (DR.CPO: those behind the objects that keep enough points), and step 2 decides
     # those: hidden with the objects, visible without them. Each path against its naive
-    # reference: hidden_point_removal (or range_image_occlusion) with and without the objects.
-    from drcpo.occlusion import FrameGrid, inserted_scope, range_image_occlusion
+    # reference: hidden_point_removal with and without the objects.
+    from drcpo.occlusion import FrameGrid, inserted_scope
 
     frame, cleared, inserted, behind = _insertion_scene(seed)
     radius = 1e5
@@ -601,28 +555,21 @@ def test_inserted_scope_steps_equal_the_definition(path, seed=1):
         },
         "own grid": {"method": "local"},
         "reference": {"method": "reference"},
-        "range_image": {"mode": "range_image"},
     }[path]
     scope = inserted_scope(points, is_inserted, np.zeros(3), radius, **options)
-    if path == "range_image":
-        visible = range_image_occlusion(points)
-        before = range_image_occlusion(points[~is_inserted])
-        expected_inserted = ~visible[is_inserted]
-        expected = half & ~visible[~is_inserted] & before
-    else:
-        nothing = np.zeros(len(points), bool)
-        expected_inserted = _two_passes(points, is_inserted, nothing, np.zeros(3), radius)
-        expected_inserted = expected_inserted[is_inserted]
-        expected = _two_passes(
-            points, is_inserted, np.append(half, np.zeros(len(inserted), bool)), np.zeros(3), radius
-        )[~is_inserted]
+    nothing = np.zeros(len(points), bool)
+    expected_inserted = _two_passes(points, is_inserted, nothing, np.zeros(3), radius)
+    expected_inserted = expected_inserted[is_inserted]
+    expected = _two_passes(
+        points, is_inserted, np.append(half, np.zeros(len(inserted), bool)), np.zeros(3), radius
+    )[~is_inserted]
     assert expected_inserted.any() and expected.any()
     np.testing.assert_array_equal(scope.removed_inserted, expected_inserted)
     np.testing.assert_array_equal(scope.removed_of(half), expected)
     assert not scope.removed_of(np.zeros_like(half)).any()
 
 
-@pytest.mark.parametrize("path", ["grid", "own grid", "range_image"])
+@pytest.mark.parametrize("path", ["grid", "own grid"])
 def test_inserted_scope_decides_the_original_points_in_the_windows(path):
     # removed_behind(windows) is removed_of(the original points in those view windows, by
     # view_windows.in_windows); None: every direction.
@@ -640,7 +587,6 @@ def test_inserted_scope_decides_the_original_points_in_the_windows(path):
             "method": "local",
         },
         "own grid": {"method": "local"},
-        "range_image": {"mode": "range_image"},
     }[path]
     scope = inserted_scope(points, is_inserted, viewpoint, 1e5, **options)
     boxes = np.array(
@@ -671,8 +617,8 @@ def test_inserted_scope_picks_its_path_and_refuses_bad_settings():
     assert type(chosen).__name__ == "_PointsScope"
     with pytest.raises(ValueError, match="needs cleared"):
         inserted_scope(points, is_inserted, grid=grid)
-    with pytest.raises(ConfigError, match="mode"):
-        inserted_scope(points, is_inserted, mode="zbuffer")
+    with pytest.raises(ConfigError, match="method"):
+        inserted_scope(points, is_inserted, method="zbuffer")
 
 
 @pytest.mark.parametrize("seed", range(2))

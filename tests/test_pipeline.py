@@ -7,7 +7,6 @@ from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_overlap_area, box_corners, from_canonical, points_in_boxes
 from drcpo.occlusion.view_windows import view_windows
-from drcpo.occlusion.zbuffer import OcclusionMap, _facing_samples
 from drcpo.pipeline import build_pipeline
 from drcpo.placement import frame_ground
 from drcpo.transforms import (
@@ -831,24 +830,6 @@ def test_build_pipeline_kinds(synthetic_world):
         build_pipeline(None, db, index, kind="magic")
 
 
-def test_occlusion_map_samples_the_faces_seen_from_the_viewpoint():
-    box = np.array([10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0])
-    occlusion_map = OcclusionMap(np.zeros((0, 4), np.float32), np.zeros(3))
-    assert occlusion_map.occluded(box[None])[0] == 0.0  # nothing in front
-    samples, facing = _facing_samples(box[None], np.zeros(3))
-    local = samples[0][facing[0]].reshape(-1, 3) - box[:3]
-    # Seen from the origin (in front, above the top): the near x face and the top, nothing else.
-    on_near_face = np.isclose(local[:, 0], -2.0)
-    on_top = np.isclose(local[:, 2], 0.75)
-    assert (on_near_face | on_top).all() and on_near_face.any() and on_top.any()
-    assert facing.sum() == 2
-    assert np.abs(samples[0] - box[:3]).max(axis=(0, 1)) == pytest.approx([2.0, 1.0, 0.75])
-    # A dense sheet of points just in front of the box hides all of it.
-    u, v = np.meshgrid(np.linspace(-2, 2, 400), np.linspace(-2, 1, 300), indexing="ij")
-    sheet = np.column_stack([np.full(u.size, 6.0), u.ravel(), v.ravel()])
-    assert OcclusionMap(sheet, np.zeros(3)).occluded(box[None])[0] == 1.0
-
-
 # --------------------------------------------------------------------------------------------
 # Offline generation (drcpo augment) and the benchmark's quick mode
 # --------------------------------------------------------------------------------------------
@@ -939,15 +920,6 @@ def test_bench_augment_quick_mode(tmp_path, capsys):
         bench.frames_per_second(failing, [Frame(np.zeros((1, 4), np.float32))], 1, 2)
 
 
-@pytest.mark.parametrize("scope", ["inserted", "frame"])
-def test_drcpo_range_image_mode(synthetic_world, scope):
-    db, index, frames = synthetic_world
-    transform = DRCPO(db, index, {"external_occlusion": {"mode": "range_image", "scope": scope}})
-    out = transform(frames[0], np.random.default_rng(3))
-    result = check_drcpo_frame(transform, frames[0], out)
-    assert result["added"] > 0
-
-
 def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
     boxes = np.array(
         [[10.0, 3.0, -0.8, 4.0, 1.8, 1.5, 0.4], [-12.0, -0.5, -0.8, 4.0, 1.8, 1.5, 2.0]]
@@ -970,12 +942,11 @@ def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
     assert hit[len(inside) // 2 : len(inside)].all()
 
 
-@pytest.mark.parametrize("mode", ["hpr", "range_image"])
-def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode, rng):
+def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng):
     from drcpo.transforms.drcpo_parts import Insertion as _Insertion
 
     db, index, _ = synthetic_world
-    transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})
+    transform = DRCPO(db, index, {"external_occlusion": {"scope": "inserted"}})
     # A wall 20 m ahead, a second layer right behind part of it (hidden before anything is
     # inserted), and a dense box inserted 10 m ahead in front of the wall's middle.
     y, z = np.meshgrid(np.linspace(-4, 4, 81), np.linspace(-1.5, 1.5, 31))
@@ -996,12 +967,11 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, mode
     assert keep[len(wall) : len(wall) + len(layer)].all()  # hidden before: HPR's call, kept
 
 
-@pytest.mark.parametrize("mode", ["hpr", "range_image"])
-def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, mode, rng):
+def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, rng):
     from drcpo.transforms.drcpo_parts import Insertion as _Insertion
 
     db, index, _ = synthetic_world
-    transform = DRCPO(db, index, {"external_occlusion": {"mode": mode, "scope": "inserted"}})
+    transform = DRCPO(db, index, {"external_occlusion": {"scope": "inserted"}})
     # A wall 15 m ahead; object A (3 points, too few to keep) right in front of wall point P;
     # object B, dense, 25 m ahead beside the wall's edge: P lies in B's view window but in
     # front of B, so only A (dropped) could hide it, and P must stay.

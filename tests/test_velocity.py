@@ -504,14 +504,11 @@ def test_hpr_viewpoints_follow_the_sensor_mount(world, monkeypatch):
     assert seen and all(not v.any() for v in seen)
 
 
-@pytest.mark.parametrize("mode", ["hpr", "range_image"])
-def test_external_occlusion_takes_the_viewpoint_offset(rng, mode):
+def test_external_occlusion_takes_the_viewpoint_offset(rng):
     points = np.column_stack([rng.uniform(-20, 20, (400, 2)), rng.uniform(-1, 1, 400)])
     shifted = points + np.array([3.0, -2.0, 0.0])
-    moved = occlusion.external_occlusion(
-        shifted, "second", mode=mode, viewpoint_xy=np.array([3.0, -2.0])
-    )
-    at_origin = occlusion.external_occlusion(points, "second", mode=mode)
+    moved = occlusion.external_occlusion(shifted, "second", viewpoint_xy=np.array([3.0, -2.0]))
+    at_origin = occlusion.external_occlusion(points, "second")
     # the same scene seen from the same place relative to it: the same verdicts
     assert (moved == at_origin).mean() > 0.99
 

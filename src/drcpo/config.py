@@ -69,7 +69,6 @@ from drcpo.sensor_config import SensorConfig
 
 __all__ = [
     "DETECTOR_PRESETS",
-    "EXTERNAL_OCCLUSION_MODES",
     "KITTI_CLASSES",
     "PIPELINES",
     "PIPELINE_PRESETS",
@@ -105,7 +104,6 @@ DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
 #: circle around the sensor.
 PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "realistic", "nuscenes")
 SELF_OCCLUSION_MODES = ("hpr", "sensor")
-EXTERNAL_OCCLUSION_MODES = ("hpr", "range_image")
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
 PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
 #: The preset whose e-HPR settings the paper defaults use.
@@ -262,19 +260,11 @@ class SelfOcclusionConfig(Checked):
 
 @dataclass(frozen=True, eq=False)
 class ExternalOcclusionConfig(Checked):
-    """e-HPR (or the range-image mode) on the frame after insertion."""
+    """e-HPR on the frame after insertion."""
 
     KEY_PATH = "drcpo.external_occlusion"
 
     enabled: bool = field(default=True, metadata=spec("bool"))
-    mode: str = field(
-        default="hpr",
-        metadata=spec(
-            "choice",
-            "hpr (the paper) or range_image (z-buffer)",
-            choices=EXTERNAL_OCCLUSION_MODES,
-        ),
-    )
     preset: str = field(
         default=DEFAULT_PRESET,
         metadata=spec("choice", "detector whose (R, z) is used", choices=PRESETS),

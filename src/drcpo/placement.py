@@ -31,8 +31,7 @@ A placement is rejected, for one reason counted per attempt, when
   ``max_slope`` times the footprint's diagonal;
 * ``"occluded"``: the caller rejects it after the checks above (:class:`PlacementRounds` hands
   each round's boxes to the caller and takes its verdict; DR.CPO's test: the box would be
-  hidden behind the frame's points, see :class:`drcpo.transforms.drcpo.DRCPO`;
-  :class:`drcpo.occlusion.zbuffer.OcclusionMap` is a z-buffer for such a test).
+  hidden behind the frame's points, see :class:`drcpo.transforms.drcpo.DRCPO`).
 
 Objects are tried up to ``attempts`` times (a fresh pose each time); the paper tries once.
 ``max_attempts_per_frame`` caps the poses of one call in all, so that a crowded frame cannot

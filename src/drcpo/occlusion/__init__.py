@@ -1,12 +1,12 @@
 """Occlusion (DR.CPO, step 5): Katz et al.'s hidden point removal (HPR), the paper's s-HPR and
-e-HPR, and two z-buffers.
+e-HPR, and objects rendered through the sensor.
 
 The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
 diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
 the viewpoint height from :data:`HPR_PRESETS`); :func:`inserted_scope` (two steps) and
-:func:`hidden_by_insertion` are e-HPR's ``inserted`` scope. :func:`range_image_occlusion` is a
-z-buffer alternative that is *not* the paper's method; :class:`OcclusionMap` is the z-buffer
-that rejects placements hidden behind the frame before anything is built.
+:func:`hidden_by_insertion` are e-HPR's ``inserted`` scope. :func:`surface_samples` are the
+points on a box's faces that placement's "occluded" test decides by e-HPR before anything is
+built.
 
 Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 :mod:`drcpo.geometry`, :mod:`drcpo.sensor`), never anything above (:mod:`drcpo.placement`,
@@ -22,11 +22,10 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.local`: the ``"local"`` method's driver.
 * :mod:`~drcpo.occlusion.hpr`: :func:`hidden_point_removal` (methods and awkward inputs there).
 * :mod:`~drcpo.occlusion.frame_grid`: :class:`FrameGrid`, a frame sorted once for e-HPR.
-* :mod:`~drcpo.occlusion.zbuffer`: :func:`range_image_occlusion` and :class:`OcclusionMap`.
-* :mod:`~drcpo.occlusion.view_windows`: the directions boxes cover, seen from the viewpoint.
+* :mod:`~drcpo.occlusion.view_windows`: the directions boxes cover, seen from the viewpoint,
+  and the samples on their faces (:func:`surface_samples`).
 * :mod:`~drcpo.occlusion.scopes`: s-HPR.
-* :mod:`~drcpo.occlusion.external`: e-HPR, its scopes (``frame``, ``inserted`` in two steps)
-  and modes (``hpr``, ``range_image``).
+* :mod:`~drcpo.occlusion.external`: e-HPR, its scopes (``frame``, ``inserted`` in two steps).
 * :mod:`~drcpo.occlusion.render`: objects rendered through a :class:`~drcpo.sensor.Sensor`
   (``self_occlusion.mode: sensor``): :func:`render_object`, :func:`surfel_radii`.
 
@@ -56,7 +55,7 @@ from drcpo.occlusion.hpr import (
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
 from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.occlusion.scopes import self_occlusion
-from drcpo.occlusion.zbuffer import OcclusionMap, range_image_occlusion, surface_samples
+from drcpo.occlusion.view_windows import surface_samples
 
 __all__ = [
     "AUTO_CROWDED",
@@ -69,13 +68,11 @@ __all__ = [
     "GridMemory",
     "HPRPreset",
     "InsertedScope",
-    "OcclusionMap",
     "azimuth_focus",
     "external_occlusion",
     "hidden_by_insertion",
     "hidden_point_removal",
     "inserted_scope",
-    "range_image_occlusion",
     "render_object",
     "self_occlusion",
     "surface_samples",

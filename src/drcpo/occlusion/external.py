@@ -1,5 +1,5 @@
-"""e-HPR, the paper's external occlusion of a frame after insertion, in its two scopes and two
-modes; DR.CPO (:class:`drcpo.transforms.drcpo.DRCPO`) calls these and applies its label rule.
+"""e-HPR, the paper's external occlusion of a frame after insertion, in its two scopes; DR.CPO
+(:class:`drcpo.transforms.drcpo.DRCPO`) calls these and applies its label rule.
 
 * Scope ``frame`` (the paper): :func:`external_occlusion` removes every hidden point.
 * Scope ``inserted``: :func:`inserted_scope` in two steps that return data. Step 1 decides
@@ -8,7 +8,6 @@ modes; DR.CPO (:class:`drcpo.transforms.drcpo.DRCPO`) calls these and applies it
   (:mod:`drcpo.occlusion.view_windows`); step 2, :meth:`InsertedScope.removed_behind`,
   decides the original points in those windows: those hidden with the objects but visible
   without them go. :func:`hidden_by_insertion` is both steps for a fixed set of points.
-* Mode ``hpr`` (the paper's HPR) or ``range_image`` (a z-buffer, not the paper's method).
 
 Two focus mechanisms, on purpose: :func:`azimuth_focus` (``external_occlusion(focus=...)``)
 selects the azimuth bins around given points, for a caller that knows only which points
@@ -40,10 +39,8 @@ from drcpo.occlusion.hpr import HPR_METHODS, _crowded, _resolve_method, hidden_p
 from drcpo.occlusion.local import _local_grid
 from drcpo.occlusion.presets import HPR_PRESETS
 from drcpo.occlusion.view_windows import in_windows
-from drcpo.occlusion.zbuffer import range_image_occlusion
 
 __all__ = [
-    "EHPR_MODES",
     "InsertedScope",
     "azimuth_focus",
     "external_occlusion",
@@ -51,21 +48,17 @@ __all__ = [
     "inserted_scope",
 ]
 
-EHPR_MODES = ("hpr", "range_image")
-
 
 def external_occlusion(
     points: np.ndarray,
     preset: str = "pv_rcnn_plusplus",
     *,
-    mode: str = "hpr",
     radius: float | None = None,
     viewpoint_z: float | None = None,
     viewpoint_xy: np.ndarray | None = None,
     focus: np.ndarray | None = None,
     focus_margin: float = float(np.deg2rad(2.0)),
     method: str = "auto",
-    range_image: dict | None = None,
 ) -> np.ndarray:
     """e-HPR, scope ``frame``: the paper's external occlusion of a whole frame (after
     insertion), from the viewpoint ``(0, 0, z)``.
@@ -73,8 +66,6 @@ def external_occlusion(
     Args:
         points: ``(N, 3 + C)`` the frame's points (metres).
         preset: detector whose ``(R, z)`` is used, a key of :data:`HPR_PRESETS`.
-        mode: ``"hpr"`` (the paper) or ``"range_image"`` (:func:`range_image_occlusion`, not the
-            paper's method).
         radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
         viewpoint_xy: ``(2,)`` x, y of the viewpoint, metres (default: 0, 0), e.g. a sensor
             mounted off the LiDAR origin.
@@ -84,7 +75,6 @@ def external_occlusion(
             whole frame; all others are reported visible.
         focus_margin: radians added on both sides of the focus points' azimuths.
         method: as in :func:`hidden_point_removal`.
-        range_image: keyword arguments for :func:`range_image_occlusion` in that mode.
 
     Returns:
         ``bool (N,)``: points kept (visible).
@@ -96,11 +86,6 @@ def external_occlusion(
     query = None if focus is None else azimuth_focus(xyz, focus, focus_margin)
     height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
     x, y = (0.0, 0.0) if viewpoint_xy is None else (float(v) for v in viewpoint_xy)
-    if mode == "range_image":
-        visible = range_image_occlusion(xyz, (x, y, height), **(range_image or {}))
-        return visible if query is None else visible | ~query
-    if mode != "hpr":
-        raise ConfigError(f"external occlusion mode must be 'hpr' or 'range_image', got {mode!r}")
     r = setting.radius if radius is None else radius
     return hidden_point_removal(xyz, (x, y, height), r, method=method, query=query)
 
@@ -154,10 +139,7 @@ class _GridScope(InsertedScope):
 
 
 class _PointsScope(InsertedScope):
-    """Both steps on the points themselves: HPR's plain passes or the range image.
-
-    ``visible`` (``bool (N,)``, mode ``range_image``) holds every point's verdict among all
-    points; with HPR (``None``), step 2 asks for the original points' verdicts then."""
+    """Both steps on the points themselves, by HPR's plain passes."""
 
     def __init__(
         self,
@@ -165,23 +147,15 @@ class _PointsScope(InsertedScope):
         inserted: np.ndarray,
         viewpoint: np.ndarray,
         radius: float,
-        mode: str,
         method: str = "auto",
     ) -> None:
         self._xyz, self._inserted, self._viewpoint = xyz, inserted, viewpoint
-        self._radius, self._mode, self._method = radius, mode, method
+        self._radius, self._method = radius, method
         self._original = np.flatnonzero(~inserted)
-        self._visible = None
-        if mode == "range_image":
-            self._visible = range_image_occlusion(xyz, viewpoint)
-            self.removed_inserted = ~self._visible[inserted]
-        else:
-            self.removed_inserted = self._hidden(inserted)[inserted]
+        self.removed_inserted = self._hidden(inserted)[inserted]
 
     def _hidden(self, query: np.ndarray) -> np.ndarray:
         """``bool (N,)``: points of ``query`` hidden among all points."""
-        if self._visible is not None:
-            return query & ~self._visible
         if not query.any():
             return np.zeros(len(query), dtype=bool)
         return query & ~hidden_point_removal(
@@ -209,8 +183,6 @@ class _PointsScope(InsertedScope):
         """``bool (M,)``: original points visible among the original points alone (``True``
         outside ``wanted``, ``bool (M,)``)."""
         originals = self._xyz[self._original]
-        if self._mode == "range_image":
-            return range_image_occlusion(originals, self._viewpoint) | ~wanted
         return hidden_point_removal(
             originals,
             self._viewpoint,
@@ -240,7 +212,6 @@ def inserted_scope(
     viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
     radius: float = 100000.0,
     *,
-    mode: str = "hpr",
     grid: FrameGrid | None = None,
     cleared: np.ndarray | None = None,
     method: str = "auto",
@@ -248,7 +219,7 @@ def inserted_scope(
     """Step 1 of e-HPR's ``inserted`` scope: decide the inserted points; the returned
     object's :meth:`~InsertedScope.removed_behind` is step 2.
 
-    The path is chosen here: with ``mode="hpr"``, a ``grid`` of the frame (points sorted
+    The path is chosen here: a ``grid`` of the frame (points sorted
     once, see :class:`FrameGrid`) where :meth:`FrameGrid.applies`; else, as
     :func:`hidden_point_removal` would, the per-point test on a grid built for the call or
     HPR's plain passes. Each point's verdict is exact against all points whichever path.
@@ -256,8 +227,7 @@ def inserted_scope(
     Args:
         points: ``(N, 3 + C)`` the frame after insertion (metres).
         inserted: ``bool (N,)`` the inserted points.
-        viewpoint: ``(3,)`` metres; radius: HPR's ``R`` (metres, unused by ``range_image``).
-        mode: one of :data:`EHPR_MODES`.
+        viewpoint: ``(3,)`` metres; radius: HPR's ``R`` (metres).
         grid: the :class:`FrameGrid` of the frame before insertion, with ``cleared``
             (``bool (grid.size,)``): the frame points taken out. ``points[~inserted]`` must
             be the grid's points without them, in order.
@@ -268,11 +238,7 @@ def inserted_scope(
     radius = _check_radius(radius)
     if method not in HPR_METHODS:
         raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
-    if mode not in EHPR_MODES:
-        raise ConfigError(f"e-HPR mode must be one of {', '.join(EHPR_MODES)}, got {mode!r}")
     inserted = _check_query(inserted, len(xyz))
-    if mode == "range_image":
-        return _PointsScope(xyz, inserted, center, radius, mode)
     if grid is not None:
         if cleared is None:
             raise ValueError("inserted_scope: a grid needs cleared (the frame points taken out)")
@@ -290,7 +256,7 @@ def inserted_scope(
         if own.applies(none_cleared, xyz[inserted], "local"):
             step = own.insert(none_cleared, xyz[inserted], method="local")
             return _GridScope(own, step)
-    return _PointsScope(xyz, inserted, center, radius, mode, method)
+    return _PointsScope(xyz, inserted, center, radius, method)
 
 
 def hidden_by_insertion(

@@ -20,8 +20,7 @@ from drcpo.geometry import box_holding
 from drcpo.ground import GroundModel
 from drcpo.index import indexed_mask
 from drcpo.occlusion.render import radius_cap
-from drcpo.occlusion.view_windows import grown_boxes, window_spans
-from drcpo.occlusion.zbuffer import OcclusionMap, surface_samples
+from drcpo.occlusion.view_windows import grown_boxes, surface_samples, window_spans
 from drcpo.transforms import sensor_steps, sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.drcpo_parts import Insertion
@@ -60,8 +59,7 @@ class DRCPO(Transform):
        it, as the object's label may grow by that much (step 4). A placed box is rejected
        too (``occluded``) when e-HPR hides at least ``placement.occluded_fraction`` (default
        1.0: all) of a 5 x 4 grid of samples on each of its sensor-facing faces behind the
-       frame's points, each sample decided exactly as a point added to them (with the
-       ``range_image`` mode: a z-buffer at the sensor's resolution). e-HPR would almost
+       frame's points, each sample decided exactly as a point added to them. e-HPR would almost
        always leave such an object too few points (the counts: ``docs/measurements.md``), so
        it is not built and hides nothing.
        Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
@@ -216,7 +214,7 @@ class DRCPO(Transform):
         return (
             f"DRCPO({self.database!r}, sample={c.sample}, "
             f"construction={c.construction.mode!r}, height={c.placement.height!r}, "
-            f"e_hpr={c.external_occlusion.mode}:{c.external_occlusion.preset}:"
+            f"e_hpr={c.external_occlusion.preset}:"
             f"{c.external_occlusion.scope})"
         )
 
@@ -228,8 +226,8 @@ class DRCPO(Transform):
         # Multi-sweep: the steps on the key sweep, the others settled from their own origins.
         out = self._apply(split.key, rng, stats)
         settings = self.config.external_occlusion
-        mode = settings.mode if settings.enabled else None
-        return split.join(out, "drcpo", self.room, settings.setting, mode)
+        setting = settings.setting if settings.enabled else None
+        return split.join(out, "drcpo", self.room, setting)
 
     def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
@@ -289,8 +287,7 @@ class DRCPO(Transform):
         of placement), as a call that builds it when first asked for and then returns it;
         ``None`` when nothing will need it."""
         settings = self.config.external_occlusion
-        needed = settings.enabled and settings.mode == "hpr"
-        needed &= (
+        needed = settings.enabled and (
             settings.scope == "inserted" or self.config.placement.occluded_fraction is not None
         )
         if not needed or len(rows) == 0:
@@ -341,7 +338,7 @@ class DRCPO(Transform):
             if check and len(drawn.boxes):
                 everything = np.concatenate([drawn.placed, drawn.boxes])
                 owners = self._room_owners(frame, everything)
-                hidden = self._occluded(frame, drawn.boxes, everything, owners, frame_grid, limit)
+                hidden = self._occluded(drawn.boxes, owners, frame_grid(), limit)
             rounds.settle(hidden)
         return self._placement_result(rounds.result(), rows, stats)
 
@@ -361,30 +358,22 @@ class DRCPO(Transform):
 
     def _occluded(
         self,
-        frame: Frame,
         boxes: np.ndarray,
-        everything: np.ndarray,
         owners: np.ndarray,
-        frame_grid: Callable[[], occlusion.FrameGrid] | None,
+        grid: occlusion.FrameGrid,
         limit: float,
     ) -> np.ndarray:
         """``bool (B,)``: ``boxes`` whose sensor-facing surface e-HPR would hide behind the
-        frame's points by at least ``limit``; the points in the rooms of ``everything`` placed
-        (``owners``, see :meth:`_room_owners`) make way for them and hide nothing. Mode
-        ``hpr``: surface samples decided exactly by HPR among the frame's points
+        frame's points (``grid``) by at least ``limit``; the points in the rooms of the boxes
+        placed (``owners``, see :meth:`_room_owners`) make way for them and hide nothing.
+        Surface samples are decided exactly by HPR among the frame's points
         (:meth:`~drcpo.occlusion.FrameGrid.hidden_groups`; nothing is hidden where that test
-        does not apply, see :meth:`~drcpo.occlusion.FrameGrid.groups_apply`); ``range_image``:
-        a z-buffer at the sensor's resolution (:class:`~drcpo.occlusion.zbuffer.OcclusionMap`).
-        """
+        does not apply, see :meth:`~drcpo.occlusion.FrameGrid.groups_apply`)."""
         _, viewpoint = self.e_hpr_setting()
-        if frame_grid is not None:
-            samples, offsets = surface_samples(boxes, viewpoint)
-            grid = frame_grid()
-            if not grid.groups_apply(samples):
-                return np.zeros(len(boxes), dtype=bool)
-            return grid.hidden_groups(samples, offsets, owners >= 0, limit)
-        z_buffer = OcclusionMap(frame.points, viewpoint)
-        return z_buffer.occluded(boxes, cleared=everything) >= limit
+        samples, offsets = surface_samples(boxes, viewpoint)
+        if not grid.groups_apply(samples):
+            return np.zeros(len(boxes), dtype=bool)
+        return grid.hidden_groups(samples, offsets, owners >= 0, limit)
 
     def _construct(self, rows: np.ndarray, rng: np.random.Generator, stats: Stats) -> list[Any]:
         """The sampled objects of source ``rows`` constructed."""
@@ -497,7 +486,6 @@ class DRCPO(Transform):
             keep = occlusion.external_occlusion(
                 points,
                 settings.preset,
-                mode=settings.mode,
                 radius=radius,
                 viewpoint_z=viewpoint[2],
                 viewpoint_xy=viewpoint[:2] if self._mounted else None,
@@ -510,7 +498,6 @@ class DRCPO(Transform):
             owner >= 0,
             viewpoint,
             radius,
-            mode=settings.mode,
             grid=grid if cleared_by is not None else None,
             cleared=None if cleared_by is None else cleared_by >= 0,
         )

@@ -59,8 +59,7 @@ class SweepSplit:
         out: Frame,
         source: str,
         room: float,
-        setting: HPRPreset,
-        mode: str | None,
+        setting: HPRPreset | None,
     ) -> Frame:
         """The output frame: DR.CPO's output on the key sweep (``out``; its boxes from
         ``source`` are the inserted objects, their points the ones inside them) with the earlier
@@ -72,8 +71,7 @@ class SweepSplit:
             room: metres by which an object's room exceeds its box.
             setting: e-HPR's radius and viewpoint height (``radius``, ``viewpoint_z``: a
                 :class:`~drcpo.occlusion.presets.HPRPreset`); a sweep's viewpoint is its origin
-                raised by that height.
-            mode: e-HPR's mode (``"hpr"`` or ``"range_image"``; ``None``: e-HPR off).
+                raised by that height; ``None``: e-HPR off.
         """
         added = np.asarray(out.metadata.get(BOX_SOURCE, np.zeros(0, str))) == source
         boxes = out.boxes[added] if len(added) == len(out.boxes) else np.zeros((0, 7))
@@ -81,11 +79,11 @@ class SweepSplit:
         if len(boxes) and len(rest):
             keep = ~BoxQuery(rest).inside_any(grown_boxes(boxes, room))
             objects = take_rows(out.points, BoxQuery(out.points).inside_any(boxes))
-            for s in np.unique(self.sweep) if mode is not None else ():
+            for s in np.unique(self.sweep) if setting is not None else ():
                 rows = np.flatnonzero((self.sweep == s) & keep)
                 viewpoint = self.origins[s] + np.array([0.0, 0.0, setting.viewpoint_z])
                 hidden = _hidden_behind(
-                    rest[rows], objects, boxes, float(setting.radius), viewpoint, mode
+                    rest[rows], objects, boxes, float(setting.radius), viewpoint
                 )
                 keep[rows[hidden]] = False
             rest = take_rows(rest, keep)
@@ -99,7 +97,6 @@ def _hidden_behind(
     boxes: np.ndarray,
     radius: float,
     viewpoint: np.ndarray,
-    mode: str,
 ) -> np.ndarray:
     """``bool (len(originals),)``: original points hidden by the inserted ``objects`` seen from
     ``viewpoint`` (e-HPR's ``inserted`` scope, step 2, in the boxes' view windows)."""
@@ -107,7 +104,7 @@ def _hidden_behind(
         return np.zeros(len(originals), dtype=bool)
     points = np.concatenate([originals[:, :3], objects[:, :3]])
     inserted = np.arange(len(points)) >= len(originals)
-    scope = occlusion.inserted_scope(points, inserted, viewpoint, radius, mode=mode)
+    scope = occlusion.inserted_scope(points, inserted, viewpoint, radius)
     return scope.removed_behind(window_spans(grown_boxes(boxes), viewpoint, True))
 
 
