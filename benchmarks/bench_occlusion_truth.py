@@ -7,8 +7,9 @@ their whole outer surface. Ray casting from the sensor says which samples it tru
 * **s-HPR** (``drcpo.occlusion.self_occlusion``, R = box diagonal x 200, viewpoint the sensor)
   is scored against the object's self-visibility (the object alone in the world).
 * **e-HPR** (``drcpo.occlusion.external_occlusion`` with each detector preset's R and
-  viewpoint height) is scored on the frame after insertion: the frame's points in the KITTI detection range, minus those inside
-  the inserted boxes, plus the inserted objects' truly self-visible samples (a perfect s-HPR).
+  viewpoint height) is scored on the frame after insertion: the frame's points in the KITTI
+  detection range, minus those inside the inserted boxes, plus the inserted objects' truly
+  self-visible samples (a perfect s-HPR).
   Truth: visible from the sensor in the world with the objects inserted.
 
 Scores are precision and recall of the *kept* points (kept and truly visible / kept; kept and

@@ -33,7 +33,6 @@ def test_paper_defaults():
     assert config.pipeline == "drcpo"
     assert d.sample == {"Car": 10, "Pedestrian": 10, "Cyclist": 10}
     assert per_class(d.min_points, "Car") == per_class(d.min_points, "Van") == 5
-    assert d.construction.mode == "partition"
     assert (d.construction.coverage, d.construction.max_iterations) == (0.85, 20)
     assert d.construction.margin == 0.05
     assert d.placement.x_range == [0.0, 70.4] and d.placement.y_range == [-40.0, 40.0]
@@ -53,11 +52,11 @@ def test_round_trip_through_dict_and_yaml(tmp_path):
     config = load_config(
         {
             "pipeline": "cda",
-            "drcpo": {"construction": {"mode": "whole"}, "min_points": 7},
+            "drcpo": {"construction": {"margin": 0.0}, "min_points": 7},
             "global_augmentation": {"scaling": {"range": [0.9, 1.1]}},
         }
     )
-    assert config.pipeline == "cda" and config.drcpo.construction.mode == "whole"
+    assert config.pipeline == "cda" and config.drcpo.construction.margin == 0.0
     assert config.drcpo.min_points == {"default": 7}
     assert load_config(config.to_dict()) == config
     path = tmp_path / "cfg.yaml"
@@ -132,7 +131,7 @@ def test_out_of_range_names_the_key_and_the_allowed_range(data, path, allowed):
 @pytest.mark.parametrize(
     ("data", "words"),
     [
-        ({"drcpo": {"construction": {"mode": "magic"}}}, ["mode", "partition, whole"]),
+        ({"drcpo": {"placement": {"height": "magic"}}}, ["height", "ground, source, observed"]),
         ({"drcpo": {"external_occlusion": {"scope": "all"}}}, ["scope", "inserted, frame"]),
         ({"drcpo": {"external_occlusion": {"preset": "voxelnet"}}}, ["second", "pv_rcnn"]),
         ({"preset": "voxelnet"}, ["preset", "pointrcnn"]),
@@ -294,7 +293,6 @@ BAD_VALUES = {
     "drcpo.min_points": 1e7,
     "drcpo.exclude_difficulty": "-1",
     "drcpo.min_points_after": -1,
-    "drcpo.construction.mode": "Partition",
     "drcpo.construction.coverage": 0,
     "drcpo.construction.max_iterations": 1001,
     "drcpo.construction.margin": 1.5,

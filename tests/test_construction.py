@@ -7,7 +7,6 @@ from drcpo.construction import (
     _gather,
     _numpy_sum,  # test seam: numpy.mean's pairwise sum, checked bit for bit
     _stored,
-    construct_chunks,
     construct_object,
     construct_objects,
 )
@@ -160,9 +159,8 @@ def test_padded_candidate_rows_skip_minus_one(database):
     np.testing.assert_array_equal(a.points, b.points)
 
 
-@pytest.mark.parametrize("mode", ["partition", "whole"])
-def test_same_seed_same_object(database, mode):
-    config = ConstructionConfig(mode=mode)
+def test_same_seed_same_object(database):
+    config = ConstructionConfig()
     cands = candidates_of(database, 11)
     runs = [
         construct_object(database, 11, cands, np.random.default_rng(s), config) for s in (5, 5, 6)
@@ -173,20 +171,6 @@ def test_same_seed_same_object(database, mode):
     assert not np.array_equal(runs[0].added_from, runs[2].added_from) or not np.array_equal(
         runs[0].points, runs[2].points
     )
-
-
-def test_whole_mode_adds_whole_candidates_and_grows_the_box(database, rng):
-    config = ConstructionConfig(mode="whole")
-    row = 21
-    cands = candidates_of(database, row)
-    out = construct_object(database, row, cands, rng, config, class_max_counts(database, "Car"))
-    assert 1 <= out.iterations <= config.max_iterations
-    assert out.coverage >= out.coverage_initial
-    expected = 2 * (database.num_points[row] + database.num_points[out.added_from].sum())
-    assert len(out.points) == expected
-    assert (out.dims >= database.boxes[row, 3:6]).all()
-    assert (np.abs(out.points[:, :3]) <= out.dims / 2 + 1e-6).all()
-    assert len(set(out.added_from.tolist())) == len(out.added_from)  # without replacement
 
 
 def test_own_maximum_is_the_fallback_normalisation(database, rng):
@@ -234,8 +218,8 @@ def test_bad_input_is_rejected(database, rng):
         construct_object(database, 0, [1.5], rng)
     with pytest.raises(DataError, match="partitions"):
         construct_object(database, 0, [1], rng, None, np.ones(7))
-    with pytest.raises(ConfigError, match="construction.mode"):
-        ConstructionConfig(mode="magic")
+    with pytest.raises(ConfigError, match="construction.margin"):
+        ConstructionConfig(margin=-0.1)
     with pytest.raises(ConfigError, match="construction.coverage"):
         ConstructionConfig(coverage=0)
     with pytest.raises(ConfigError, match="construction.max_iterations"):
@@ -269,14 +253,13 @@ def test_real_kitti_database_with_its_index(kitti_sample, tmp_path):
         if name not in index.max_counts or database.num_points[row] < 5:
             continue
         cands = index.candidates_of(row)
-        for mode in ("partition", "whole"):
-            config = ConstructionConfig(mode=mode)
-            out = construct_object(database, row, cands, rng, config, index.max_counts[name])
-            assert set(out.added_from.tolist()) <= set(cands.tolist())
-            assert out.coverage >= out.coverage_initial
-            assert (np.abs(out.points[:, :3]) <= out.dims / 2 + config.margin + 1e-6).all()
-            assert out.points.shape[1] == database.points.shape[1]
-            constructed += 1
+        config = ConstructionConfig()
+        out = construct_object(database, row, cands, rng, config, index.max_counts[name])
+        assert set(out.added_from.tolist()) <= set(cands.tolist())
+        assert out.coverage >= out.coverage_initial
+        assert (np.abs(out.points[:, :3]) <= out.dims / 2 + config.margin + 1e-6).all()
+        assert out.points.shape[1] == database.points.shape[1]
+        constructed += 1
     assert constructed >= 4
 
 
@@ -296,47 +279,29 @@ def reference_construct(database, row, candidate_rows, rng, config, class_max_co
     grid = config.grid(name)
     source = np.asarray(database.object_points(row))
     source = mirror_points(source) if mirror else source.copy()
-    if config.mode == "partition":
-        source = source[reference_inside(source, dims, config.margin)]
+    source = source[reference_inside(source, dims, config.margin)]
     densities = ReferenceDensities(partition_counts(source, dims, grid), class_max_counts)
     initial = current = densities.coverage()
     chunks, contributors, iterations = [source], [], 0
-    if config.mode == "partition":
-        while candidates.size and iterations < config.max_iterations and current < config.coverage:
-            deficient = densities.deficient()
-            drawn = candidates[rng.integers(0, len(candidates), size=len(deficient))]
-            per_pair = []
-            for candidate, cell in zip(drawn, deficient, strict=True):
-                points = np.asarray(database.object_points(int(candidate)))
-                copies = [points, mirror_points(points)[len(points) :]] if mirror else [points]
-                both = np.stack(copies, axis=1).reshape(-1, points.shape[1])
-                keep = reference_inside(both, dims, config.margin)
-                keep &= partition_index(both, dims, grid) == cell
-                chunks.append(both[keep])
-                per_pair.append(int(keep.sum()))
-            per_pair = np.array(per_pair, dtype=np.int64)
-            iterations += 1
-            densities.counts[deficient] += per_pair
-            contributors.append(drawn[per_pair > 0])
-            current = densities.coverage()
-        points = np.concatenate(chunks)
-        out_dims = dims.copy()
-    else:
-        order = rng.permutation(candidates)[: config.max_iterations] if candidates.size else []
-        for candidate in order:
-            if current >= config.coverage:
-                break
-            added = np.asarray(database.object_points(int(candidate)))
-            added = mirror_points(added) if mirror else added.copy()
-            iterations += 1
-            densities.counts += partition_counts(added, dims, grid)
-            chunks.append(added)
-            if len(added):
-                contributors.append(np.array([candidate], dtype=np.int64))
-            current = densities.coverage()
-        points = np.concatenate(chunks)
-        extent = 2.0 * np.abs(points[:, :3].astype(np.float64)).max(axis=0, initial=0.0)
-        out_dims = np.maximum(dims, extent)
+    while candidates.size and iterations < config.max_iterations and current < config.coverage:
+        deficient = densities.deficient()
+        drawn = candidates[rng.integers(0, len(candidates), size=len(deficient))]
+        per_pair = []
+        for candidate, cell in zip(drawn, deficient, strict=True):
+            points = np.asarray(database.object_points(int(candidate)))
+            copies = [points, mirror_points(points)[len(points) :]] if mirror else [points]
+            both = np.stack(copies, axis=1).reshape(-1, points.shape[1])
+            keep = reference_inside(both, dims, config.margin)
+            keep &= partition_index(both, dims, grid) == cell
+            chunks.append(both[keep])
+            per_pair.append(int(keep.sum()))
+        per_pair = np.array(per_pair, dtype=np.int64)
+        iterations += 1
+        densities.counts[deficient] += per_pair
+        contributors.append(drawn[per_pair > 0])
+        current = densities.coverage()
+    points = np.concatenate(chunks)
+    out_dims = dims.copy()
     added_from = np.zeros(0, dtype=np.int64)
     if contributors:
         used = np.concatenate(contributors).astype(np.int64)
@@ -391,10 +356,6 @@ REFERENCE_CONFIGS = [
     ConstructionConfig(max_iterations=0),
     # 160 partitions: the threshold's mean is summed in numpy's pairwise order beyond 128.
     ConstructionConfig(margin=0.0, grids={"Car": (10, 4, 4), "Pedestrian": (1, 1, 1)}),
-    ConstructionConfig(mode="whole"),
-    ConstructionConfig(mode="whole", mirror=("Pedestrian",)),
-    ConstructionConfig(mode="whole", coverage=1.0, max_iterations=3),
-    ConstructionConfig(mode="whole", max_iterations=0),
 ]
 
 
@@ -435,7 +396,7 @@ def class_max_counts_for(database, name, grid, mirrored):
 
 
 @pytest.mark.parametrize(
-    "config", REFERENCE_CONFIGS, ids=[f"{c.mode}{k}" for k, c in enumerate(REFERENCE_CONFIGS)]
+    "config", REFERENCE_CONFIGS, ids=[f"config{k}" for k in range(len(REFERENCE_CONFIGS))]
 )
 def test_matches_the_reference_implementation(database, config):
     rows, candidates, scales = reference_case(database, config, REFERENCE_CONFIGS.index(config))
@@ -445,22 +406,12 @@ def test_matches_the_reference_implementation(database, config):
         for row, cands, scale in zip(rows, candidates, scales, strict=True)
     ]
     batch = construct_objects(database, rows, candidates, batch_rng, config, scales)
-    # In chunks of 2, each built when asked for: the same objects, the same draws.
-    chunk_rng, handed, chunked = np.random.default_rng(11), [], []
-    for first, objects in construct_chunks(
-        database, rows, candidates, chunk_rng, config, scales, chunk=2
-    ):
-        handed.append((first, len(objects)))
-        chunked += objects
-    assert handed == [(first, len(rows[first : first + 2])) for first in range(0, len(rows), 2)]
     for k, (row, cands, scale) in enumerate(zip(rows, candidates, scales, strict=True)):
         single = construct_object(database, row, cands, single_rng, config, scale)
         assert_same_as_reference(single, expected[k])
         assert_same_as_reference(batch[k], expected[k])
-        assert_same_as_reference(chunked[k], expected[k])
     state = expected_rng.bit_generator.state
     assert single_rng.bit_generator.state == state == batch_rng.bit_generator.state
-    assert chunk_rng.bit_generator.state == state
     if config.max_iterations:
         assert sum(e[2] for e in expected) > 0  # the case does construct
 
@@ -484,7 +435,7 @@ def test_points_on_cell_cuts_and_margins_match_the_reference():
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in chunks])])
     boxes = np.tile([0.0, 0.0, 0.0, *dims, 0.0], (12, 1))
     edge = GroundTruthDatabase.from_arrays(np.concatenate(chunks), offsets, ["Car"] * 12, boxes)
-    for config in (ConstructionConfig(coverage=1.0), ConstructionConfig(mode="whole")):
+    for config in (ConstructionConfig(coverage=1.0), ConstructionConfig(margin=0.0)):
         for row in range(12):
             cands = np.delete(np.arange(12), row)
             scale = np.full(120, 30.0)
@@ -515,12 +466,6 @@ def test_batches_take_the_index_layout_and_class_maxima_by_name(database):
         construct_objects(database, rows, padded[:2], a)
     with pytest.raises(DataError, match="class_max_counts"):
         construct_objects(database, rows, padded, a, None, [None])
-    # construct_chunks checks on the call, before any chunk is asked for (nothing drawn)
-    state = a.bit_generator.state
-    with pytest.raises(DataError, match="candidate lists"):
-        construct_chunks(database, rows, padded[:2], a, chunk=1)
-    assert a.bit_generator.state == state
-    assert list(construct_chunks(database, [], np.zeros((0, 5), np.int32), a, chunk=2)) == []
 
 
 @pytest.mark.parametrize("seed", [0, 1])

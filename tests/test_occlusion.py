@@ -14,12 +14,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drcpo import occlusion
 from drcpo.errors import ConfigError, DataError
 from drcpo.geometry import box_diagonal
 from drcpo.occlusion import (
     HPR_PRESETS,
-    azimuth_focus,
     external_occlusion,
     frame_grid,
     hidden_point_removal,
@@ -376,32 +374,6 @@ def test_external_occlusion_uses_the_preset(preset):
         external_occlusion(points, preset, method="raytrace")
 
 
-def test_external_occlusion_focus_is_exact_in_its_directions():
-    rng = np.random.default_rng(14)
-    points = street_scene(rng, 5000)
-    full = external_occlusion(points, "second", method="reference")
-    focus = np.zeros(len(points), dtype=bool)
-    focus[rng.choice(len(points), 5, replace=False)] = True
-    decided = azimuth_focus(points, focus, np.deg2rad(2.0))
-    assert decided[focus].all() and 0 < decided.sum() < len(points)
-    got = external_occlusion(points, "second", focus=focus)
-    assert np.array_equal(got[decided], full[decided])
-    assert got[~decided].all()
-
-
-def test_azimuth_focus_selects_directions():
-    angles = np.deg2rad(np.arange(-180, 180, 1.0))
-    points = np.column_stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)]) * 10
-    focus = np.zeros(len(points), dtype=bool)
-    focus[np.argmin(np.abs(angles - np.deg2rad(30.0)))] = True
-    chosen = azimuth_focus(points, focus, margin=np.deg2rad(3.0))
-    degrees = np.rad2deg(angles[chosen])
-    assert degrees.min() > 26 - 1e-9 and degrees.max() < 34 + 1e-9
-    assert np.isclose(degrees, 30).any()
-    assert azimuth_focus(points, np.zeros(len(points), dtype=bool)).sum() == 0
-    assert azimuth_focus(points, focus, margin=np.pi).all()
-
-
 def test_counting_sort_is_the_stable_argsort(rng):
     from drcpo.occlusion.grid import _counting_sort  # test seam: the numba sort
 
@@ -443,9 +415,21 @@ def wall_and_cube(rng):
     return points, inserted, ~inserted
 
 
-def test_hidden_by_insertion_removes_what_the_objects_hide_and_only_that(rng):
-    from drcpo.occlusion import hidden_by_insertion
+def hidden_by_insertion(points, inserted, behind, viewpoint=(0.0, 0.0, 0.0), radius=1e5, **kw):
+    """Both steps of e-HPR's inserted scope for a fixed set ``behind``: ``bool (N,)`` points
+    to remove."""
+    from drcpo.occlusion import inserted_scope
 
+    removed = np.zeros(len(points), dtype=bool)
+    if not (inserted | behind).any():
+        return removed
+    scope = inserted_scope(points, inserted, viewpoint, radius, **kw)
+    removed[inserted] = scope.removed_inserted
+    removed[~inserted] = scope.removed_of((behind & ~inserted)[~inserted])
+    return removed
+
+
+def test_inserted_scope_removes_what_the_objects_hide_and_only_that(rng):
     points, inserted, behind = wall_and_cube(rng)
     removed = hidden_by_insertion(points, inserted, behind, radius=1e5)
     n_wall = 81 * 31
@@ -478,7 +462,8 @@ def test_hidden_by_insertion_removes_what_the_objects_hide_and_only_that(rng):
 # FrameGrid: e-HPR's inserted scope on a frame sorted once
 # ----------------------------------------------------------------------------------------------
 def _two_passes(points, inserted, behind, viewpoint, radius):
-    """hidden_by_insertion spelled out with hidden_point_removal (the definition)."""
+    """Both steps of the inserted scope spelled out with hidden_point_removal (the
+    definition)."""
     visible = hidden_point_removal(points, viewpoint, radius, query=inserted | behind)
     suspects = behind & ~visible
     rows = np.flatnonzero(~inserted)
@@ -855,13 +840,11 @@ def test_copies_under_a_radius_too_large_for_a_hull_are_decided_once_each(monkey
     assert sizes == [1]  # a hull of one distinct point is degenerate: the fallback runs once
 
 
-def test_hidden_by_insertion_on_a_crowded_set_matches_the_reference(rng):
+def test_inserted_scope_on_a_crowded_set_matches_the_reference(rng):
     points = np.concatenate([_tiny_sphere(rng, 3000), _tiny_sphere(rng, 3000, 0.05) + 0.3])
     inserted = np.zeros(len(points), dtype=bool)
     inserted[3000:] = True
     behind = ~inserted
-    removed = occlusion.hidden_by_insertion(points, inserted, behind, radius=100.0)
-    expected = occlusion.hidden_by_insertion(
-        points, inserted, behind, radius=100.0, method="reference"
-    )
+    removed = hidden_by_insertion(points, inserted, behind, radius=100.0)
+    expected = hidden_by_insertion(points, inserted, behind, radius=100.0, method="reference")
     np.testing.assert_array_equal(removed, expected)

@@ -564,15 +564,10 @@ def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
     return {"added": added, "dropped": dropped, "gone": int(gone.sum())}
 
 
-@pytest.mark.parametrize(
-    ("mode", "scope"),
-    [("partition", "inserted"), ("partition", "frame"), ("whole", "inserted"), ("whole", "frame")],
-)
-def test_drcpo_invariants_on_synthetic_world(synthetic_world, mode, scope):
+@pytest.mark.parametrize("scope", ["inserted", "frame"])
+def test_drcpo_invariants_on_synthetic_world(synthetic_world, scope):
     db, index, frames = synthetic_world
-    transform = DRCPO(
-        db, index, {"construction": {"mode": mode}, "external_occlusion": {"scope": scope}}
-    )
+    transform = DRCPO(db, index, {"external_occlusion": {"scope": scope}})
     totals = {"added": 0, "gone": 0}
     for i, frame in enumerate(frames):
         out = transform(frame, np.random.default_rng(i))
@@ -793,12 +788,12 @@ def test_boxes_hidden_by_e_hpr_lose_their_label_unless_already_sparse(synthetic_
 
 def test_drcpo_config_round_trip_and_checks(synthetic_world):
     db, index, _ = synthetic_world
-    transform = DRCPO(db, index, {"construction": {"mode": "whole"}, "sample": {"Car": 3}})
+    transform = DRCPO(db, index, {"construction": {"margin": 0.0}, "sample": {"Car": 3}})
     config = transform.to_config()
-    assert config["type"] == "DRCPO" and config["construction"]["mode"] == "whole"
+    assert config["type"] == "DRCPO" and config["construction"]["margin"] == 0.0
     rebuilt = transform_from_config(config, database=db, index=index)
     assert rebuilt == transform and rebuilt.to_config() == config
-    assert "construction='whole'" in repr(transform)
+    assert "sample={'Car': 3" in repr(transform)
     with pytest.raises(ConfigError, match="index"):
         transform_from_config(config, database=db)
     with pytest.raises(ConfigError, match=r"grids\.Car"):

@@ -2,7 +2,7 @@
 
 Everything happens in the source object's canonical pose (centre at the origin, heading 0).
 
-``partition`` mode (the paper): mirror the object across the x axis when its class is mirrored,
+Mirror the object across the x axis when its class is mirrored,
 cut its box into the class's partition grid and measure each partition's density (points in the
 partition / the class's largest count in that partition, the candidate index's normalisation).
 The threshold is the mean density of the object's non-empty partitions, measured once before the
@@ -14,11 +14,6 @@ box's cells). Stop when at least ``coverage`` of the partitions are above the th
 ``max_iterations``. Points more than ``margin`` outside the source box are dropped, so the label
 still fits the object.
 
-``whole`` mode (the reference implementation's variant): each iteration adds all (mirrored)
-points of one candidate drawn without replacement, the densities are measured on the source box's
-grid (points beyond its faces count in the outermost cells), the same stop rule applies, and the
-box grows to contain every point (``dims = max(source dims, 2 max |xyz|)``).
-
 Partitions in which no object of the class has a point (class maximum 0) can never be filled;
 they are left out of both the draw and the coverage fraction. Without ``class_max_counts`` the
 object's own largest partition count normalises its densities, which leaves the comparison with
@@ -27,7 +22,7 @@ the mean, and so every decision, unchanged up to the candidate index's per-parti
 Implementation: :func:`construct_objects` builds a batch of objects in one compiled (numba) call
 that reads the candidates' points straight from the (memory-mapped) database and draws from the
 ``Generator`` exactly as the plain numpy formulation does (``rng.integers(0, K, size)`` per
-iteration in ``partition`` mode, ``rng.permutation`` per object in ``whole`` mode), so results
+iteration), so results
 are bit-identical to it: same points in the same order, same thresholds (summed in numpy's
 pairwise order), same rng state afterwards. ``tests/test_construction.py`` keeps that
 formulation as the reference.
@@ -35,7 +30,7 @@ formulation as the reference.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -44,19 +39,14 @@ import numpy as np
 
 from drcpo.config_fields import Checked, spec
 from drcpo.errors import DataError
-from drcpo.partitions import DEFAULT_MIRRORED, Grid, cell_of, flat_cell, grid_for
+from drcpo.partitions import DEFAULT_MIRRORED, Grid, cell_of, grid_for
 
 __all__ = [
-    "MODES",
     "ConstructedObject",
     "ConstructionConfig",
-    "construct_chunks",
     "construct_object",
     "construct_objects",
 ]
-
-
-MODES = ("partition", "whole")
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,11 +55,9 @@ class ConstructionConfig(Checked):
     ``drcpo.construction``, whose keys are these fields.
 
     Attributes:
-        mode: ``"partition"`` (the paper) or ``"whole"`` (the reference implementation).
         coverage: fraction of partitions that must be above the threshold to stop, in (0, 1].
         max_iterations: most rounds of additions (0 disables construction).
-        margin: metres beyond the source box's faces within which added points are kept
-            (``partition`` mode).
+        margin: metres beyond the source box's faces within which added points are kept.
         mirror: classes mirrored across the x axis (y -> -y).
         grids: per-class partition grids overriding :data:`drcpo.partitions.DEFAULT_GRIDS`
             (``{"Car": [10, 4, 3], "default": [4, 2, 3]}``).
@@ -80,10 +68,6 @@ class ConstructionConfig(Checked):
 
     KEY_PATH = "drcpo.construction"
 
-    mode: str = field(
-        default="partition",
-        metadata=spec("choice", "paper (partition) or reference (whole)", choices=MODES),
-    )
     coverage: float = field(
         default=0.85,
         metadata=spec(
@@ -119,7 +103,7 @@ class ConstructedObject:
 
     Attributes:
         points: ``float32 (n, 3 + C)`` points (features pass through), canonical pose.
-        dims: ``float64 (3,)`` box size dx, dy, dz (metres); the source's in ``partition`` mode.
+        dims: ``float64 (3,)`` box size dx, dy, dz (metres), the source's.
         iterations: rounds of additions performed.
         added_from: ``int64`` database rows that contributed points, in order of first use.
         coverage_initial: fraction of fillable partitions above the threshold before
@@ -174,8 +158,8 @@ def construct_objects(
     """:func:`construct_object` for several objects in one compiled call.
 
     The objects draw from ``rng`` one after the other, so the result (and ``rng``'s state
-    afterwards) is that of calling :func:`construct_object` on each in turn (and that of
-    :func:`construct_chunks`, however chunked). Every input is checked before anything is drawn.
+    afterwards) is that of calling :func:`construct_object` on each in turn. Every input is
+    checked before anything is drawn.
 
     Args:
         database: a :class:`drcpo.database.GroundTruthDatabase`.
@@ -191,24 +175,6 @@ def construct_objects(
         The :class:`ConstructedObject` of each row, in order. Their arrays are views into
         arrays shared by the call.
     """
-    chunks = construct_chunks(database, rows, candidate_rows, rng, config, class_max_counts)
-    return [built for _, objects in chunks for built in objects]
-
-
-def construct_chunks(
-    database,
-    rows: Sequence[int] | np.ndarray,
-    candidate_rows: Sequence[np.ndarray] | np.ndarray,
-    rng: np.random.Generator,
-    config: ConstructionConfig | None = None,
-    class_max_counts: Mapping[str, np.ndarray] | Sequence[np.ndarray | None] | None = None,
-    *,
-    chunk: int | None = None,
-) -> Iterator[tuple[int, list[ConstructedObject]]]:
-    """:func:`construct_objects` ``chunk`` objects per compiled call (``None``: all in one),
-    each chunk built when the caller asks for it, e.g. to start work on the ones before: an
-    iterator of (index of the chunk's first object, its objects). Inputs are checked on the
-    call, before anything is drawn; the draws are those of :func:`construct_objects`."""
     config = config or ConstructionConfig()
     n_objects = len(database)
     rows = _valid_rows(rows, n_objects)
@@ -218,34 +184,11 @@ def construct_chunks(
         k = int(np.argmax(degenerate))
         raise DataError(f"database object {rows[k]} has a degenerate box size {dims[k].tolist()}")
     candidates = _candidate_matrix(candidate_rows, rows, n_objects)
-    settings = (dims, *_class_settings(database, rows, config, class_max_counts))
-    step = len(rows) if chunk is None else max(1, int(chunk))
-    return _chunks(database, rows, candidates, settings, rng, config, step)
-
-
-def _chunks(
-    database,
-    rows: np.ndarray,
-    candidates: np.ndarray,
-    settings: tuple[np.ndarray, ...],
-    rng: np.random.Generator,
-    config: ConstructionConfig,
-    step: int,
-) -> Iterator[tuple[int, list[ConstructedObject]]]:
-    """The objects of :func:`construct_chunks`, ``step`` per compiled call."""
+    sources = _Sources(rows, dims, *_class_settings(database, rows, config, class_max_counts))
     if len(rows) == 0:
-        return
-    stored = _stored(database)
+        return []
     limits = _Limits(float(config.margin), int(config.max_iterations), float(config.coverage))
-    for first in range(0, len(rows), step):
-        part = slice(first, first + step)
-        sources = _Sources(rows[part], *(values[part] for values in settings))
-        if config.mode == "partition":
-            out = _construct_partition(stored, sources, candidates[part], limits, rng)
-        else:
-            orders = _whole_orders(candidates[part], rng, config.max_iterations)
-            out = _construct_whole(stored, sources, orders, limits.coverage)
-        yield first, _objects(*out)
+    return _objects(*_construct_partition(_stored(database), sources, candidates, limits, rng))
 
 
 def _valid_rows(rows, n_objects: int) -> np.ndarray:
@@ -325,18 +268,6 @@ def _normaliser(values, n_cells: int) -> np.ndarray:
     return scale[:n_cells]
 
 
-def _whole_orders(candidates: np.ndarray, rng: np.random.Generator, limit: int) -> np.ndarray:
-    """``int64 (S, <= limit)``: each object's candidates in drawn order (without replacement),
-    ``-1`` padded; one permutation per object with candidates, even when ``limit`` is 0."""
-    orders = np.full((len(candidates), min(limit, candidates.shape[1])), -1, dtype=np.int64)
-    for k, line in enumerate(candidates):
-        valid = line[line >= 0]
-        if valid.size:
-            order = rng.permutation(valid)[:limit]
-            orders[k, : len(order)] = order
-    return orders
-
-
 def _objects(points, point_offsets, dims, iterations, added, added_offsets, initial, final):
     ends, added_ends = point_offsets.tolist(), added_offsets.tolist()
     return [
@@ -373,7 +304,7 @@ class _Sources(NamedTuple):
 
 
 class _Limits(NamedTuple):
-    margin: float  # metres outside the source box that points may lie (partition mode)
+    margin: float  # metres outside the source box that points may lie
     max_iterations: int
     coverage: float  # share of fillable partitions above the threshold that ends an object
 
@@ -398,7 +329,7 @@ def _stored(database) -> _Stored:
 
 @numba.njit(cache=True, nogil=True)
 def _construct_partition(stored, sources, candidates, limits, rng):
-    """``partition`` mode for every object of ``sources`` in turn (see the module docstring).
+    """Construction of every object of ``sources`` in turn (see the module docstring).
 
     Each iteration draws one candidate per deficient partition (ascending partition order, as
     ``rng.integers(0, K, size)`` draws), then adds the points that each drawn candidate (and
@@ -526,76 +457,6 @@ def _gather(stored, row, cell, box, refs, n_refs, near):
             refs[n_refs] = 2 * i + 1
             n_refs += 1
     return refs, n_refs, near
-
-
-@numba.njit(cache=True, nogil=True)
-def _construct_whole(stored, sources, orders, goal):
-    """``whole`` mode for every object of ``sources``: the candidates of ``orders[s]`` (``-1``
-    padded) are added whole, source first, each object's points then their mirror images."""
-    points, offsets = stored.points, stored.offsets
-    n = sources.rows.shape[0]
-    refs = np.empty(_capacity(offsets, sources.rows), dtype=np.int64)
-    added = np.empty(64, dtype=np.int64)
-    n_refs = n_added = 0
-    ref_offsets, added_offsets, iterations, initial, final = _per_object(n)
-    slot = np.empty(offsets.shape[0] - 1, dtype=np.int64)  # see _add_once
-    out_dims = sources.dims.copy()
-    for s in range(n):
-        grid = sources.grids[s]
-        box = _Box(sources.dims[s], grid, 0.0, 2 if sources.mirror[s] else 1)
-        counts = np.zeros(grid[0] * grid[1] * grid[2], dtype=np.int64)
-        start = n_refs
-        refs, n_refs = _add_whole(stored, sources.rows[s], box, counts, refs, n_refs)
-        scale, fillable = _normalisers(counts, sources.scales[s], sources.own_scale[s])
-        threshold = _threshold(counts, scale, fillable)
-        current = initial[s] = _coverage(counts, scale, fillable, threshold)
-        rounds = 0
-        for j in range(orders.shape[1]):
-            row = orders[s, j]
-            if row < 0 or current >= goal:
-                break
-            refs, n_refs = _add_whole(stored, row, box, counts, refs, n_refs)
-            rounds += 1
-            if offsets[row + 1] > offsets[row]:
-                added, n_added = _add_once(added, n_added, added_offsets[s], row, slot)
-            current = _coverage(counts, scale, fillable, threshold)
-        for axis in range(3):
-            extent = 2.0 * _largest_magnitude(points, refs, start, n_refs, axis)
-            # np.maximum: NaN wins
-            if not out_dims[s, axis] >= extent:
-                out_dims[s, axis] = extent
-        ref_offsets[s + 1], added_offsets[s + 1] = n_refs, n_added
-        iterations[s], final[s] = rounds, current
-    out = _copy_rows(points, refs, n_refs)
-    return out, ref_offsets, out_dims, iterations, added[:n_added], added_offsets, initial, final
-
-
-@numba.njit(cache=True, nogil=True)
-def _add_whole(stored, row, box, counts, refs, n_refs):
-    """Adds all points of ``row`` (then their mirror images) and counts them in the box's grid
-    cells (:func:`drcpo.partitions.flat_cell`: clipped to the grid)."""
-    start, stop = stored.offsets[row], stored.offsets[row + 1]
-    refs = _reserve(refs, n_refs + box.copies * (stop - start))
-    for c in range(box.copies):
-        for i in range(start, stop):
-            x, y, z = _xyz(stored.points, i, c)
-            refs[n_refs] = 2 * i + c
-            n_refs += 1
-            counts[flat_cell(x, y, z, box.dims, box.grid)] += 1
-    return refs, n_refs
-
-
-@numba.njit(cache=True, nogil=True)
-def _largest_magnitude(points, refs, start, stop, axis):
-    """``max |coordinate|`` over the referenced points, 0 when none, NaN when any is NaN."""
-    largest = 0.0
-    for t in range(start, stop):
-        value = abs(np.float64(points[refs[t] >> 1, axis]))
-        if value > largest or value != value:
-            largest = value
-            if value != value:
-                break
-    return largest
 
 
 @numba.njit(cache=True, nogil=True)

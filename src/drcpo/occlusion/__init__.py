@@ -3,8 +3,8 @@ e-HPR, and objects rendered through the sensor.
 
 The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
 diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
-the viewpoint height from :data:`HPR_PRESETS`); :func:`inserted_scope` (two steps) and
-:func:`hidden_by_insertion` are e-HPR's ``inserted`` scope. :func:`surface_samples` are the
+the viewpoint height from :data:`HPR_PRESETS`); :func:`inserted_scope` (two steps) is e-HPR's
+``inserted`` scope. :func:`surface_samples` are the
 points on a box's faces that placement's "occluded" test decides by e-HPR before anything is
 built.
 
@@ -38,9 +38,7 @@ from __future__ import annotations
 from drcpo.occlusion.checks import MAX_RADIUS
 from drcpo.occlusion.external import (
     InsertedScope,
-    azimuth_focus,
     external_occlusion,
-    hidden_by_insertion,
     inserted_scope,
 )
 from drcpo.occlusion.frame_grid import FrameGrid
@@ -68,9 +66,7 @@ __all__ = [
     "GridMemory",
     "HPRPreset",
     "InsertedScope",
-    "azimuth_focus",
     "external_occlusion",
-    "hidden_by_insertion",
     "hidden_point_removal",
     "inserted_scope",
     "render_object",

@@ -7,20 +7,13 @@
   which objects it drops (too few points left) and the view windows of the others
   (:mod:`drcpo.occlusion.view_windows`); step 2, :meth:`InsertedScope.removed_behind`,
   decides the original points in those windows: those hidden with the objects but visible
-  without them go. :func:`hidden_by_insertion` is both steps for a fixed set of points.
-
-Two focus mechanisms, on purpose: :func:`azimuth_focus` (``external_occlusion(focus=...)``)
-selects the azimuth bins around given points, for a caller that knows only which points
-matter; the view windows select the azimuth, elevation and distance that given boxes cover,
-for the inserted scope, which knows the objects' boxes. Neither can stand in for the other
-without changing what is decided (the windows are tighter, the bins need no boxes).
+  without them go.
 
 Imports the other :mod:`drcpo.occlusion` modules, never anything above.
 """
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
@@ -42,9 +35,7 @@ from drcpo.occlusion.view_windows import in_windows
 
 __all__ = [
     "InsertedScope",
-    "azimuth_focus",
     "external_occlusion",
-    "hidden_by_insertion",
     "inserted_scope",
 ]
 
@@ -56,8 +47,6 @@ def external_occlusion(
     radius: float | None = None,
     viewpoint_z: float | None = None,
     viewpoint_xy: np.ndarray | None = None,
-    focus: np.ndarray | None = None,
-    focus_margin: float = float(np.deg2rad(2.0)),
     method: str = "auto",
 ) -> np.ndarray:
     """e-HPR, scope ``frame``: the paper's external occlusion of a whole frame (after
@@ -69,11 +58,6 @@ def external_occlusion(
         radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
         viewpoint_xy: ``(2,)`` x, y of the viewpoint, metres (default: 0, 0), e.g. a sensor
             mounted off the LiDAR origin.
-        focus: optional ``bool (N,)`` mask (or indices) of the points that matter, e.g. inserted
-            ones. Only points in the azimuth directions of the focus points (see
-            :func:`azimuth_focus`, ``focus_margin`` radians) are decided, exactly, against the
-            whole frame; all others are reported visible.
-        focus_margin: radians added on both sides of the focus points' azimuths.
         method: as in :func:`hidden_point_removal`.
 
     Returns:
@@ -83,11 +67,10 @@ def external_occlusion(
         raise ConfigError(f"unknown HPR preset {preset!r}; choose one of {', '.join(HPR_PRESETS)}")
     setting = HPR_PRESETS[preset]
     xyz = _check_points(points)
-    query = None if focus is None else azimuth_focus(xyz, focus, focus_margin)
     height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
     x, y = (0.0, 0.0) if viewpoint_xy is None else (float(v) for v in viewpoint_xy)
     r = setting.radius if radius is None else radius
-    return hidden_point_removal(xyz, (x, y, height), r, method=method, query=query)
+    return hidden_point_removal(xyz, (x, y, height), r, method=method)
 
 
 class InsertedScope(ABC):
@@ -257,86 +240,3 @@ def inserted_scope(
             step = own.insert(none_cleared, xyz[inserted], method="local")
             return _GridScope(own, step)
     return _PointsScope(xyz, inserted, center, radius, method)
-
-
-def hidden_by_insertion(
-    points: np.ndarray,
-    inserted: np.ndarray,
-    behind: np.ndarray,
-    viewpoint: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
-    radius: float = 100000.0,
-    *,
-    method: str = "auto",
-) -> np.ndarray:
-    """Points that inserted objects remove from a frame (e-HPR's ``inserted`` scope, both
-    steps of :func:`inserted_scope` for a fixed ``behind``).
-
-    An inserted point goes when it is hidden; a point of ``behind`` (original points that the
-    inserted objects may occlude) goes when it is hidden in the whole set but visible once the
-    inserted points are taken out, so HPR's own verdicts on the original frame never delete a
-    point. The same as :func:`hidden_point_removal` with ``query=inserted | behind``, then on
-    ``points[~inserted]`` for the hidden points of ``behind``.
-
-    Args:
-        points: ``(N, 3 + C)`` the frame after insertion (metres).
-        inserted: ``bool (N,)`` the inserted points.
-        behind: ``bool (N,)`` original points whose removal is to be decided (points of
-            ``inserted`` are ignored here).
-        viewpoint, radius, method: as in :func:`hidden_point_removal`.
-
-    Returns:
-        ``bool (N,)``: points to remove.
-    """
-    xyz = _check_points(points)
-    _check_viewpoint(viewpoint), _check_radius(radius)
-    if method not in HPR_METHODS:
-        raise ConfigError(f"method must be one of {', '.join(HPR_METHODS)}, got {method!r}")
-    n = len(xyz)
-    inserted = _check_query(inserted, n)
-    behind = _check_query(behind, n) & ~inserted
-    removed = np.zeros(n, dtype=bool)
-    if not (inserted | behind).any():
-        return removed
-    scope = inserted_scope(xyz, inserted, viewpoint, radius, method=method)
-    removed[inserted] = scope.removed_inserted
-    removed[~inserted] = scope.removed_of(behind[~inserted])
-    return removed
-
-
-def azimuth_focus(
-    points: np.ndarray,
-    focus: np.ndarray,
-    margin: float = float(np.deg2rad(2.0)),
-    *,
-    bin_width: float = float(np.deg2rad(0.5)),
-) -> np.ndarray:
-    """``bool (N,)``: points in the azimuth directions (about the z axis) of the focus points.
-
-    Azimuth is cut into bins of ``bin_width`` radians; a point is selected when its bin lies
-    within ``margin`` radians (rounded up to whole bins) of a bin holding a focus point. Focus
-    points themselves are always selected.
-
-    Args:
-        points: ``(N, 3 + C)`` points, metres.
-        focus: ``bool (N,)`` mask or integer indices of the focus points.
-        margin: radians of context on both sides.
-        bin_width: radians per azimuth bin.
-    """
-    xyz = _check_points(points)
-    chosen = _check_query(focus, len(xyz))
-    if not chosen.any():
-        return chosen
-    if not (math.isfinite(margin) and margin >= 0 and math.isfinite(bin_width) and bin_width > 0):
-        raise ConfigError(f"margin must be >= 0 and bin_width > 0, got {margin}, {bin_width}")
-    bins = max(1, math.ceil(2 * math.pi / bin_width))
-    azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
-    index = np.floor((azimuth + np.pi) * (bins / (2 * np.pi))).astype(np.int64) % bins
-    hit = np.zeros(bins, dtype=bool)
-    hit[index[chosen]] = True
-    reach = math.ceil(margin * bins / (2 * math.pi))
-    if 2 * reach + 1 >= bins:
-        return np.ones(len(xyz), dtype=bool)
-    grown = hit.copy()
-    for shift in range(1, reach + 1):
-        grown |= np.roll(hit, shift) | np.roll(hit, -shift)
-    return grown[index] | chosen

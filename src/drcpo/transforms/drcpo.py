@@ -62,8 +62,7 @@ class DRCPO(Transform):
        frame's points, each sample decided exactly as a point added to them. e-HPR would almost
        always leave such an object too few points (the counts: ``docs/measurements.md``), so
        it is not built and hides nothing.
-       Each rejected object gets a fresh pose up to ``placement.attempts`` times. In
-       ``whole`` mode (the box grows while built) objects are placed once built.
+       Each rejected object gets a fresh pose up to ``placement.attempts`` times.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
        ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
@@ -135,12 +134,11 @@ class DRCPO(Transform):
     @property
     def room(self) -> float:
         """Metres by which an object's label may exceed its placed box on any side: the
-        construction margin (``partition`` mode keeps points that far outside the source box)
+        construction margin (construction keeps points that far outside the source box)
         and twice :data:`_FIT_PAD`. Placement keeps that much room free around each box, and
         the frame's points within it make way for the object."""
         built = self.config.construction
-        margin = built.margin if built.mode == "partition" else 0
-        return float(margin) + 2.0 * _FIT_PAD
+        return float(built.margin) + 2.0 * _FIT_PAD
 
     @property
     def _sensor_true(self) -> bool:
@@ -213,7 +211,7 @@ class DRCPO(Transform):
         c = self.config
         return (
             f"DRCPO({self.database!r}, sample={c.sample}, "
-            f"construction={c.construction.mode!r}, height={c.placement.height!r}, "
+            f"height={c.placement.height!r}, "
             f"e_hpr={c.external_occlusion.preset}:"
             f"{c.external_occlusion.scope})"
         )
@@ -241,23 +239,13 @@ class DRCPO(Transform):
         ground = sensor_steps.own_ground(frame, own) if own is not None else None
         dim = frame.points.shape[1]
         frame_grid = self._frame_grid(frame, rows)
-        if self.config.construction.mode == "partition":
-            with stats.stage("drcpo.placement", len(frame)):
-                boxes, accepted = self._place(frame, rows, None, rng, stats, frame_grid, ground)
-                rows = rows[accepted]
-            seeds = self._render_seeds(len(boxes), rng)
-            with stats.stage("drcpo.construction", 0) as record:
-                objects = self._construct(rows, rng, stats)
-                record["points_out"] = sum(len(o.points) for o in objects)
-        else:  # whole: the box grows while constructing, so place with the final size
-            with stats.stage("drcpo.construction", 0) as record:
-                objects = self._construct(rows, rng, stats)
-                record["points_out"] = sum(len(o.points) for o in objects)
-            with stats.stage("drcpo.placement", len(frame)):
-                dims = np.array([o.dims for o in objects], dtype=np.float64).reshape(-1, 3)
-                boxes, accepted = self._place(frame, rows, dims, rng, stats, frame_grid, ground)
-                rows, objects = rows[accepted], [objects[i] for i in accepted]
-            seeds = self._render_seeds(len(boxes), rng)
+        with stats.stage("drcpo.placement", len(frame)):
+            boxes, accepted = self._place(frame, rows, rng, stats, frame_grid, ground)
+            rows = rows[accepted]
+        seeds = self._render_seeds(len(boxes), rng)
+        with stats.stage("drcpo.construction", 0) as record:
+            objects = self._construct(rows, rng, stats)
+            record["points_out"] = sum(len(o.points) for o in objects)
         points_in = sum(len(o.points) for o in objects)
         with stats.stage("drcpo.self_occlusion", points_in) as record:
             visible = [
@@ -315,7 +303,6 @@ class DRCPO(Transform):
         self,
         frame: Frame,
         rows: np.ndarray,
-        dims: np.ndarray | None,
         rng: np.random.Generator,
         stats: Stats,
         frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
@@ -327,7 +314,7 @@ class DRCPO(Transform):
         if len(rows) == 0:
             return np.zeros((0, 7)), np.zeros(0, np.int64)
         source = np.asarray(self.database.boxes[rows], dtype=np.float64)
-        dims = source[:, 3:6] if dims is None else dims
+        dims = source[:, 3:6]
         camera = self.config.placement.camera_fov
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
