@@ -1,4 +1,4 @@
-"""Tests for drcpo.occlusion (hpr, scopes, frame_grid, zbuffer's range image): HPR against
+"""Tests for drcpo.occlusion (hpr, scopes, frame_grid, external): HPR against
 Open3D's answers, the fast paths against the plain one, awkward inputs, forked workers, s-HPR /
 e-HPR presets and the range-image mode."""
 

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from drcpo.construction import _add_source, _add_whole, _Box, _gather, _Stored
+from drcpo.construction import _add_source, _Box, _gather, _Stored
 from drcpo.database import GroundTruthDatabase
 from drcpo.index import partition_occupancy
 from drcpo.partitions import (
@@ -152,16 +152,12 @@ def test_construction_kernels_follow_the_rule(rng, copies):
             cells = np.array([naive_flat(p, dims, grid) for p in shown])
             near = (np.abs(shown[:, :3]) <= d / 2.0 + margin).all(axis=1)
             p = num_partitions(grid)
-            # whole mode: every point counted, clipped into the outermost cells
-            counts = np.zeros(p, np.int64)
-            _add_whole(stored, 0, _Box(d, g, 0.0, copies), counts, np.zeros(1, np.int64), 0)
-            np.testing.assert_array_equal(counts, np.bincount(cells, minlength=p))
-            # partition mode, the source: points within the margin of the box
+            # the source: points within the margin of the box
             box = _Box(d, g, margin, copies)
             counts = np.zeros(p, np.int64)
             _add_source(stored, 0, box, counts, np.zeros(1, np.int64), 0)
             np.testing.assert_array_equal(counts, np.bincount(cells[near], minlength=p))
-            # partition mode, a candidate's points in one cell (the band shortcut at borders)
+            # a candidate's points in one cell (the band shortcut at borders)
             for cell in range(p):
                 got, n_refs, _ = _gather(
                     stored, 0, cell, box, np.zeros(1, np.int64), 0, np.zeros(1, np.int64)
