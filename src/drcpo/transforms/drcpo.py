@@ -456,7 +456,7 @@ class DRCPO(Transform):
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Points kept by e-HPR (or the range-image mode) under the scope rule, ``bool (N,)``,
+        """Points kept by e-HPR under the scope rule, ``bool (N,)``,
         and the insertions left with too few points in their box, ``bool (len(insertions),)``.
         e-HPR itself is :mod:`drcpo.occlusion.external`'s; this applies the label rule. Scope
         ``frame``: every hidden point goes (:func:`~drcpo.occlusion.external_occlusion`).
