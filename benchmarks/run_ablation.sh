@@ -24,9 +24,6 @@ arms=(
   # count parity: DR.CPO first, ground-truth sampling tops each class up
   paper:before_gt_sampling=true,placement.attempts=10
   realistic:before_gt_sampling=true
-  # e-HPR over the whole frame after insertion, as published (drcpo's default scope decides the
-  # inserted points first and removes only original points the kept objects hide)
-  paper:external_occlusion.scope=frame
   # the paper's own ablations: construction, location, heading range (Tables 4-6)
   paper:construction.max_iterations=0
   paper:construction.max_iterations=1

@@ -39,7 +39,6 @@ def test_paper_defaults():
     assert d.placement.height == "ground" and d.placement.max_non_ground_points == 10
     assert d.self_occlusion.radius_factor == 200.0 and d.self_occlusion.min_points == 5
     assert d.external_occlusion.preset == "pv_rcnn_plusplus"
-    assert d.external_occlusion.scope == "inserted"
     assert d.min_points_after == 5
     assert config.gt_sampling.targets == {"Car": 20, "Pedestrian": 15, "Cyclist": 15}
     g = config.global_augmentation
@@ -132,7 +131,6 @@ def test_out_of_range_names_the_key_and_the_allowed_range(data, path, allowed):
     ("data", "words"),
     [
         ({"drcpo": {"placement": {"height": "magic"}}}, ["height", "ground, source, observed"]),
-        ({"drcpo": {"external_occlusion": {"scope": "all"}}}, ["scope", "inserted, frame"]),
         ({"drcpo": {"external_occlusion": {"preset": "voxelnet"}}}, ["second", "pv_rcnn"]),
         ({"preset": "voxelnet"}, ["preset", "pointrcnn"]),
         ({"drcpo": {"enabled": "yes"}}, ["drcpo.enabled", "true or false"]),
@@ -319,7 +317,6 @@ BAD_VALUES = {
     "drcpo.self_occlusion.radius_share": 0,
     "drcpo.external_occlusion.enabled": None,
     "drcpo.external_occlusion.preset": "voxelnet",
-    "drcpo.external_occlusion.scope": "all",
     "drcpo.external_occlusion.radius": 1e300,
     "drcpo.external_occlusion.viewpoint_z": 1e3,
     "drcpo.sensor.model": "velodyne",

@@ -549,12 +549,12 @@ def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
     new_rows = row_set(out.points) - row_set(before.points)
     in_inserted = BoxQuery(out.points).inside_any(inserted)
     assert {row.tobytes() for row in out.points[in_inserted]} >= new_rows
-    # Input points that are gone: in an inserted object's room (see DRCPO.room) or, with the
-    # inserted scope, hidden behind an inserted object kept (in the view window of its box,
+    # Input points that are gone: in an inserted object's room (see DRCPO.room) or hidden
+    # behind an inserted object kept (in the view window of its box,
     # beyond the box's nearest point).
     kept_rows = row_set(out.points)
     gone = np.array([row.tobytes() not in kept_rows for row in before.points], dtype=bool)
-    if config.external_occlusion.scope == "inserted" and gone.any():
+    if gone.any():
         cleared = BoxQuery(before.points).inside_any(inserted, margin=transform.room)
         _, viewpoint = transform.e_hpr_setting()
         grown = inserted.copy()
@@ -564,10 +564,9 @@ def check_drcpo_frame(transform: DRCPO, before: Frame, out: Frame) -> dict:
     return {"added": added, "dropped": dropped, "gone": int(gone.sum())}
 
 
-@pytest.mark.parametrize("scope", ["inserted", "frame"])
-def test_drcpo_invariants_on_synthetic_world(synthetic_world, scope):
+def test_drcpo_invariants_on_synthetic_world(synthetic_world):
     db, index, frames = synthetic_world
-    transform = DRCPO(db, index, {"external_occlusion": {"scope": scope}})
+    transform = DRCPO(db, index)
     totals = {"added": 0, "gone": 0}
     for i, frame in enumerate(frames):
         out = transform(frame, np.random.default_rng(i))
@@ -595,10 +594,9 @@ def test_more_attempts_place_objects_again_whatever_rejected_them(synthetic_worl
     assert totals[4][0] > totals[1][0] and totals[4][1] < totals[1][1]
 
 
-@pytest.mark.parametrize("scope", ["inserted", "frame"])
-def test_drcpo_invariants_on_kitti_sample(kitti_world, scope):
+def test_drcpo_invariants_on_kitti_sample(kitti_world):
     db, index, frames = kitti_world
-    transform = DRCPO(db, index, {"external_occlusion": {"scope": scope}})
+    transform = DRCPO(db, index)
     tried = 0
     for i, frame in enumerate(frames):
         out = transform(frame, np.random.default_rng(100 + i))
@@ -756,8 +754,7 @@ def test_every_rejection_reason(synthetic_world):
     assert len(out.boxes) <= len(frames[0].boxes)
 
 
-@pytest.mark.parametrize("scope", ["inserted", "frame"])
-def test_boxes_hidden_by_e_hpr_lose_their_label_unless_already_sparse(synthetic_world, scope):
+def test_nothing_inserted_changes_nothing(synthetic_world):
     db, index, _ = synthetic_world
     rng = np.random.default_rng(5)
     wall = np.column_stack(
@@ -776,14 +773,25 @@ def test_boxes_hidden_by_e_hpr_lose_their_label_unless_already_sparse(synthetic_
         np.stack([car, tiny]),
         np.array(["Car", "Pedestrian"]),
     )
-    transform = DRCPO(db, index, {"sample": {}, "external_occlusion": {"scope": scope}})
+    transform = DRCPO(db, index, {"sample": {}})
     out = transform(frame, np.random.default_rng(0))
-    if scope == "frame":
-        assert out.metadata["augment_stats"]["labels_dropped"] == {"Car": 1}
-        assert out.names.tolist() == ["Pedestrian"]  # had 3 points before: kept
-    else:  # nothing inserted: nothing may change
-        assert out.metadata["augment_stats"]["labels_dropped"] == {}
-        np.testing.assert_array_equal(out.points, frame.points)
+    # a car hidden behind a wall keeps its points and its label: e-HPR decides only what
+    # inserted objects hide, and nothing was inserted
+    assert out.metadata["augment_stats"]["labels_dropped"] == {}
+    np.testing.assert_array_equal(out.points, frame.points)
+    assert out.names.tolist() == ["Car", "Pedestrian"]
+    # An original box that e-HPR or an inserted object's room leaves with fewer than
+    # min_points_after points loses its label, unless it had fewer before (the tiny one's 3).
+    points = np.concatenate([car[:3] + rng.uniform(-0.5, 0.5, (6, 3)), tiny[:3] + [[0, 0, 0]] * 3])
+    sparse = Frame(
+        np.column_stack([points, np.zeros(9)]).astype(np.float32), frame.boxes, frame.names
+    )
+    removed = np.zeros(9, dtype=bool)
+    removed[[0, 1]] = True  # the car keeps 4 of its 6
+    removed[6] = True  # the tiny one keeps 2 of its 3
+    assert transform._sparse_originals(sparse, removed).tolist() == [True, False]
+    removed[1] = False  # the car keeps 5
+    assert transform._sparse_originals(sparse, removed).tolist() == [False, False]
 
 
 def test_drcpo_config_round_trip_and_checks(synthetic_world):
@@ -941,7 +949,7 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng)
     from drcpo.transforms.drcpo_parts import Insertion as _Insertion
 
     db, index, _ = synthetic_world
-    transform = DRCPO(db, index, {"external_occlusion": {"scope": "inserted"}})
+    transform = DRCPO(db, index)
     # A wall 20 m ahead, a second layer right behind part of it (hidden before anything is
     # inserted), and a dense box inserted 10 m ahead in front of the wall's middle.
     y, z = np.meshgrid(np.linspace(-4, 4, 81), np.linspace(-1.5, 1.5, 31))
@@ -966,7 +974,7 @@ def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, rng):
     from drcpo.transforms.drcpo_parts import Insertion as _Insertion
 
     db, index, _ = synthetic_world
-    transform = DRCPO(db, index, {"external_occlusion": {"scope": "inserted"}})
+    transform = DRCPO(db, index)
     # A wall 15 m ahead; object A (3 points, too few to keep) right in front of wall point P;
     # object B, dense, 25 m ahead beside the wall's edge: P lies in B's view window but in
     # front of B, so only A (dropped) could hide it, and P must stay.

@@ -260,7 +260,8 @@ class SelfOcclusionConfig(Checked):
 
 @dataclass(frozen=True, eq=False)
 class ExternalOcclusionConfig(Checked):
-    """e-HPR on the frame after insertion."""
+    """e-HPR on the frame after insertion, scoped to the inserted objects (see
+    :class:`drcpo.transforms.drcpo.DRCPO`)."""
 
     KEY_PATH = "drcpo.external_occlusion"
 
@@ -268,10 +269,6 @@ class ExternalOcclusionConfig(Checked):
     preset: str = field(
         default=DEFAULT_PRESET,
         metadata=spec("choice", "detector whose (R, z) is used", choices=PRESETS),
-    )
-    scope: str = field(
-        default="inserted",
-        metadata=spec("choice", "which points e-HPR may remove", choices=("inserted", "frame")),
     )
     radius: float | None = field(
         default=None,

@@ -25,7 +25,8 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.view_windows`: the directions boxes cover, seen from the viewpoint,
   and the samples on their faces (:func:`surface_samples`).
 * :mod:`~drcpo.occlusion.scopes`: s-HPR.
-* :mod:`~drcpo.occlusion.external`: e-HPR, its scopes (``frame``, ``inserted`` in two steps).
+* :mod:`~drcpo.occlusion.external`: e-HPR over a whole frame, and scoped to the inserted objects
+  in two steps.
 * :mod:`~drcpo.occlusion.render`: objects rendered through a :class:`~drcpo.sensor.Sensor`
   (``self_occlusion.mode: sensor``): :func:`render_object`, :func:`surfel_radii`.
 

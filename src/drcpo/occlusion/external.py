@@ -1,8 +1,10 @@
-"""e-HPR, the paper's external occlusion of a frame after insertion, in its two scopes; DR.CPO
-(:class:`drcpo.transforms.drcpo.DRCPO`) calls these and applies its label rule.
+"""e-HPR, the paper's external occlusion of a frame after insertion.
 
-* Scope ``frame`` (the paper): :func:`external_occlusion` removes every hidden point.
-* Scope ``inserted``: :func:`inserted_scope` in two steps that return data. Step 1 decides
+* Over the whole frame, as published: :func:`external_occlusion` removes every hidden point (a
+  library routine; DR.CPO does not use it: it drops the sampled objects that others hide and
+  trains a worse detector, ``docs/detection.md``).
+* Scoped to the inserted objects, as DR.CPO (:class:`drcpo.transforms.drcpo.DRCPO`) runs it:
+  :func:`inserted_scope` in two steps that return data. Step 1 decides
   the inserted points (:attr:`InsertedScope.removed_inserted`); the caller then works out
   which objects it drops (too few points left) and the view windows of the others
   (:mod:`drcpo.occlusion.view_windows`); step 2, :meth:`InsertedScope.removed_behind`,
@@ -49,8 +51,8 @@ def external_occlusion(
     viewpoint_xy: np.ndarray | None = None,
     method: str = "auto",
 ) -> np.ndarray:
-    """e-HPR, scope ``frame``: the paper's external occlusion of a whole frame (after
-    insertion), from the viewpoint ``(0, 0, z)``.
+    """e-HPR over a whole frame (after insertion), as the paper publishes it, from the
+    viewpoint ``(0, 0, z)``.
 
     Args:
         points: ``(N, 3 + C)`` the frame's points (metres).

@@ -71,8 +71,9 @@ class DRCPO(Transform):
        ``construction.margin`` outside the source box, and s-HPR keeps the outermost.
     5. **Insert**: frame points within the accepted objects' room (their placed box grown by
        :attr:`room`) are removed, the objects' points added.
-    6. **e-HPR** from the detector preset's viewpoint and radius. Scope ``frame`` (the paper)
-       removes every hidden point of the frame. Scope ``inserted`` (default) first removes the
+    6. **e-HPR** from the detector preset's viewpoint and radius, scoped to the inserted objects
+       (the paper runs it over the whole frame, which drops the sampled objects that others hide
+       and trains a worse detector, ``docs/detection.md``). It first removes the
        inserted points that are hidden; an object then left with fewer than
        ``min_points_after`` points in its box is dropped (see 7). It then removes the original
        points that lie behind the box of an object kept, in its view window (the azimuth and
@@ -81,8 +82,8 @@ class DRCPO(Transform):
        queries), so HPR's own errors never delete real, visible points and directions without
        inserted objects cost nothing.
     7. **Labels**: an object dropped by e-HPR goes with all its points (reason
-       ``external_occlusion``), and the frame points it displaced come back (with scope
-       ``inserted``, those it alone hid were never removed). An original box that lost points
+       ``external_occlusion``), and the frame points it displaced come back (those it alone
+       hid were never removed). An original box that lost points
        and holds fewer than ``min_points_after`` is dropped, unless it already had fewer
        before.
 
@@ -211,9 +212,7 @@ class DRCPO(Transform):
         c = self.config
         return (
             f"DRCPO({self.database!r}, sample={c.sample}, "
-            f"height={c.placement.height!r}, "
-            f"e_hpr={c.external_occlusion.preset}:"
-            f"{c.external_occlusion.scope})"
+            f"height={c.placement.height!r}, e_hpr={c.external_occlusion.preset})"
         )
 
     # The steps ------------------------------------------------------------------------------
@@ -271,14 +270,11 @@ class DRCPO(Transform):
     def _frame_grid(
         self, frame: Frame, rows: np.ndarray
     ) -> Callable[[], occlusion.FrameGrid] | None:
-        """e-HPR's grid of the frame's points (scope ``inserted``, and the ``occluded`` test
-        of placement), as a call that builds it when first asked for and then returns it;
-        ``None`` when nothing will need it."""
+        """e-HPR's grid of the frame's points (e-HPR, and the ``occluded`` test of placement),
+        as a call that builds it when first asked for and then returns it; ``None`` when
+        nothing will need it."""
         settings = self.config.external_occlusion
-        needed = settings.enabled and (
-            settings.scope == "inserted" or self.config.placement.occluded_fraction is not None
-        )
-        if not needed or len(rows) == 0:
+        if not settings.enabled or len(rows) == 0:
             return None
         radius, viewpoint = self.e_hpr_setting()
         # In this thread's memory: the previous call's grid is done with.
@@ -456,29 +452,20 @@ class DRCPO(Transform):
         grid: occlusion.FrameGrid | None = None,
         cleared_by: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Points kept by e-HPR under the scope rule, ``bool (N,)``,
-        and the insertions left with too few points in their box, ``bool (len(insertions),)``.
-        e-HPR itself is :mod:`drcpo.occlusion.external`'s; this applies the label rule. Scope
-        ``frame``: every hidden point goes (:func:`~drcpo.occlusion.external_occlusion`).
-        Scope ``inserted`` (:func:`~drcpo.occlusion.inserted_scope`): the inserted points are
-        decided first, each exactly against the whole frame, and hidden ones go; then, for
-        the original points behind the boxes of the objects that keep enough points, in their
-        view windows (the directions they cover), those hidden with the objects but visible
-        without them go. With ``grid`` (the frame's :class:`~drcpo.occlusion.FrameGrid`) and
-        ``cleared_by`` (see :meth:`_insert`), the frame's points are not sorted again."""
+        """Points kept by e-HPR, ``bool (N,)``, and the insertions left with too few points in
+        their box, ``bool (len(insertions),)``. e-HPR itself is :mod:`drcpo.occlusion.external`'s
+        (:func:`~drcpo.occlusion.inserted_scope`); this applies the label rule: the inserted
+        points are decided first, each exactly against the whole frame, and hidden ones go;
+        then, for the original points behind the boxes of the objects that keep enough points,
+        in their view windows (the directions they cover), those hidden with the objects but
+        visible without them go. With ``grid`` (the frame's
+        :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see :meth:`_insert`), the
+        frame's points are not sorted again."""
         settings = self.config.external_occlusion
         keep = np.ones(len(points), dtype=bool)
-        radius, viewpoint = self.e_hpr_setting()
-        if settings.enabled and len(points) and settings.scope == "frame":
-            keep = occlusion.external_occlusion(
-                points,
-                settings.preset,
-                radius=radius,
-                viewpoint_z=viewpoint[2],
-                viewpoint_xy=viewpoint[:2] if self._mounted else None,
-            )
-        if not settings.enabled or len(points) == 0 or settings.scope == "frame" or not insertions:
+        if not settings.enabled or len(points) == 0 or not insertions:
             return keep, self._dropped(points, owner, insertions, keep)
+        radius, viewpoint = self.e_hpr_setting()
         first = int(np.count_nonzero(owner < 0))  # the original points come first
         scope = occlusion.inserted_scope(
             points,
