@@ -1,8 +1,7 @@
 """Time the conventional baseline (CDA) and the full DR.CPO pipeline on the same frames.
 
 CDA = ground-truth sampling + global augmentation; DR.CPO = ground-truth sampling + DR.CPO +
-global augmentation with the ``paper`` preset (the paper's reference configuration), and the
-same with the ``realistic`` preset (sensor-true steps). The
+global augmentation with the ``paper`` preset (the paper's reference configuration). The
 database is synthetic and KITTI-sized (Car 14,357, Pedestrian 2,207, Cyclist 734 objects, points
 on the faces a sensor would see, inside their boxes as in a database cut with points_in_boxes),
 indexed with K = 400. Frames are the real KITTI sample in
@@ -12,8 +11,7 @@ when present, else frames of the built-in synthetic world.
 Each frame is augmented ``--repeats`` times by each pipeline, alternating, with the same seeds;
 the medians of the per-frame milliseconds are reported. The last stdout line is one JSON object::
 
-    {"cda_ms": a, "drcpo_ms": b, "realistic_ms": c, "ratio": b / a,
-     "realistic_to_paper": c / b, "stages_ms": {stage: median ms}, ...}
+    {"cda_ms": a, "drcpo_ms": b, "ratio": b / a, "stages_ms": {stage: median ms}, ...}
 
 With ``--processes N``, it also measures throughput the way a data loader's worker processes
 see it: N forked processes each augment every frame 4 x ``--repeats`` times (after one untimed
@@ -227,8 +225,7 @@ def main(argv: list[str] | None = None) -> dict:
         frames = kitti_frames(n_frames) if use_kitti else synthetic_frames(n_frames)
         cda = build_pipeline("default", database, index, kind="cda")
         drcpo = build_pipeline("paper", database, index, kind="drcpo")
-        realistic = build_pipeline("realistic", database, index, kind="drcpo")
-        pipelines = {"cda": cda, "drcpo": drcpo, "realistic": realistic}
+        pipelines = {"cda": cda, "drcpo": drcpo}
         # Warm-up, every frame through every pipeline: numba compilation, first touch of the
         # memory-mapped database and of each frame's data.
         for f, frame in enumerate(frames):
@@ -260,19 +257,13 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "cda_ms": statistics.median(cda_ms),
         "drcpo_ms": statistics.median(drcpo_ms),
-        "realistic_ms": statistics.median(wall["realistic"]),
     }
     result["ratio"] = result["drcpo_ms"] / result["cda_ms"]
-    result["realistic_to_paper"] = result["realistic_ms"] / result["drcpo_ms"]
     result["stages_ms"] = {name: statistics.median(v) for name, v in stages["drcpo"].items()}
-    result["realistic_stages_ms"] = {
-        name: statistics.median(v) for name, v in stages["realistic"].items()
-    }
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     result.update(
         cda_cpu_ms=statistics.median(cpu["cda"]),
         drcpo_cpu_ms=statistics.median(cpu["drcpo"]),
-        realistic_cpu_ms=statistics.median(cpu["realistic"]),
         load_average=load,
         frames=len(frames),
         source="kitti_sample" if use_kitti else "synthetic_world",
@@ -282,7 +273,6 @@ def main(argv: list[str] | None = None) -> dict:
         k=k,
         index_build_s=round(index_s, 1),
         drcpo_objects_added_mean=_added_per_frame(added["drcpo"]),
-        realistic_objects_added_mean=_added_per_frame(added["realistic"]),
         added_per_class={
             name: {cls: float(np.mean(v)) for cls, v in per_class.items()}
             for name, per_class in added.items()
@@ -295,10 +285,9 @@ def main(argv: list[str] | None = None) -> dict:
         f"database {len(database)} objects, K={k}",
         file=sys.stderr,
     )
-    for label, key in (("paper", "stages_ms"), ("realistic", "realistic_stages_ms")):
-        print(f" {label}:", file=sys.stderr)
-        for name, ms in result[key].items():
-            print(f"  {name:28s} {ms:8.2f} ms", file=sys.stderr)
+    print(" paper:", file=sys.stderr)
+    for name, ms in result["stages_ms"].items():
+        print(f"  {name:28s} {ms:8.2f} ms", file=sys.stderr)
     if throughput:
         print(
             f"{args.processes} processes: baseline {throughput['cda_frames_per_s']:.0f} frames/s, "

@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, required=True, help="pools and databases")
     parser.add_argument("--frames", type=int, default=20, help="frames per pool")
     parser.add_argument("--pools", type=int, nargs="+", default=[1000, 3000], help="world seeds")
-    parser.add_argument("--arms", nargs="+", default=["none", "cda", "paper", "realistic"])
+    parser.add_argument("--arms", nargs="+", default=["none", "cda", "paper"])
     parser.add_argument("--db", help="database (with its index) to sample from")
     args = parser.parse_args(argv)
     from detection.train import load_frames

@@ -15,7 +15,7 @@ exactly that subset. Frames are cut to the camera's field of view, as OpenPCDet 
 Arms (:mod:`detection.arms`): ``none``, ``cda`` (ground-truth sampling and global flip, rotation,
 scaling), ``paper`` (DR.CPO as the paper configures it), ``broken`` (the negative control: cda
 with every inserted label moved 0.5 m), any drcpo preset or YAML config (DR.CPO with it), each
-optionally with overrides: ``NAME:KEY=VALUE,KEY=VALUE`` (``realistic:placement.attempts=10``).
+optionally with overrides: ``NAME:KEY=VALUE,KEY=VALUE`` (``paper:placement.location=source``).
 
 Seed ``s`` fixes the model's initialisation, the order of the frames and each sample's
 augmentation generator ``default_rng([s, epoch, index])``, so arms are compared in pairs: every

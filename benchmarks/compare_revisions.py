@@ -10,8 +10,9 @@ file system; the worktrees are removed afterwards. The database and index are bu
 
 The last stdout line is one JSON object::
 
-    {"base": rev, "head": rev, "pairs": n, "realistic_ratio": median, "paper_ratio": median,
-     "base_ms": {pipeline: median}, "head_ms": {...}, "stage_ratio": {stage: median}, ...}
+    {"base": rev, "head": rev, "pairs": n, "paper_ratio": median, "cda_ratio": median,
+     "paper_ratio_range": [min, max], "base_ms": {pipeline: median}, "head_ms": {...},
+     "stage_ratio": {stage: median}, ...}
 
 Usage: ``python benchmarks/compare_revisions.py BASE [HEAD] [--pairs N] [--work DIR] [--quick]``
 (``HEAD`` defaults to ``HEAD``: commit what you measure).
@@ -30,7 +31,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
-PIPELINES = {"cda": "cda_ms", "paper": "drcpo_ms", "realistic": "realistic_ms"}
+PIPELINES = {"cda": "cda_ms", "paper": "drcpo_ms"}
 
 
 def _git(*args: str) -> str:
@@ -62,11 +63,8 @@ def _ratios(base: list[dict], head: list[dict]) -> dict:
         for name, key in PIPELINES.items()
     }
     stages = {}
-    for stage in base[0]["realistic_stages_ms"]:
-        pairs = [
-            (b["realistic_stages_ms"], h["realistic_stages_ms"])
-            for b, h in zip(base, head, strict=True)
-        ]
+    for stage in base[0]["stages_ms"]:
+        pairs = [(b["stages_ms"], h["stages_ms"]) for b, h in zip(base, head, strict=True)]
         if all(stage in h and b[stage] > 0 for b, h in pairs):
             stages[stage] = statistics.median(h[stage] / b[stage] for b, h in pairs)
     return {"pipelines": pipelines, "stages": stages}
@@ -102,9 +100,9 @@ def main(argv: list[str] | None = None) -> dict:
                     runs[side].append(_bench(trees[side], work, args.quick))
                 b, h = runs["base"][-1], runs["head"][-1]
                 print(
-                    f"pair {pair + 1}: realistic {b['realistic_ms']:.1f} -> "
-                    f"{h['realistic_ms']:.1f} ms, paper {b['drcpo_ms']:.1f} -> "
-                    f"{h['drcpo_ms']:.1f} ms (load {h['load_average']:.2f})",
+                    f"pair {pair + 1}: paper {b['drcpo_ms']:.1f} -> {h['drcpo_ms']:.1f} ms, "
+                    f"cda {b['cda_ms']:.1f} -> {h['cda_ms']:.1f} ms "
+                    f"(load {h['load_average']:.2f})",
                     flush=True,
                 )
         finally:
@@ -117,22 +115,15 @@ def main(argv: list[str] | None = None) -> dict:
         "head": revs["head"],
         "pairs": args.pairs,
         "source": runs["head"][0]["source"],
-        "realistic_ratio": statistics.median(ratios["pipelines"]["realistic"]),
         "paper_ratio": statistics.median(ratios["pipelines"]["paper"]),
         "cda_ratio": statistics.median(ratios["pipelines"]["cda"]),
-        "realistic_ratio_range": [
-            min(ratios["pipelines"]["realistic"]),
-            max(ratios["pipelines"]["realistic"]),
-        ],
+        "paper_ratio_range": [min(ratios["pipelines"]["paper"]), max(ratios["pipelines"]["paper"])],
         "base_ms": {n: statistics.median(r[k] for r in runs["base"]) for n, k in PIPELINES.items()},
         "head_ms": {n: statistics.median(r[k] for r in runs["head"]) for n, k in PIPELINES.items()},
-        "realistic_to_paper": {
-            side: statistics.median(r["realistic_to_paper"] for r in runs[side]) for side in runs
-        },
         "stage_ratio": ratios["stages"],
     }
     for stage, ratio in ratios["stages"].items():
-        print(f"  realistic {stage:<28} head / base {ratio:.3f}")
+        print(f"  paper {stage:<28} head / base {ratio:.3f}")
     print(json.dumps(result))
     return result
 

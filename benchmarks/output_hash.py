@@ -8,7 +8,7 @@ left out: they are timings, not behaviour). Record the hash before a change and 
 The database is bench_augment's synthetic one (small counts), so this needs no data set. The
 last stdout line is one JSON object: ``{"hash": ..., "frames": n, "per_pipeline": {...}}``.
 
-``--configs realistic my.yaml ...`` adds the fingerprints of more configs (presets or YAML files),
+``--configs nuscenes my.yaml ...`` adds the fingerprints of more configs (presets or YAML files),
 each in ``per_config`` (the ``hash`` stays that of the two pipelines).
 
 Usage: ``python benchmarks/output_hash.py [--work DIR] [--seeds N] [--configs NAME ...]``

@@ -1,29 +1,21 @@
 #!/usr/bin/env bash
 # The ablation of issue 30, judged by the detector: every arm at 60 training frames (25 % of the
-# pool) against cda and paper. One command; finished runs are cached in --work by their samples,
-# so a grid stopped half-way (or run again after a change that leaves augmentation alone) goes
-# on where it was. Extra arguments go to bench_detection.py, e.g.
+# pool) against cda and paper (the arms of the deleted sensor-true steps: docs/detection.md).
+# One command; finished runs are cached in --work by their samples, so a grid stopped half-way
+# (or run again after a change that leaves augmentation alone) goes on where it was. Extra arguments go to bench_detection.py, e.g.
 #   bash benchmarks/run_ablation.sh --work /tmp/det --seeds 0 1          # screening, CPU
 #   bash benchmarks/run_ablation.sh --work /tmp/det --device cuda --workers 12   # a lent GPU
 set -euo pipefail
 cd "$(dirname "$0")/.."
 arms=(
-  cda paper realistic
-  # realistic minus each of its components
-  realistic:self_occlusion.mode=hpr                 # sensor rendering
-  realistic:placement.height=ground                 # standing on observed ground
-  realistic:placement.max_non_ground_points=10      # no returns in the box
-  # paper plus each
-  paper:self_occlusion.mode=sensor,self_occlusion.radius_share=0.09
-  paper:placement.height=observed
+  cda paper
+  # paper without the obstacle check's allowance: no frame return in the box
   paper:placement.max_non_ground_points=0
   # labels: construction keeps no point outside the source box, so the label is the source box
   # (by default points up to 5 cm outside are kept and the label grows to hold them)
   paper:construction.margin=0.0
-  paper:before_gt_sampling=true,placement.attempts=10,construction.margin=0.0
   # count parity: DR.CPO first, ground-truth sampling tops each class up
-  paper:before_gt_sampling=true,placement.attempts=10
-  realistic:before_gt_sampling=true
+  paper:before_gt_sampling=true
   # the paper's own ablations: construction, location, heading range (Tables 4-6)
   paper:construction.max_iterations=0
   paper:construction.max_iterations=1

@@ -28,8 +28,6 @@ LAYERS: dict[str, int] = {
     "drcpo.partitions": 2,
     "drcpo.ground": 2,
     "drcpo.collisions": 2,
-    "drcpo.sensor": 2,
-    "drcpo.sensor_config": 2,
     "drcpo.datasets": 2,
     "drcpo.datasets.nuscenes": 2,
     "drcpo.datasets.nuscenes_writer": 2,
@@ -200,17 +198,10 @@ def test_the_thread_finder_finds_threads(tmp_path):
 #: Most parameters a numba kernel takes: more travel as a few named structures (NamedTuples of
 #: arrays, tuples of floats).
 MAX_KERNEL_PARAMETERS = 8
-#: Kernels still over the limit: the sensor-true path's, which the detection ablation lists for
-#: removal (docs/detection.md), and one the detection run cache hashes (issue 32): the list must
+#: Kernels still over the limit: one the detection run cache hashes (issue 32): the list must
 #: shrink, never grow.
 OVER_THE_LIMIT = {
     "drcpo.evaluation.kitti._counts_at",  # the detection benchmark's run cache hashes this file
-    "drcpo.ground._bridge_rings",
-    "drcpo.ground._interpolate_observed",
-    "drcpo.ground._ray_ground",
-    "drcpo.occlusion.render._column_at",
-    "drcpo.occlusion.render._render",
-    "drcpo.occlusion.render._returns",
 }
 
 

@@ -29,32 +29,30 @@ def test_arms_are_built_in_names_presets_files_and_overrides(tmp_path):
     assert arms.parse_arm("none").kind == "none" and arms.parse_arm("none").config is None
     cda, paper = arms.parse_arm("cda"), arms.parse_arm("paper")
     assert (cda.kind, paper.kind) == ("cda", "drcpo") and cda.config == paper.config
-    realistic = arms.parse_arm("realistic")
-    assert realistic.kind == "drcpo" and realistic.config["drcpo"]["placement"]["height"] == (
-        "observed"
-    )
-    changed = arms.parse_arm("realistic:placement.occluded_fraction=null,placement.attempts=7")
+    changed = arms.parse_arm("paper:placement.occluded_fraction=null,placement.location=source")
     placement = changed.config["drcpo"]["placement"]
-    assert placement["occluded_fraction"] is None and placement["attempts"] == 7
-    assert placement["height"] == "observed"  # the rest of the preset stays
-    full_path = arms.parse_arm("paper:drcpo.placement.attempts=9")
-    assert full_path.config["drcpo"]["placement"]["attempts"] == 9
-    assert changed.slug != realistic.slug and "/" not in changed.slug and ":" not in changed.slug
+    assert placement["occluded_fraction"] is None and placement["location"] == "source"
+    assert placement["height"] == "ground"  # the rest of the preset stays
+    full_path = arms.parse_arm("paper:drcpo.placement.max_non_ground_points=9")
+    assert full_path.config["drcpo"]["placement"]["max_non_ground_points"] == 9
+    assert changed.slug != paper.slug and "/" not in changed.slug and ":" not in changed.slug
+    nuscenes = arms.parse_arm("nuscenes")
+    assert nuscenes.kind == "drcpo" and "car" in nuscenes.config["drcpo"]["sample"]
     yaml_file = tmp_path / "mine.yaml"
-    yaml_file.write_text("drcpo:\n  placement:\n    attempts: 3\n")
-    assert arms.parse_arm(str(yaml_file)).config["drcpo"]["placement"]["attempts"] == 3
+    yaml_file.write_text("drcpo:\n  placement:\n    max_non_ground_points: 3\n")
+    assert arms.parse_arm(str(yaml_file)).config["drcpo"]["placement"]["max_non_ground_points"] == 3
 
 
 @pytest.mark.parametrize(
     ("spec", "message"),
     [
-        ("realistic:placement.drop_hiden_added=false", "unknown key 'placement.drop_hiden_added'"),
-        ("realistic:placement.attempts=-3", "attempts"),
-        ("realistic:placement.attempts", "is not KEY=VALUE"),
-        ("realistic:", "expected NAME or NAME:KEY=VALUE"),
-        ("none:placement.attempts=3", "'none' takes no overrides"),
-        ("realistic_typo", "realistic_typo"),
-        ("paper:placement.attempts=[1", "arm 'paper:placement.attempts=[1'"),
+        ("paper:placement.drop_hiden_added=false", "unknown key 'placement.drop_hiden_added'"),
+        ("paper:placement.max_non_ground_points=-3", "max_non_ground_points"),
+        ("paper:placement.max_non_ground_points", "is not KEY=VALUE"),
+        ("paper:", "expected NAME or NAME:KEY=VALUE"),
+        ("none:placement.location=source", "'none' takes no overrides"),
+        ("realistic", "realistic"),
+        ("paper:placement.x_range=[1", "arm 'paper:placement.x_range=[1'"),
     ],
 )
 def test_a_bad_arm_is_refused_naming_it_and_the_key(spec, message):
@@ -68,7 +66,7 @@ def test_every_arm_of_the_ablation_script_is_a_valid_distinct_arm():
     body = text[text.index("arms=(") + len("arms=(") : text.index("\n)\n")]
     specs = [word for line in body.splitlines() for word in line.split("#")[0].split()]
     parsed = [arms.parse_arm(spec) for spec in specs]  # a key renamed or deleted fails here
-    assert len(specs) >= 15 and {"cda", "paper", "realistic"} <= set(specs)
+    assert len(specs) >= 10 and {"cda", "paper"} <= set(specs)
     assert len({arm.slug for arm in parsed}) == len(specs)
     assert len({(arm.kind, repr(arm.config)) for arm in parsed}) == len(specs)  # none alike
 
@@ -141,9 +139,9 @@ def test_the_default_is_the_best_arm_never_worse_than_cda():
 
 
 def test_comparisons_pair_each_arm_with_cda_and_drcpo_arms_with_paper():
-    pairs = bench.comparisons(("none", "cda", "paper", "broken", "realistic"))
+    pairs = bench.comparisons(("none", "cda", "paper", "broken", "nuscenes"))
     assert pairs == [
-        ("paper", "cda"), ("broken", "cda"), ("realistic", "cda"), ("realistic", "paper"),
+        ("paper", "cda"), ("broken", "cda"), ("nuscenes", "cda"), ("nuscenes", "paper"),
         ("cda", "none"),
     ]  # fmt: skip
 
@@ -220,7 +218,7 @@ def test_quick_grid_runs_end_to_end_and_reuses_finished_runs(tmp_path):
 def test_an_unknown_arm_fails_at_once_naming_it(tmp_path):
     command = [sys.executable, str(SCRIPT), "--quick", "--work", str(tmp_path / "work")]
     done = subprocess.run(
-        [*command, "--arms", "none", "realistic_typo"], capture_output=True, text=True, timeout=300
+        [*command, "--arms", "none", "paper_typo"], capture_output=True, text=True, timeout=300
     )
-    assert done.returncode == 1 and "realistic_typo" in done.stderr
+    assert done.returncode == 1 and "paper_typo" in done.stderr
     assert "Traceback" not in done.stderr and not (tmp_path / "work").exists()

@@ -13,16 +13,15 @@ compare = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(compare)
 
 
-def run(cda: float, paper: float, realistic: float, stages: dict[str, float]) -> dict:
-    return {"cda_ms": cda, "drcpo_ms": paper, "realistic_ms": realistic,
-            "realistic_stages_ms": stages}  # fmt: skip
+def run(cda: float, paper: float, stages: dict[str, float]) -> dict:
+    return {"cda_ms": cda, "drcpo_ms": paper, "stages_ms": stages}
 
 
 def test_ratios_are_head_over_base_pair_by_pair() -> None:
-    base = [run(1.0, 10.0, 40.0, {"a": 2.0, "b": 1.0}), run(2.0, 20.0, 80.0, {"a": 4.0, "b": 0.0})]
-    head = [run(1.0, 12.0, 30.0, {"a": 1.0, "b": 1.0}), run(1.0, 20.0, 40.0, {"a": 3.0, "b": 1.0})]
+    base = [run(1.0, 10.0, {"a": 2.0, "b": 1.0}), run(2.0, 20.0, {"a": 4.0, "b": 0.0})]
+    head = [run(1.0, 12.0, {"a": 1.0, "b": 1.0}), run(1.0, 20.0, {"a": 3.0, "b": 1.0})]
     ratios = compare._ratios(base, head)
-    assert ratios["pipelines"]["realistic"] == [0.75, 0.5]
+    assert set(ratios["pipelines"]) == {"paper", "cda"}
     assert ratios["pipelines"]["paper"] == [1.2, 1.0]
     assert ratios["pipelines"]["cda"] == [1.0, 0.5]
     # a stage's median of its pairs' ratios; one that took no time in a base run is left out

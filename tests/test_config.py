@@ -130,7 +130,7 @@ def test_out_of_range_names_the_key_and_the_allowed_range(data, path, allowed):
 @pytest.mark.parametrize(
     ("data", "words"),
     [
-        ({"drcpo": {"placement": {"height": "magic"}}}, ["height", "ground, source, observed"]),
+        ({"drcpo": {"placement": {"height": "magic"}}}, ["height", "ground, source"]),
         ({"drcpo": {"external_occlusion": {"preset": "voxelnet"}}}, ["second", "pv_rcnn"]),
         ({"preset": "voxelnet"}, ["preset", "pointrcnn"]),
         ({"drcpo": {"enabled": "yes"}}, ["drcpo.enabled", "true or false"]),
@@ -303,28 +303,15 @@ BAD_VALUES = {
     "drcpo.placement.heading_range": 4.0,
     "drcpo.placement.max_non_ground_points": -1,
     "drcpo.placement.ground_tolerance": float("inf"),
-    "drcpo.placement.attempts": 0,
-    "drcpo.placement.max_slope": -0.1,
-    "drcpo.placement.ground_gap": 2.0,
-    "drcpo.placement.max_attempts_per_frame": 0,
-    "drcpo.placement.poses_per_round": 0,
     "drcpo.placement.occluded_fraction": 0,
     "drcpo.placement.camera_fov": "sometimes",
     "drcpo.self_occlusion.enabled": "true",
-    "drcpo.self_occlusion.mode": "raytrace",
     "drcpo.self_occlusion.radius_factor": 1e300,
     "drcpo.self_occlusion.min_points": 10**7,
-    "drcpo.self_occlusion.radius_share": 0,
     "drcpo.external_occlusion.enabled": None,
     "drcpo.external_occlusion.preset": "voxelnet",
     "drcpo.external_occlusion.radius": 1e300,
     "drcpo.external_occlusion.viewpoint_z": 1e3,
-    "drcpo.sensor.model": "velodyne",
-    "drcpo.sensor.elevations_deg": [2.0, 95.0],
-    "drcpo.sensor.azimuth_step_deg": 0.0,
-    "drcpo.sensor.mount": [0.0, 0.0],
-    "drcpo.sensor.range_noise": -0.1,
-    "drcpo.sensor.dropout": 1.5,
     "global_augmentation.enabled": "no",
     "global_augmentation.flip.probability": -0.1,
     "global_augmentation.flip.axes": ["x", "x"],
@@ -354,7 +341,6 @@ MORE_BAD_VALUES = [
     ("global_augmentation.rotation.range", [-0.1, float("inf")]),
     ("global_augmentation.flip.axes", "x"),
     ("drcpo.external_occlusion.radius", -1.0),
-    ("drcpo.self_occlusion.radius_share", 1.5),
     ("drcpo.external_occlusion.viewpoint_z", "high"),
     ("gt_sampling.exclude_difficulty", [1.5]),
     ("index.k", 100_001),
@@ -484,8 +470,8 @@ def test_the_stage_sections_are_the_stage_modules_classes():
 def test_a_stage_config_built_in_code_is_checked_as_a_file_would_be():
     with pytest.raises(ConfigError, match=r"'drcpo\.construction\.coverage' = 2 is out of range"):
         ConstructionConfig(coverage=2)
-    with pytest.raises(ConfigError, match=r"'drcpo\.placement\.attempts' = 0 is out of range"):
-        PlacementConfig(attempts=0)
+    with pytest.raises(ConfigError, match=r"'drcpo\.placement\.max_non_ground_points' = -1 is out"):
+        PlacementConfig(max_non_ground_points=-1)
     with pytest.raises(ConfigError, match=r"'index\.k' = 0 is out of range; allowed range: \[1,"):
         IndexConfig(k=0)
     # Normalised as a file's values: lists, floats.

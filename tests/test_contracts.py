@@ -36,7 +36,6 @@ import pytest
 from test_pipeline import synthetic_database, synthetic_frame
 from test_velocity import DB_INTENSITY, feature_database, feature_frame
 
-from drcpo.config import load_config
 from drcpo.frame import VELOCITY, Frame, validate_frame
 from drcpo.index import IndexConfig, build_index
 from drcpo.pipeline import build_pipeline
@@ -61,11 +60,8 @@ MAKERS: dict[str, Callable[[Any, Any], Transform]] = {
     "GlobalScaling": lambda db, index: GlobalScaling(),
     "GroundTruthSampling": lambda db, index: GroundTruthSampling(db),
     "DRCPO": lambda db, index: DRCPO(db, index),
-    # the realistic preset's sensor-true steps (its sensor: auto falls back on this frame,
-    # which is no sweep in scan order, and says so)
-    "DRCPO[realistic]": lambda db, index: DRCPO(db, index, load_config("realistic").drcpo),
 }
-REGISTERED = [*sorted(TRANSFORMS), "DRCPO[realistic]"]
+REGISTERED = sorted(TRANSFORMS)
 
 
 @pytest.fixture(scope="module")

@@ -43,7 +43,7 @@ WORDS = sorted(
     {name for path in KEY_PATHS for name in path}
     | set(KITTI_CLASSES)
     | set(PRESETS)
-    | {"default", "Pedestrain", "x", "y", "hpr", "ground", "observed", "auto"}
+    | {"default", "Pedestrain", "x", "y", "hpr", "ground", "source", "auto"}
 )
 
 scalars = (

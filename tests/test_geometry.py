@@ -282,12 +282,12 @@ def test_box_query_follows_the_naive_rule(adversarial, dtype):
 
 def test_placement_obstacle_counts_follow_the_naive_rule(adversarial):
     from drcpo.ground import GroundModel
-    from drcpo.placement import _Obstacles
+    from drcpo.placement import _non_ground_counts
 
     points, boxes = adversarial
     finite = np.isfinite(points[:, :3]).all(axis=1)
     # A ground far below every point: no point is ground, each counts in each box holding it.
     ground = GroundModel.flat(-1e15)
-    counts = _Obstacles(points[finite].astype(np.float32), ground, 0.0).count(boxes)
+    counts = _non_ground_counts(points[finite].astype(np.float32), boxes, ground, 0.0)
     want = naive_mask(points[finite].astype(np.float32), boxes, 0.0).sum(axis=0)
     np.testing.assert_array_equal(counts, want)

@@ -577,23 +577,6 @@ def test_drcpo_invariants_on_synthetic_world(synthetic_world):
     assert totals["added"] > 0
 
 
-def test_more_attempts_place_objects_again_whatever_rejected_them(synthetic_world):
-    # Occluded placements too get a fresh pose on each attempt.
-    db, index, frames = synthetic_world
-    totals = {}
-    for attempts in (1, 4):
-        transform = DRCPO(db, index, {"placement": {"attempts": attempts}})
-        added = occluded = 0
-        for i, frame in enumerate(frames):
-            out = transform(frame, np.random.default_rng(20 + i))
-            check_drcpo_frame(transform, frame, out)
-            counts = out.metadata["augment_stats"]["objects"]["drcpo"].values()
-            added += sum(c["added"] for c in counts)
-            occluded += sum(c["rejected"].get("occluded", 0) for c in counts)
-        totals[attempts] = added, occluded
-    assert totals[4][0] > totals[1][0] and totals[4][1] < totals[1][1]
-
-
 def test_drcpo_invariants_on_kitti_sample(kitti_world):
     db, index, frames = kitti_world
     transform = DRCPO(db, index)
@@ -1038,7 +1021,7 @@ def test_drcpo_before_gt_sampling_takes_a_share_of_the_sample_groups(synthetic_w
     from drcpo.pipeline import build_pipeline
 
     db, index, frames = synthetic_world
-    config = load_config({"drcpo": {"before_gt_sampling": True, "placement": {"attempts": 10}}})
+    config = load_config({"drcpo": {"before_gt_sampling": True}})
     first = build_pipeline(config, db, index=index)
     assert [t.name for t in first.transforms[:2]] == ["drcpo", "gt_sampling"]
     after = build_pipeline("default", db, index=index)

@@ -9,11 +9,11 @@ import math
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from test_sensor import nearest_beams
 
 from drcpo.datasets.nuscenes import NuScenesDataset
 from drcpo.datasets.nuscenes_writer import NUSCENES_MANIFEST
 from drcpo.errors import ConfigError
-from drcpo.sensor import sensor_preset
 from drcpo.synth.dataset import frame_rng
 from drcpo.synth.nuscenes import (
     CATEGORY_OF,
@@ -21,6 +21,7 @@ from drcpo.synth.nuscenes import (
     synthesize_scene,
     write_synthetic_nuscenes,
 )
+from drcpo.synth.sensor import hdl32e_elevations
 
 VERSION = "v1.0-trainval"
 CONFIG = NuScenesSynthConfig(samples=3, sweeps_before=4)
@@ -116,7 +117,8 @@ def test_points_carry_intensity_and_ring(synthetic):
         0 <= intensity.min() and intensity.max() <= 255 and (intensity == np.round(intensity)).all()
     )
     assert intensity.max() > 100
-    beam, _, _ = sensor_preset("hdl32e").cells(frame.points)  # beam 0: the top one
+    beam, miss = nearest_beams(frame.points, hdl32e_elevations())  # beam 0: the top one
+    assert np.median(miss) < 0.05
     np.testing.assert_array_equal(ring, 31 - beam)
     assert len(np.unique(ring)) == 32
 
@@ -257,8 +259,8 @@ def test_drcpo_synth_kitti_with_the_32_beam_sensor(tmp_path):
     )
     assert result.exit_code == 0, result.output
     points = KittiDataset(out, "trainval").frame("000000").points
-    beam, _, _ = sensor_preset("hdl32e").cells(points)
-    assert (beam >= 0).all() and len(np.unique(beam)) == 32
+    beam, miss = nearest_beams(points, hdl32e_elevations())
+    assert np.median(miss) < 0.05 and len(np.unique(beam)) == 32
 
 
 def test_frames_pass_validation_and_cut_into_database_records(synthetic):

@@ -1,7 +1,7 @@
 """Velocities (``metadata["velocity"]``) and extra point features through every stage: the
 frame's check, per-box bookkeeping, the database (format 2, and format 1 still read), building
-from any data set, ground-truth sampling, DR.CPO, the global augmentations and the HPR
-viewpoint of a mounted sensor. Each op is checked against a naive reference written here."""
+from any data set, ground-truth sampling, DR.CPO and the global augmentations. Each op is
+checked against a naive reference written here."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import pytest
 from test_pipeline import synthetic_database, synthetic_frame
 
 from drcpo import occlusion
-from drcpo.config import DRCPOConfig, from_dict
 from drcpo.database import GroundTruthDatabase, ObjectRecord
 from drcpo.database.build import build_database_from, frame_records
 from drcpo.errors import DataError
@@ -474,34 +473,6 @@ def test_global_rotation_and_scaling_move_velocities(rng):
     out = GlobalScaling()(frame, np.random.default_rng(4))
     scale = out.metadata["augment_stats"]["stages"]["global_scaling"]["scale"][0]
     assert_boxes_match(out, naive_openpcdet(_nine(frame), scale=scale))
-
-
-# The HPR viewpoint follows the sensor's mount -------------------------------------------------
-def test_hpr_viewpoints_follow_the_sensor_mount(world, monkeypatch):
-    db, index = world
-    frame = feature_frame(np.random.default_rng(5))
-    paper = DRCPO(db, index)
-    radius, viewpoint = paper.e_hpr_setting()
-    z = paper.config.external_occlusion.setting.viewpoint_z
-    np.testing.assert_array_equal(viewpoint, [0.0, 0.0, z])
-    mount = [0.5, -0.25, 1.8]
-    mounted = DRCPO(db, index, from_dict(DRCPOConfig, {"sensor": {"mount": mount}}))
-    assert mounted.e_hpr_setting()[0] == radius
-    np.testing.assert_allclose(mounted.e_hpr_setting()[1], [0.5, -0.25, 1.8 + z])
-    seen = []
-    real = occlusion.self_occlusion
-
-    def spy(*args, viewpoint=(0.0, 0.0, 0.0), **kwargs):
-        seen.append(np.asarray(viewpoint, dtype=np.float64))
-        return real(*args, viewpoint=viewpoint, **kwargs)
-
-    monkeypatch.setattr(occlusion, "self_occlusion", spy)
-    out = mounted(frame, np.random.default_rng(0))
-    assert seen and all(np.array_equal(v, mount) for v in seen)
-    assert (out.metadata["box_source"] == "drcpo").any()
-    seen.clear()
-    paper(frame, np.random.default_rng(0))
-    assert seen and all(not v.any() for v in seen)
 
 
 def test_external_occlusion_takes_the_viewpoint_offset(rng):

@@ -51,7 +51,7 @@ def parse_arm(spec: str) -> Arm:
 
     ``NAME`` is a built-in arm (:data:`BUILT_IN`), a drcpo preset or a YAML config path (DR.CPO
     with that config). Overrides set config keys by their dotted path (a path that does not
-    start at the config's top, such as ``placement.attempts``, is taken inside ``drcpo``);
+    start at the config's top, such as ``placement.location``, is taken inside ``drcpo``);
     values are YAML (``false``, ``12``, ``[0.5, 1.0]``). The result is validated as a config
     file would be. Raises :class:`~drcpo.errors.ConfigError` naming the arm and the bad key.
     """

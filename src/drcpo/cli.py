@@ -435,7 +435,7 @@ def augment(
     split: Annotated[str, typer.Option(help="Split: frames of ImageSets/<split>.txt.")] = "train",
     config: Annotated[
         str,
-        typer.Option(help="YAML config file, or a preset: default, paper, realistic, second, ..."),
+        typer.Option(help="YAML config file, or a preset: default, paper, nuscenes, second, ..."),
     ] = "default",
     pipeline: Annotated[
         str | None, typer.Option(help="Override the config's pipeline: drcpo or cda.")

@@ -65,7 +65,6 @@ from drcpo.index import IndexConfig
 from drcpo.occlusion.presets import HPR_PRESETS
 from drcpo.occlusion.presets import HPRPreset as EHPRSetting
 from drcpo.placement import PlacementConfig
-from drcpo.sensor_config import SensorConfig
 
 __all__ = [
     "DETECTOR_PRESETS",
@@ -73,7 +72,6 @@ __all__ = [
     "PIPELINES",
     "PIPELINE_PRESETS",
     "PRESETS",
-    "SELF_OCCLUSION_MODES",
     "AugmentConfig",
     "ConstructionConfig",
     "DRCPOConfig",
@@ -99,11 +97,9 @@ __all__ = [
 #: kept as data in :mod:`drcpo.occlusion.presets` (which the occlusion functions read too).
 DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
 #: Whole-pipeline presets (config files in drcpo/configs): ``paper`` is the method as
-#: published (today's defaults), ``realistic`` adds the sensor-true steps (docs/realism.md),
-#: ``nuscenes`` sets nuScenes' ten classes, their mirroring and sample counts and the full
-#: circle around the sensor.
-PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "realistic", "nuscenes")
-SELF_OCCLUSION_MODES = ("hpr", "sensor")
+#: published (today's defaults), ``nuscenes`` sets nuScenes' ten classes, their mirroring and
+#: sample counts and the full circle around the sensor.
+PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "nuscenes")
 #: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
 PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
 #: The preset whose e-HPR settings the paper defaults use.
@@ -229,32 +225,12 @@ class SelfOcclusionConfig(Checked):
     KEY_PATH = "drcpo.self_occlusion"
 
     enabled: bool = field(default=True, metadata=spec("bool"))
-    mode: str = field(
-        default="hpr",
-        metadata=spec(
-            "choice",
-            "hpr (the paper's s-HPR) or sensor (render the object through the sensor model)",
-            choices=SELF_OCCLUSION_MODES,
-        ),
-    )
     radius_factor: float = field(
         default=200.0,
         metadata=spec("float", "R = box diagonal x this", low=0.0, low_open=True, high=1e9),
     )
     min_points: int = field(
         default=5, metadata=spec("int", "fewest points an object keeps", low=0, high=1_000_000)
-    )
-    radius_share: float | None = field(
-        default=None,
-        metadata=spec(
-            "float",
-            "mode sensor: surface elements at most this share of the box's narrower horizontal "
-            "side (null: up to 15 cm)",
-            low=0.0,
-            low_open=True,
-            high=1.0,
-            optional=True,
-        ),
     )
 
 
@@ -347,7 +323,6 @@ class DRCPOConfig(Checked):
     external_occlusion: ExternalOcclusionConfig = field(
         default_factory=ExternalOcclusionConfig, metadata=SECTION
     )
-    sensor: SensorConfig = field(default_factory=SensorConfig, metadata=SECTION)
 
 
 @dataclass(frozen=True, eq=False)
@@ -521,7 +496,7 @@ def load_config(source: str | os.PathLike | Mapping[str, Any] | AugmentConfig | 
     Args:
         source: ``None`` (the paper defaults), a mapping, a YAML file path, or the name of a
             packaged preset when no file of that name exists: a pipeline preset
-            (:data:`PIPELINE_PRESETS`: ``default``, ``paper``, ``realistic``, ``nuscenes``) or a
+            (:data:`PIPELINE_PRESETS`: ``default``, ``paper``, ``nuscenes``) or a
             detector preset (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``).
 
     The keys given are applied on top of the defaults; a ``preset`` key first applies that

@@ -3,7 +3,7 @@
 Stages: the DR.CPO presets' configs -> synthetic KITTI data (cached under ``OUT/kitti``, reused
 while its parameters match) -> ground-truth database -> candidate index -> augmentation with the
 conventional baseline (ground-truth sampling) and with DR.CPO under each preset (``paper``: the
-paper's method; ``realistic``: rendered through the sensor model) -> figures and a summary.
+paper's method, the default) -> figures and a summary.
 Every stage is mandatory: one that fails stops the demo with a :class:`DemoError` naming it
 (``drcpo demo``: one line, exit status 1), and the summary's ``stages`` lists the stages that
 ran, in order.
@@ -68,7 +68,7 @@ __all__ = [
 DEFAULT_FRAMES = 16
 DEFAULT_AUGMENTED = 4
 #: The DR.CPO presets the demo compares (names of packaged configs, or YAML paths).
-DEFAULT_PRESETS: tuple[str, ...] = ("paper", "realistic")
+DEFAULT_PRESETS: tuple[str, ...] = ("paper",)
 MAX_CONSTRUCTION_PANELS = 8
 CLASSES = ("Car", "Pedestrian", "Cyclist")
 #: The real object of the side view has at least this many points when one has (scan lines show).
@@ -509,12 +509,11 @@ def _side_view(originals: list[Frame], results: dict[str, list[Frame]], path: Pa
         box = frame.boxes[int(pool["box"][row])]
         inside = points_in_boxes(frame.points, box[None])[:, 0]
         views.append(ObjectView(frame.points[inside], box, f"{title} (frame {frame.frame_id})"))
-    sensor = LidarConfig().sensor()  # the synthetic world's, which recorded the frames
     return side_view_figure(
         views,
         path,
-        elevations_deg=np.degrees(sensor.elevations),
-        mount=sensor.mount,
+        # the synthetic world's sensor, which recorded the frames, at the origin
+        elevations_deg=np.asarray(LidarConfig().elevations_deg),
         title=(
             f"a {name} as the sensor saw it (top; grey lines: its beams' elevations) and from "
             "the side (bottom): a real one and one each preset inserted at about the same distance"

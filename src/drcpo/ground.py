@@ -17,10 +17,6 @@ Method (over a bird's-eye-view grid; about a millisecond for a KITTI sweep):
    between the two, when it lies within ``fill_radius``; otherwise the plane's height.
 5. :meth:`GroundModel.height_at` interpolates the cell-centre heights bilinearly; queries
    outside the grid use the nearest edge cell with the same plane correction.
-   :meth:`GroundModel.observed_height_at` answers only where the frame saw the ground: in a
-   ground cell, from the ground cells among the four it interpolates between (no height
-   borrowed in step 4, no plane); optionally also between two scan rings, where ground cells
-   lie on the sensor's ray both before and beyond the position (``max_gap``).
 
 The estimates sit slightly low (a cell's lowest point is about 1.5 noise sigmas below the mean
 surface, i.e. 2-4 cm for a Velodyne HDL-64E).
@@ -216,59 +212,6 @@ class GroundModel:
         )
         return out
 
-    def observed_height_at(
-        self, xy: np.ndarray, max_gap: float = 0.0
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Ground height where the frame observed the ground, at BEV positions ``(K, 2+)``.
-
-        Returns ``(heights float64 (K,), observed bool (K,))``: ``observed`` where the position
-        lies in a ground cell (one whose height came from its own points, see ``ground_cells``);
-        there ``heights`` is the bilinear interpolation of :meth:`height_at` over the ground
-        cells only among the four cell centres around the position (their weights renormalised;
-        the position's own cell weighs at least a quarter), so no height borrowed from a cell
-        metres away and no plane enters it. Elsewhere (other cells, outside the grid, a model
-        without a grid: plane, road plane or flat fallback) ``heights`` is NaN.
-
-        ``max_gap`` > 0 also bridges the gaps between scan rings (a 64-beam sensor's rings lie
-        about 2 m apart on the road at 20 m, 7 m at 40 m): a position in a cell without ground
-        counts as observed when, along its ray from the sensor (the BEV origin), ground cells
-        lie both nearer and farther within ``max_gap`` times its range; its height is then
-        interpolated linearly by distance between those two cells' heights. The farther ring
-        was seen over the gap, so nothing taller than that ray stands in it.
-        """
-        if not (np.isfinite(max_gap) and max_gap >= 0):
-            raise DataError(f"max_gap must be a finite number >= 0, got {max_gap}")
-        xy = _check_xy(xy)
-        heights = np.full(len(xy), np.nan)
-        observed = np.zeros(len(xy), dtype=bool)
-        if self.heights is None:
-            return heights, observed
-        _interpolate_observed(
-            xy,
-            self.heights,
-            self.ground_cells,
-            float(self.origin[0]),
-            float(self.origin[1]),
-            float(self.cell_size),
-            float(self.plane[0] * self.cell_size),
-            float(self.plane[1] * self.cell_size),
-            heights,
-            observed,
-        )
-        if max_gap > 0:
-            _bridge_rings(
-                xy,
-                self.heights,
-                self.ground_cells,
-                float(self.origin[0]),
-                float(self.origin[1]),
-                float(self.cell_size),
-                float(max_gap),
-                heights,
-                observed,
-            )
-        return heights, observed
-
     def is_ground(self, points: np.ndarray, tolerance: float = 0.2) -> np.ndarray:
         """``bool (N,)``: points at most ``tolerance`` metres above the ground estimate.
 
@@ -302,74 +245,6 @@ def _interpolate(xy, heights, x0, y0, cell_size, slope_x, slope_y, out):  # prag
         top = heights[hx, ly] * (1 - fy) + heights[hx, hy] * fy
         inside = bottom * (1 - fx) + top * fx
         out[k] = inside + (gx - cx) * slope_x + (gy - cy) * slope_y
-
-
-@numba.njit(cache=True, nogil=True)
-def _interpolate_observed(
-    xy, heights, ground, x0, y0, cell_size, slope_x, slope_y, out, observed
-):  # pragma: no cover - numba
-    # As _interpolate, with the weights of non-ground corners dropped; only in ground cells.
-    nx, ny = heights.shape
-    for k in range(xy.shape[0]):
-        ux = (xy[k, 0] - x0) / cell_size
-        uy = (xy[k, 1] - y0) / cell_size
-        if not (0.0 <= ux < nx and 0.0 <= uy < ny):  # NaN fails too
-            continue
-        if not ground[min(int(ux), nx - 1), min(int(uy), ny - 1)]:
-            continue
-        gx, gy = ux - 0.5, uy - 0.5
-        cx = min(max(gx, 0.0), nx - 1.0)
-        cy = min(max(gy, 0.0), ny - 1.0)
-        lx = min(int(cx), max(nx - 2, 0))
-        ly = min(int(cy), max(ny - 2, 0))
-        fx, fy = cx - lx, cy - ly
-        hx, hy = min(lx + 1, nx - 1), min(ly + 1, ny - 1)
-        total = weight = 0.0
-        for i, wx in ((lx, 1.0 - fx), (hx, fx)):
-            for j, wy in ((ly, 1.0 - fy), (hy, fy)):
-                if ground[i, j]:
-                    total += wx * wy * heights[i, j]
-                    weight += wx * wy
-        out[k] = total / weight + (gx - cx) * slope_x + (gy - cy) * slope_y
-        observed[k] = True
-
-
-@numba.njit(cache=True, nogil=True)
-def _ray_ground(
-    x, y, ux, uy, sign, reach, heights, ground, x0, y0, cell_size
-):  # pragma: no cover - numba
-    # The first ground cell along the ray (unit (ux, uy)) from (x, y), towards the sensor
-    # (sign -1) or away (+1), in half-cell steps up to reach: (distance, height) or (-1, 0).
-    nx, ny = ground.shape
-    step = cell_size / 2.0
-    t = step
-    while t <= reach:
-        i = math.floor((x + sign * ux * t - x0) / cell_size)
-        j = math.floor((y + sign * uy * t - y0) / cell_size)
-        if 0 <= i < nx and 0 <= j < ny and ground[i, j]:
-            return t, heights[i, j]
-        t += step
-    return -1.0, 0.0
-
-
-@numba.njit(cache=True, nogil=True)
-def _bridge_rings(
-    xy, heights, ground, x0, y0, cell_size, max_gap, out, observed
-):  # pragma: no cover - numba
-    for k in range(xy.shape[0]):
-        x, y = xy[k, 0], xy[k, 1]
-        reach = max_gap * math.hypot(x, y)
-        if observed[k] or not reach > 0:  # NaN too
-            continue
-        ux, uy = x / math.hypot(x, y), y / math.hypot(x, y)
-        near, near_z = _ray_ground(x, y, ux, uy, -1.0, reach, heights, ground, x0, y0, cell_size)
-        if near < 0:
-            continue
-        far, far_z = _ray_ground(x, y, ux, uy, 1.0, reach, heights, ground, x0, y0, cell_size)
-        if far < 0:
-            continue
-        out[k] = (near_z * far + far_z * near) / (near + far)
-        observed[k] = True
 
 
 def road_plane_to_lidar(plane: np.ndarray, calib) -> np.ndarray:

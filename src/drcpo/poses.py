@@ -6,24 +6,12 @@ at an azimuth ``|atan2(y, x)| <= half_angle``), drawn by :func:`draw_poses`. Pos
 the area but leave the field of view are drawn again (up to :data:`FOV_ROUNDS` times), which
 keeps the draw uniform over the positions that fit.
 
-Where the draw comes from:
-
-* the whole area (the default, the paper's draw): ``x`` and ``y`` uniform between the bounds
-  that keep the footprint's half extents inside;
-* :class:`CentreCells` (placement's ``height="observed"``): the ground cells where the frame
-  observed the ground (:func:`observed_cells`): a cell chosen uniformly, then a position uniform
-  inside it, so the centre is uniform over the observed ground area (every cell has the same
-  area). Positions whose footprint leaves the area or the field of view are drawn again, like
-  those leaving the field of view above. On a street scene most of the area lies behind
-  buildings, where the frame saw no ground and a box could never stand on observed ground.
-
 The placement checks (:mod:`drcpo.placement`) decide afterwards whether a pose is kept.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numba
@@ -31,66 +19,16 @@ import numpy as np
 
 from drcpo.errors import DataError
 from drcpo.geometry import heading_terms
-from drcpo.ground import GroundModel
 
 __all__ = [
     "FOV_ROUNDS",
-    "CentreCells",
     "check_dims",
     "draw_poses",
-    "footprint_ground",
     "in_fov",
-    "observed_cells",
     "source_heights",
 ]
 
 FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view (or the area)
-
-
-@dataclass(frozen=True, eq=False)
-class CentreCells:
-    """Squares that box centres are drawn from, uniformly over their union (they do not overlap).
-
-    Attributes:
-        corners: ``float64 (C, 2)`` x, y of each square's lower corner (metres).
-        size: the squares' side (metres).
-    """
-
-    corners: np.ndarray
-    size: float
-
-
-def observed_cells(
-    ground: GroundModel,
-    x_range: tuple[float, float],
-    y_range: tuple[float, float],
-    half_angle: float | None = None,
-    max_gap: float = 0.0,
-) -> CentreCells:
-    """The cells of ``ground``'s grid where the frame observed the ground, as centre cells.
-
-    A cell counts when its centre lies in the area (``x_range`` x ``y_range``, metres; with
-    ``half_angle``, radians, also at an azimuth ``|atan2(y, x)| <= half_angle``) and is observed
-    ground by :meth:`GroundModel.observed_height_at` with ``max_gap`` (0: the ground cells
-    themselves; > 0 also the cells bridged between scan rings). A model without a grid (plane,
-    road plane or flat fallback) has none. Cells in grid order (x-major).
-    """
-    size = float(ground.cell_size)
-    if ground.heights is None:
-        return CentreCells(np.zeros((0, 2)), size)
-    nx, ny = ground.heights.shape
-    centres = np.empty((nx, ny, 2))
-    centres[..., 0] = (float(ground.origin[0]) + (np.arange(nx) + 0.5) * size)[:, None]
-    centres[..., 1] = float(ground.origin[1]) + (np.arange(ny) + 0.5) * size
-    centres = centres.reshape(-1, 2)
-    (x0, x1), (y0, y1) = x_range, y_range
-    inside = (centres[:, 0] >= x0) & (centres[:, 0] <= x1)
-    inside &= (centres[:, 1] >= y0) & (centres[:, 1] <= y1)
-    if half_angle is not None:
-        inside &= np.abs(np.arctan2(centres[:, 1], centres[:, 0])) <= half_angle
-    centres = centres[inside]
-    seen = ground.observed_height_at(centres, max_gap)[1]
-    return CentreCells(centres[seen] - size / 2.0, size)
 
 
 def draw_poses(
@@ -99,16 +37,14 @@ def draw_poses(
     x_range: tuple[float, float],
     y_range: tuple[float, float],
     half_angle: float | None = None,
-    cells: CentreCells | None = None,
     own: tuple[str, float | None, np.ndarray | None] = ("random", None, None),
 ) -> np.ndarray:
     """Random boxes ``float64 (K, 7)`` of sizes ``dims`` ``(K, 3)`` (metres).
 
     Heading uniform in ``[-pi, pi)``; centre uniform over the positions whose whole footprint
     lies in the area (``x_range`` x ``y_range``, metres) and, with ``half_angle`` (radians),
-    the field of view; with ``cells``, only positions inside them (see the module);
-    ``z = dz / 2`` (bottom at 0). Rows that cannot fit (or found no fitting position in
-    :data:`FOV_ROUNDS` + 1 draws) have NaN x and y.
+    the field of view; ``z = dz / 2`` (bottom at 0). Rows that cannot fit (or found no
+    fitting position in :data:`FOV_ROUNDS` + 1 draws) have NaN x and y.
 
     ``own`` = (location, heading range, the objects' own boxes ``(K, 7)``), the paper's
     ablations: location ``"source"`` keeps each object's own centre (NaN where its footprint
@@ -130,13 +66,13 @@ def draw_poses(
     half = -1.0 if half_angle is None else float(half_angle)
     if location == "source":
         return _at_own_centres(boxes, source, cos, sin, area, half)
-    # Each round draws the rows given and returns those to draw again (with the whole area:
-    # those that fit but leave the field of view; none without one).
-    todo = _draw_round(boxes, np.arange(len(dims)), cos, sin, rng, area, half, cells)
+    # Each round draws the rows given and returns those to draw again: those that fit but
+    # leave the field of view (none without one).
+    todo = _draw_round(boxes, np.arange(len(dims)), cos, sin, rng, area, half)
     for _ in range(FOV_ROUNDS):
         if len(todo) == 0:
             break
-        todo = _draw_round(boxes, todo, cos, sin, rng, area, half, cells)
+        todo = _draw_round(boxes, todo, cos, sin, rng, area, half)
     boxes[todo, :2] = np.nan
     return boxes
 
@@ -189,31 +125,6 @@ def check_dims(dims: np.ndarray) -> np.ndarray:
     return dims
 
 
-def footprint_ground(
-    boxes: np.ndarray, ground: GroundModel, max_slope: float, max_gap: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where ``(L, 7)`` footprints would stand on the observed ground: from the ground under
-    their four corners and centre (:meth:`GroundModel.observed_height_at` with ``max_gap``),
-    each box's centre z on the median of the five heights (``float64 (L,)``), whether all five
-    are observed (``bool (L,)``) and whether they spread by more than ``max_slope`` times the
-    footprint's diagonal (``bool (L,)``)."""
-    cos, sin = heading_terms(boxes)
-    along = _CORNERS[:, 0] * boxes[:, 3:4]  # (L, 4) corner offsets in the box frame
-    across = _CORNERS[:, 1] * boxes[:, 4:5]
-    samples = np.empty((len(boxes), 5, 2))
-    samples[:, :4, 0] = boxes[:, 0:1] + (cos[:, None] * along - sin[:, None] * across)
-    samples[:, :4, 1] = boxes[:, 1:2] + (sin[:, None] * along + cos[:, None] * across)
-    samples[:, 4] = boxes[:, :2]
-    heights, seen = ground.observed_height_at(samples.reshape(-1, 2), max_gap)
-    heights = np.sort(heights.reshape(-1, 5), axis=1)  # NaN last
-    seen = seen.reshape(-1, 5).all(axis=1)
-    steep = heights[:, 4] - heights[:, 0] > max_slope * np.hypot(boxes[:, 3], boxes[:, 4])
-    return heights[:, 2] + boxes[:, 5] / 2.0, seen, steep  # (the median)
-
-
-_CORNERS = np.array([[0.5, 0.5], [-0.5, 0.5], [-0.5, -0.5], [0.5, -0.5]])  # as bev_corners
-
-
 def source_heights(source_boxes: np.ndarray | None, count: int, height: str) -> np.ndarray | None:
     """The centre z ``float64 (count,)`` of the ``source_boxes`` ``(count, 7)`` with placement's
     ``height="source"`` (the boxes keep their source height); ``None`` with another ``height``.
@@ -256,21 +167,11 @@ def _draw_round(
     rng: np.random.Generator,
     area: tuple[float, float, float, float],
     half_angle: float,
-    cells: CentreCells | None,
 ) -> np.ndarray:
     """Draw centres for ``rows`` of ``boxes`` in place (NaN where the footprint cannot fit);
     the rows to draw again (``half_angle`` < 0: no field of view)."""
-    poses, field = _Poses(boxes, cos, sin), _Field(*area, half_angle)
-    if cells is None:
-        u = rng.uniform(0.0, 1.0, (len(rows), 2))
-        return _centres(poses, rows, u, field)
-    if len(cells.corners) == 0:
-        boxes[rows, :2] = np.nan
-        return rows[:0]
-    pick = rng.integers(0, len(cells.corners), len(rows))
     u = rng.uniform(0.0, 1.0, (len(rows), 2))
-    corners = np.ascontiguousarray(cells.corners, dtype=np.float64)
-    return _cell_centres(poses, rows, corners[pick], float(cells.size), u, field)
+    return _centres(_Poses(boxes, cos, sin), rows, u, _Field(*area, half_angle))
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -308,30 +209,6 @@ def _centres(poses, rows, u, field):  # pragma: no cover - numba
             outside[count] = r
             count += 1
     return outside[:count].copy()
-
-
-@numba.njit(cache=True, nogil=True)
-def _cell_centres(poses, rows, corners, size, u, field):  # pragma: no cover - numba
-    # A position uniform in the picked cell (``corners[k]``: row k's cell's lower corner); drawn
-    # again when the footprint's bounds leave the area or a corner leaves the field of view
-    # (rejection keeps the draw uniform over the cells' positions that fit).
-    boxes = poses.boxes
-    again = np.empty(rows.shape[0], np.int64)
-    count = 0
-    for k in range(rows.shape[0]):
-        r = rows[k]
-        low_x, high_x, low_y, high_y = _centre_bounds(poses, r, field)
-        if low_x > high_x or low_y > high_y:
-            boxes[r, 0] = boxes[r, 1] = np.nan
-            continue
-        x = corners[k, 0] + u[k, 0] * size
-        y = corners[k, 1] + u[k, 1] * size
-        boxes[r, 0], boxes[r, 1] = x, y
-        fits = low_x <= x <= high_x and low_y <= y <= high_y
-        if not fits or _leaves_fov(poses, r, field):
-            again[count] = r
-            count += 1
-    return again[:count].copy()
 
 
 @numba.njit(cache=True, nogil=True)

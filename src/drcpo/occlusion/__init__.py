@@ -1,5 +1,5 @@
 """Occlusion (DR.CPO, step 5): Katz et al.'s hidden point removal (HPR), the paper's s-HPR and
-e-HPR, and objects rendered through the sensor.
+e-HPR.
 
 The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
 diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
@@ -9,7 +9,7 @@ points on a box's faces that placement's "occluded" test decides by e-HPR before
 built.
 
 Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
-:mod:`drcpo.geometry`, :mod:`drcpo.sensor`), never anything above (:mod:`drcpo.placement`,
+:mod:`drcpo.geometry`), never anything above (:mod:`drcpo.placement`,
 :mod:`drcpo.transforms`):
 
 * :mod:`~drcpo.occlusion.presets`: the paper's ``(R, z)`` per detector.
@@ -27,8 +27,6 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 * :mod:`~drcpo.occlusion.scopes`: s-HPR.
 * :mod:`~drcpo.occlusion.external`: e-HPR over a whole frame, and scoped to the inserted objects
   in two steps.
-* :mod:`~drcpo.occlusion.render`: objects rendered through a :class:`~drcpo.sensor.Sensor`
-  (``self_occlusion.mode: sensor``): :func:`render_object`, :func:`surfel_radii`.
 
 Everything here runs on the calling thread and is safe in forked worker processes (PyTorch
 DataLoader workers): numba kernels are compiled without a threading layer.
@@ -52,7 +50,6 @@ from drcpo.occlusion.hpr import (
     hidden_point_removal,
 )
 from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
-from drcpo.occlusion.render import render_object, surfel_radii
 from drcpo.occlusion.scopes import self_occlusion
 from drcpo.occlusion.view_windows import surface_samples
 
@@ -70,9 +67,7 @@ __all__ = [
     "external_occlusion",
     "hidden_point_removal",
     "inserted_scope",
-    "render_object",
     "self_occlusion",
     "surface_samples",
-    "surfel_radii",
     "thread_grid_memory",
 ]

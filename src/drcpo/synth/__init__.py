@@ -5,8 +5,7 @@ of an object placed in a frame the sensor truly sees (the reference for HPR occl
 
 Modules: :mod:`.sensor` (sensor model), :mod:`.solids` (primitives), :mod:`.raycast`,
 :mod:`.actors` (Car, Pedestrian, Cyclist), :mod:`.world` (procedural street), :mod:`.scan`
-(sweeps and per-object visibility), :mod:`.truth` (visibility of arbitrary points; the truth
-of an inserted object: its returns, what it hides, the ground under it, solids it cuts into),
+(sweeps and per-object visibility), :mod:`.truth` (visibility of arbitrary points),
 :mod:`.dataset` (KITTI data sets), :mod:`.nuscenes` (nuScenes-style data sets: scenes of key
 samples and 20 Hz sweeps from a 32-beam sensor on a moving car, moving actors).
 """
@@ -21,26 +20,24 @@ from drcpo.synth.dataset import (
 from drcpo.synth.nuscenes import NuScenesSynthConfig, synthesize_scene, write_synthetic_nuscenes
 from drcpo.synth.raycast import Ground, RayHits, Scene
 from drcpo.synth.scan import Sweep, Visibility, actor_visibility, occlusion_level, scan
-from drcpo.synth.sensor import LidarConfig, RayGrid, hdl64e_elevations, lidar_preset, ray_grid
-from drcpo.synth.solids import Solids
-from drcpo.synth.truth import (
-    InsertedTruth,
-    PlacedObjectTruth,
-    free_pose,
-    place_object,
-    solids_in_box,
-    true_ground_height,
-    true_inserted_returns,
-    true_object_returns,
-    visible_points,
+from drcpo.synth.sensor import (
+    HDL32E_MOUNT_HEIGHT,
+    LidarConfig,
+    RayGrid,
+    hdl32e_elevations,
+    hdl64e_elevations,
+    lidar_preset,
+    ray_grid,
 )
+from drcpo.synth.solids import Solids
+from drcpo.synth.truth import PlacedObjectTruth, free_pose, place_object, visible_points
 from drcpo.synth.world import World, WorldConfig, generate_world
 
 __all__ = [
     "CLASSES",
+    "HDL32E_MOUNT_HEIGHT",
     "Actor",
     "Ground",
-    "InsertedTruth",
     "LidarConfig",
     "NuScenesSynthConfig",
     "PlacedObjectTruth",
@@ -57,6 +54,7 @@ __all__ = [
     "frame_rng",
     "free_pose",
     "generate_world",
+    "hdl32e_elevations",
     "hdl64e_elevations",
     "lidar_preset",
     "make_actor",
@@ -64,12 +62,8 @@ __all__ = [
     "place_object",
     "ray_grid",
     "scan",
-    "solids_in_box",
     "synthesize_frame",
     "synthesize_scene",
-    "true_ground_height",
-    "true_inserted_returns",
-    "true_object_returns",
     "visible_points",
     "write_synthetic_kitti",
     "write_synthetic_nuscenes",

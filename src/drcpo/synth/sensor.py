@@ -7,34 +7,56 @@ The sensor sits at the origin of the LiDAR frame (x forward, y left, z up) and i
 
 from __future__ import annotations
 
-import math
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from drcpo.errors import ConfigError
-from drcpo.sensor import (
-    HDL32E_MOUNT_HEIGHT,
-    Sensor,
-    hdl32e_elevations_deg,
-    hdl64e_elevations_deg,
-    sensor_preset,
-)
 
 __all__ = [
+    "HDL32E_MOUNT_HEIGHT",
     "LIDAR_PRESETS",
     "LidarConfig",
     "RayGrid",
+    "hdl32e_elevations",
     "hdl64e_elevations",
     "lidar_preset",
     "ray_grid",
 ]
 
 
+#: Height of nuScenes' LIDAR_TOP above the ground, metres: its calibrated_sensor translation
+#: in the ego frame (origin on the ground under the rear axle) has z of about 1.84.
+HDL32E_MOUNT_HEIGHT = 1.84
+
+
+@functools.cache
 def hdl64e_elevations() -> tuple[float, ...]:
-    """The 64 beam elevations (degrees) of an HDL-64E, +2.0 down to -24.9 (the ``hdl64e``
-    preset's, :func:`drcpo.sensor.hdl64e_elevations_deg`)."""
-    return hdl64e_elevations_deg()
+    """The 64 beam elevations (degrees) of a Velodyne HDL-64E, +2.0 down to -24.9.
+
+    Two laser blocks: the upper 32 beams about 1/3 degree apart (+2.0 to -8.33), the lower 32
+    about 1/2 degree apart (-8.87 to -24.9).
+    """
+    upper = np.linspace(2.0, -8.33, 32)
+    lower = np.linspace(-8.87, -24.9, 32)
+    return tuple(float(round(v, 4)) for v in np.concatenate([upper, lower]))
+
+
+def hdl32e_elevations() -> tuple[float, ...]:
+    """The 32 beam elevations (degrees) of a Velodyne HDL-32E, +10.67 down to -30.67.
+
+    The user manual's table of vertical angles (sorted, firing order aside): 4/3 degree apart,
+    laser 9 from the top level; the values as the manual rounds them.
+    """
+    return _HDL32E_ELEVATIONS
+
+
+_HDL32E_ELEVATIONS = (
+    *(10.67, 9.33, 8.0, 6.67, 5.33, 4.0, 2.67, 1.33, 0.0, -1.33, -2.67, -4.0, -5.33, -6.66),
+    *(-8.0, -9.33, -10.67, -12.0, -13.33, -14.67, -16.0, -17.33, -18.67, -20.0, -21.33),
+    *(-22.67, -24.0, -25.33, -26.66, -28.0, -29.33, -30.67),
+)
 
 
 @dataclass(frozen=True)
@@ -94,50 +116,30 @@ class LidarConfig:
     def num_rays(self) -> int:
         return self.num_beams * self.num_columns
 
-    def sensor(self, azimuth_offset: float = 0.0) -> Sensor:
-        """The :class:`~drcpo.sensor.Sensor` firing exactly the rays of
-        ``ray_grid(self, azimuth_offset)``: ray (beam ``b``, column ``c``) of the grid is the
-        sensor's ray cell (beam rank of ``b`` by elevation, top first; the column of its
-        azimuth), with this range noise, dropout and range limits, at the origin.
-        """
-        step = 2.0 * math.pi / self.num_columns
-        elevations = np.sort(np.radians(np.asarray(self.elevations_deg, dtype=np.float64)))
-        return Sensor(
-            elevations=elevations[::-1],
-            offsets=None,
-            azimuth_step=step,
-            # ray_grid's column c points at -pi + (c + 1/2) step + offset
-            phase=float((0.5 * step + azimuth_offset - math.pi) % step) % step,
-            range_noise=self.range_noise,
-            dropout=self.dropout,
-            min_range=self.min_range,
-            max_range=self.max_range,
-            name="synthetic",
-        )
-
 
 def _hdl32e() -> LidarConfig:
-    preset = sensor_preset("hdl32e")
     return LidarConfig(
-        elevations_deg=hdl32e_elevations_deg(),
-        # the preset's whole number of columns (1080) per turn
-        azimuth_step_deg=360.0 / preset.num_columns,
+        elevations_deg=hdl32e_elevations(),
+        # 20 Hz: one firing of the 32 lasers every 46.08 us, about 1085 per turn; nuScenes'
+        # sweeps hold about 1080 points per ring, so 1080 columns (1/3 degree)
+        azimuth_step_deg=360.0 / 1080,
         mount_height=HDL32E_MOUNT_HEIGHT,
-        max_range=preset.max_range,
-        min_range=preset.min_range,
-        range_noise=preset.range_noise,
-        dropout=preset.dropout,
+        max_range=100.0,  # the spec's usable returns
+        min_range=1.0,
+        range_noise=0.02,  # the spec's +-2 cm
+        dropout=0.03,
     )
 
 
-#: The synthetic world's sensors by the name of the :mod:`drcpo.sensor` preset they emulate.
+#: The synthetic world's sensors: ``hdl64e`` (KITTI's Velodyne HDL-64E) and ``hdl32e``
+#: (nuScenes' LIDAR_TOP, a Velodyne HDL-32E at 20 Hz).
 LIDAR_PRESETS = {"hdl32e": _hdl32e, "hdl64e": LidarConfig}
 
 
 def lidar_preset(name: str) -> LidarConfig:
     """The :class:`LidarConfig` emulating sensor preset ``name`` (``"hdl64e"``: KITTI's, the
     default; ``"hdl32e"``: nuScenes' LIDAR_TOP, 32 beams, 1080 columns, 1.84 m above the
-    ground). Its :meth:`LidarConfig.sensor` fires the preset's beams and columns."""
+    ground)."""
     try:
         return LIDAR_PRESETS[name]()
     except KeyError:

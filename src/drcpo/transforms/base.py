@@ -65,11 +65,7 @@ class Stats:
         {"stages": {name: {"ms": float, "points_in": int, "points_out": int}},
          "objects": {transform: {class: {"tried": n, "added": n, "rejected": {reason: n}}}},
          "construction_iterations": {class: [iterations of each constructed object]},
-         "labels_dropped": {class: original boxes dropped for losing their points},
-         "sensor": {"model": name, "beams": n, "azimuth_step_deg": x, "fallback": why}}
-
-    ``sensor`` is there only when a sensor-true step ran (``fallback``: why a frame's sensor
-    could not be estimated and the configured model's base was used instead; empty when not).
+         "labels_dropped": {class: original boxes dropped for losing their points}}
 
     The global stages also record what they drew, as lists with one entry per run of the stage
     (:data:`DRAW_KEYS`): ``global_flip`` ``"flipped"`` (per run, the axes flipped),
@@ -88,7 +84,6 @@ class Stats:
         self.objects: dict[str, dict[str, dict[str, Any]]] = data.get("objects", {})
         self.iterations: dict[str, list[int]] = data.get("construction_iterations", {})
         self.dropped: dict[str, int] = data.get("labels_dropped", {})
-        self.sensor: dict[str, Any] = data.get("sensor", {})
 
     @classmethod
     def of(cls, frame: Frame) -> Stats:
@@ -137,20 +132,13 @@ class Stats:
     def label_dropped(self, name: str, count: int = 1) -> None:
         self.dropped[str(name)] = self.dropped.get(str(name), 0) + int(count)
 
-    def sensor_used(self, record: Mapping[str, Any]) -> None:
-        """Record the sensor model a sensor-true step used (see the layout above)."""
-        self.sensor = dict(record)
-
     def to_dict(self) -> dict[str, Any]:
-        out = {
+        return {
             "stages": self.stages,
             "objects": self.objects,
             "construction_iterations": self.iterations,
             "labels_dropped": self.dropped,
         }
-        if self.sensor:
-            out["sensor"] = self.sensor
-        return out
 
     def attach(self, frame: Frame) -> Frame:
         """``frame`` with these statistics in a new metadata dict (the old one is untouched)."""

@@ -17,11 +17,9 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
 from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
-from drcpo.ground import GroundModel
 from drcpo.index import indexed_mask
-from drcpo.occlusion.render import radius_cap
 from drcpo.occlusion.view_windows import grown_boxes, surface_samples, window_spans
-from drcpo.transforms import sensor_steps, sweeps
+from drcpo.transforms import sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
 from drcpo.transforms.drcpo_parts import Insertion
 from drcpo.transforms.insertion import (
@@ -61,8 +59,7 @@ class DRCPO(Transform):
        1.0: all) of a 5 x 4 grid of samples on each of its sensor-facing faces behind the
        frame's points, each sample decided exactly as a point added to them. e-HPR would almost
        always leave such an object too few points (the counts: ``docs/measurements.md``), so
-       it is not built and hides nothing.
-       Each rejected object gets a fresh pose up to ``placement.attempts`` times.
+       it is not built and hides nothing. Each object gets one pose, as in the paper.
     3. **Construct** each placed object from its indexed candidates (:mod:`drcpo.construction`).
     4. **s-HPR**: hidden point removal per object from the sensor origin with
        ``R = box diagonal x radius_factor``; an object left with fewer than ``min_points`` points
@@ -110,9 +107,6 @@ class DRCPO(Transform):
         if not isinstance(config, DRCPOConfig):
             raise TypeError(f"config must be a DRCPOConfig or a mapping, got {type(config)}")
         self.config: DRCPOConfig = config
-        # Where the sensor sits in the LiDAR frame: s-HPR's viewpoint and e-HPR's base.
-        self._mount = np.asarray(config.sensor.base().mount, dtype=np.float64)
-        self._mount.setflags(write=False)
         self.database = database
         self.index = index
         # Per frame, placement inside the camera's view or not; always with room for the label.
@@ -140,25 +134,6 @@ class DRCPO(Transform):
         the frame's points within it make way for the object."""
         built = self.config.construction
         return float(built.margin) + 2.0 * _FIT_PAD
-
-    @property
-    def _sensor_true(self) -> bool:
-        """Whether a step uses the sensor model or the ground before earlier stages (see
-        :mod:`drcpo.transforms.sensor_steps`)."""
-        observed = self.config.placement.height == "observed"
-        return self._render_objects or observed
-
-    @property
-    def _render_objects(self) -> bool:
-        s = self.config.self_occlusion
-        return s.enabled and s.mode == "sensor"
-
-    def _render_seeds(self, count: int, rng: np.random.Generator) -> np.ndarray | None:
-        """A seed per placed object for its rendering (s-HPR mode ``sensor``), drawn in object
-        order; ``None`` (no draw) in the other modes."""
-        if not self._render_objects:
-            return None
-        return rng.integers(0, 2**63 - 1, size=count, dtype=np.int64)
 
     def _check_index(self, classes: Sequence[str]) -> None:
         """The index must partition and mirror each class as construction does (it does when
@@ -229,29 +204,19 @@ class DRCPO(Transform):
     def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
         with stats.stage("drcpo.sample", len(frame)):
             rows = self._sample(rng, stats)
-        # The sensor-true steps see the frame without the objects earlier stages added.
-        own = sensor_steps.own_points(frame) if self._sensor_true else None
-        sensor = None
-        if self._render_objects:
-            sensor, used = sensor_steps.frame_sensor(own, self.config.sensor)
-            stats.sensor_used(used)
-        ground = sensor_steps.own_ground(frame, own) if own is not None else None
         dim = frame.points.shape[1]
         frame_grid = self._frame_grid(frame, rows)
         with stats.stage("drcpo.placement", len(frame)):
-            boxes, accepted = self._place(frame, rows, rng, stats, frame_grid, ground)
+            boxes, accepted = self._place(frame, rows, rng, stats, frame_grid)
             rows = rows[accepted]
-        seeds = self._render_seeds(len(boxes), rng)
         with stats.stage("drcpo.construction", 0) as record:
             objects = self._construct(rows, rng, stats)
             record["points_out"] = sum(len(o.points) for o in objects)
         points_in = sum(len(o.points) for o in objects)
         with stats.stage("drcpo.self_occlusion", points_in) as record:
             visible = [
-                self._object_s_hpr(
-                    built.points, boxes[k], dim, sensor, None if seeds is None else int(seeds[k])
-                )
-                for k, built in enumerate(objects)
+                self._object_s_hpr(built.points, box, dim)
+                for box, built in zip(boxes, objects, strict=True)
             ]
             insertions = self._insertions(rows, boxes, visible, stats)
             record["points_out"] = sum(len(i.points) for i in insertions)
@@ -302,11 +267,9 @@ class DRCPO(Transform):
         rng: np.random.Generator,
         stats: Stats,
         frame_grid: Callable[[], occlusion.FrameGrid] | None = None,
-        ground: GroundModel | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects, on
-        ``ground`` (a :class:`~drcpo.ground.GroundModel`; ``None``: placement estimates it from
-        the frame's points)."""
+        """Placed boxes ``(A, 7)`` and the indices (into ``rows``) of the placed objects, each
+        checked by placement (:mod:`drcpo.placement`), then by the ``occluded`` test."""
         if len(rows) == 0:
             return np.zeros((0, 7)), np.zeros(0, np.int64)
         source = np.asarray(self.database.boxes[rows], dtype=np.float64)
@@ -315,15 +278,12 @@ class DRCPO(Transform):
         fov = camera == "always" or (camera == "auto" and bool(frame.metadata.get("fov_only")))
         limit = self.config.placement.occluded_fraction
         check = limit is not None and self.config.external_occlusion.enabled
-        rounds = placement.PlacementRounds(frame, dims, source, rng, self._placement[fov], ground)
-        while (drawn := rounds.next_round()) is not None:
-            hidden = None
-            if check and len(drawn.boxes):
-                everything = np.concatenate([drawn.placed, drawn.boxes])
-                owners = self._room_owners(frame, everything)
-                hidden = self._occluded(drawn.boxes, owners, frame_grid(), limit)
-            rounds.settle(hidden)
-        return self._placement_result(rounds.result(), rows, stats)
+        result = placement.place_objects(frame, dims, source, rng, self._placement[fov])
+        if check and len(result.boxes):
+            owners = self._room_owners(frame, result.boxes)
+            hidden = self._occluded(result.boxes, owners, frame_grid(), limit)
+            result = result.reject(hidden, "occluded")
+        return self._placement_result(result, rows, stats)
 
     def _placement_result(
         self, result: placement.PlacementResult, rows: np.ndarray, stats: Stats
@@ -377,26 +337,16 @@ class DRCPO(Transform):
         canonical: np.ndarray,
         box: np.ndarray,
         dim: int,
-        sensor: Any = None,
-        seed: int | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """One object's ``canonical`` points placed in ``box``, after s-HPR (one hull: the
         certified hull of drcpo.occlusion.hull, Qhull where it gives up; much faster than the
         per-point method), and its label: ``box`` with the faces points lie beyond (construction
-        keeps points up to its margin outside) moved out to hold every point the object brings.
-        With a ``sensor`` (mode ``sensor``), the object is rendered through it instead."""
+        keeps points up to its margin outside) moved out to hold every point the object brings."""
         points = placed_object(canonical, box, dim)
         settings = self.config.self_occlusion
-        if sensor is not None and len(points):
-            cap = radius_cap(box[3:6], settings.radius_share)
-            points = sensor_steps.render(points, sensor, seed, cap)
-        elif settings.enabled and len(points):
+        if settings.enabled and len(points):
             visible = occlusion.self_occlusion(
-                points,
-                box,
-                settings.radius_factor,
-                viewpoint=self._mount,
-                method="reference",
+                points, box, settings.radius_factor, method="reference"
             )
             points = take_rows(points, visible)
         return points, box_holding(box, points, _FIT_PAD)
@@ -498,16 +448,9 @@ class DRCPO(Transform):
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides:
-        the preset's height above the sensor's mount (``drcpo.sensor``; the origin unless
-        set)."""
+        the preset's height above the LiDAR frame's origin."""
         setting = self.config.external_occlusion.setting
-        viewpoint = np.array([0.0, 0.0, float(setting.viewpoint_z)])
-        return float(setting.radius), viewpoint + self._mount if self._mounted else viewpoint
-
-    @property
-    def _mounted(self) -> bool:
-        """Whether the sensor sits off the LiDAR origin (the viewpoints then follow it)."""
-        return bool(np.any(self._mount))
+        return float(setting.radius), np.array([0.0, 0.0, float(setting.viewpoint_z)])
 
     def _settle(
         self,

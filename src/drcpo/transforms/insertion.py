@@ -239,8 +239,8 @@ PER_BOX_METADATA: dict[str, Any] = {
     VELOCITY: 0.0,  # (M, 2) vx, vy: an added box whose source gives none stands still
 }
 #: Metadata key of a ``str (M,)`` array saying which stage added each box: ``""`` for the
-#: frame's own, ``"gt_sampling"``, ``"drcpo"`` (sensor-true occlusion treats every added box as
-#: an inserted object; benchmarks tell the boxes apart by it).
+#: frame's own, ``"gt_sampling"``, ``"drcpo"`` (multi-sweep frames and the benchmarks tell the
+#: boxes apart by it).
 BOX_SOURCE = "box_source"
 #: Metadata that describes the original boxes as a whole and is dropped once they change.
 STALE_WHEN_BOXES_CHANGE = ("labels",)
