@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba as nb
 import numpy as np
@@ -308,9 +308,11 @@ def _precision(
     scores = _matched_scores(gt_ignored, start, di, dt_ignored, dt.score)
     thresholds = _recall_thresholds(np.sort(scores)[::-1], int((gt_ignored == 0).sum()))
     counts = _counts_at(
-        thresholds, gt_ignored, gt.alpha, start, di, overlap, dt_ignored, dt.score, dt.alpha,
-        excused,
-    )  # fmt: skip
+        thresholds,
+        _Objects(gt_ignored, gt.alpha),
+        _Candidates(start, di, overlap),
+        _Detections(dt_ignored, dt.score, dt.alpha, excused),
+    )
     tp, fp, similarity = counts[:, 0], counts[:, 1], counts[:, 3]
     precision = np.zeros(SAMPLE_POINTS)
     orientation = np.zeros(SAMPLE_POINTS)
@@ -396,22 +398,42 @@ def _recall_thresholds(scores, valid):  # pragma: no cover - numba
     return out[:count]
 
 
+class _Objects(NamedTuple):
+    """The labelled objects of one class and level: ``ignored`` flags (see
+    :func:`_ignore_flags`) and observation angles."""
+
+    ignored: np.ndarray
+    alpha: np.ndarray
+
+
+class _Candidates(NamedTuple):
+    """Each object's candidate detections: ``start`` ``(G + 1,)`` its first slot, then per slot
+    the detection and their overlap."""
+
+    start: np.ndarray
+    det: np.ndarray
+    overlap: np.ndarray
+
+
+class _Detections(NamedTuple):
+    """The detections: ``ignored`` flags, scores, observation angles and ``excused`` (in a
+    DontCare region: never a false positive)."""
+
+    ignored: np.ndarray
+    score: np.ndarray
+    alpha: np.ndarray
+    excused: np.ndarray
+
+
 @nb.njit(cache=True, nogil=True)
-def _counts_at(
-    thresholds,
-    gt_ignored,
-    gt_alpha,
-    start,
-    cand_det,
-    cand_overlap,
-    dt_ignored,
-    dt_score,
-    dt_alpha,
-    excused,
-):  # pragma: no cover - numba
+def _counts_at(thresholds, objects, candidates, detections):  # pragma: no cover - numba
     """``(T, 4)`` true positives, false positives, misses and orientation similarity sum per
     score threshold: each object, in order, takes the free counted candidate with the largest
     overlap, or failing one the first free ignored candidate."""
+    gt_ignored, gt_alpha = objects.ignored, objects.alpha
+    start, cand_det, cand_overlap = candidates.start, candidates.det, candidates.overlap
+    dt_ignored, dt_score = detections.ignored, detections.score
+    dt_alpha, excused = detections.alpha, detections.excused
     out = np.zeros((thresholds.shape[0], 4))
     for t in range(thresholds.shape[0]):
         floor = thresholds[t]

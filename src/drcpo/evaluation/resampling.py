@@ -29,11 +29,14 @@ from drcpo.evaluation.kitti import (
     SAMPLE_POINTS,
     _average,
     _box_overlaps,
+    _Candidates,
     _counts_at,
+    _Detections,
     _dont_care_coverage,
     _frame_pairs,
     _ignore_flags,
     _matched_scores,
+    _Objects,
     _overlap_table,
     _recall_thresholds,
     _running_max,
@@ -171,10 +174,11 @@ def _class_table(gt, dt, pairs, gt_ignored, dt_ignored, excused, gt_bounds, dt_b
         if not len(levels):
             continue
         counts = _counts_at(
-            levels, gt_ignored[g0:g1], gt.alpha[g0:g1], local_start, candidates,
-            overlap[start[g0] : start[g1]], dt_ignored[d0:d1], scores, dt.alpha[d0:d1],
-            excused[d0:d1],
-        )  # fmt: skip
+            levels,
+            _Objects(gt_ignored[g0:g1], gt.alpha[g0:g1]),
+            _Candidates(local_start, candidates, overlap[start[g0] : start[g1]]),
+            _Detections(dt_ignored[d0:d1], scores, dt.alpha[d0:d1], excused[d0:d1]),
+        )
         rise = np.diff(counts[:, :2], axis=0, prepend=np.zeros((1, 2)))
         steps.append(np.column_stack([levels, np.full(len(levels), f), rise]))
     stacked = np.concatenate(steps) if steps else np.zeros((0, 4))
