@@ -32,6 +32,7 @@ import time
 import numpy as np
 
 from drcpo import occlusion
+from drcpo.config import PRESETS, load_config
 from drcpo.geometry import bev_overlap_area, points_in_boxes
 from drcpo.synth import (
     LidarConfig,
@@ -122,9 +123,11 @@ def timed(fn, *args):
 def external_methods():
     """e-HPR with each detector preset."""
     methods = {}
-    for name, preset in occlusion.HPR_PRESETS.items():
-        label = f"e-hpr {name} (R={preset.radius:g}, z={preset.viewpoint_z:g})"
-        methods[label] = lambda p, n=name: occlusion.external_occlusion(p, n)
+    for name in PRESETS:
+        setting = load_config(name).drcpo.external_occlusion
+        r, z = setting.radius, setting.viewpoint_z
+        label = f"e-hpr {name} (R={r:g}, z={z:g})"
+        methods[label] = lambda p, r=r, z=z: occlusion.external_occlusion(p, r, z)
     return methods
 
 

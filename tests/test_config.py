@@ -1,11 +1,13 @@
 import dataclasses
 import math
+from importlib import resources
+from pathlib import Path
 
 import pytest
 import yaml
 
 from drcpo.config import (
-    DETECTOR_PRESETS,
+    PIPELINE_PRESETS,
     PRESETS,
     AugmentConfig,
     DRCPOConfig,
@@ -38,7 +40,7 @@ def test_paper_defaults():
     assert d.placement.x_range == [0.0, 70.4] and d.placement.y_range == [-40.0, 40.0]
     assert d.placement.height == "ground" and d.placement.max_non_ground_points == 10
     assert d.self_occlusion.radius_factor == 200.0 and d.self_occlusion.min_points == 5
-    assert d.external_occlusion.preset == "pv_rcnn_plusplus"
+    assert (d.external_occlusion.radius, d.external_occlusion.viewpoint_z) == (1e5, 0.0)
     assert d.min_points_after == 5
     assert config.gt_sampling.targets == {"Car": 20, "Pedestrian": 15, "Cyclist": 15}
     g = config.global_augmentation
@@ -65,14 +67,14 @@ def test_round_trip_through_dict_and_yaml(tmp_path):
 
 
 @pytest.mark.parametrize("name", PRESETS)
-def test_presets_load_and_set_the_e_hpr_preset(name):
+def test_presets_load_and_set_the_e_hpr_setting(name):
     config = load_config(name)
     assert config.preset == name
-    assert config.drcpo.external_occlusion.preset == name
+    setting = config.drcpo.external_occlusion
     assert load_config(config.to_dict()) == config
     # A user's file names a preset and overrides some keys on top of it.
     mixed = load_config({"preset": name, "drcpo": {"sample": {"Car": 3}}})
-    assert mixed.drcpo.external_occlusion.preset == name
+    assert mixed.drcpo.external_occlusion == setting
     assert mixed.drcpo.sample == {"Car": 3}
 
 
@@ -131,7 +133,7 @@ def test_out_of_range_names_the_key_and_the_allowed_range(data, path, allowed):
     ("data", "words"),
     [
         ({"drcpo": {"placement": {"height": "magic"}}}, ["height", "ground, source"]),
-        ({"drcpo": {"external_occlusion": {"preset": "voxelnet"}}}, ["second", "pv_rcnn"]),
+        ({"drcpo": {"external_occlusion": {"preset": "second"}}}, ["preset", "viewpoint_z"]),
         ({"preset": "voxelnet"}, ["preset", "pointrcnn"]),
         ({"drcpo": {"enabled": "yes"}}, ["drcpo.enabled", "true or false"]),
         ({"drcpo": {"min_points": 2.5}}, ["drcpo.min_points", "integer"]),
@@ -151,10 +153,14 @@ def test_bad_values_name_the_key(data, words):
         assert word in str(info.value)
 
 
-def test_optional_overrides_accept_null_and_numbers():
+def test_optional_keys_accept_null_and_numbers_and_the_others_numbers_only():
     config = load_config({"drcpo": {"external_occlusion": {"radius": 5e4, "viewpoint_z": 1.0}}})
     assert config.drcpo.external_occlusion.radius == 5e4
-    assert load_config({"drcpo": {"external_occlusion": {"radius": None}}}) == AugmentConfig()
+    with pytest.raises(ConfigError, match="external_occlusion.radius"):
+        load_config({"drcpo": {"external_occlusion": {"radius": None}}})
+    no_test = load_config({"drcpo": {"placement": {"occluded_fraction": None}}})
+    assert no_test.drcpo.placement.occluded_fraction is None
+    assert load_config({"drcpo": {"placement": {"heading_range": None}}}) == AugmentConfig()
 
 
 def test_file_errors_name_the_file(tmp_path):
@@ -309,7 +315,6 @@ BAD_VALUES = {
     "drcpo.self_occlusion.radius_factor": 1e300,
     "drcpo.self_occlusion.min_points": 10**7,
     "drcpo.external_occlusion.enabled": None,
-    "drcpo.external_occlusion.preset": "voxelnet",
     "drcpo.external_occlusion.radius": 1e300,
     "drcpo.external_occlusion.viewpoint_z": 1e3,
     "global_augmentation.enabled": "no",
@@ -553,25 +558,30 @@ def test_per_call_placement_fields_are_not_config_keys():
 
 
 # Detector presets ------------------------------------------------------------------------------
-def test_detector_presets_hold_the_papers_e_hpr_settings():
-    assert PRESETS == tuple(DETECTOR_PRESETS)
-    assert {k: (v.radius, v.viewpoint_z) for k, v in DETECTOR_PRESETS.items()} == {
-        "second": (300000.0, 2.0),
-        "pointrcnn": (300000.0, 1.0),
-        "pv_rcnn": (100000.0, 0.0),
-        "pv_rcnn_plusplus": (100000.0, 0.0),
-    }
+PAPERS_E_HPR = {
+    "second": (300000.0, 2.0),
+    "pointrcnn": (300000.0, 1.0),
+    "pv_rcnn": (100000.0, 0.0),
+    "pv_rcnn_plusplus": (100000.0, 0.0),
+}
+
+
+def test_detector_presets_are_yaml_files_with_the_papers_e_hpr_settings():
+    configs = resources.files("drcpo") / "configs"
+    files = {Path(str(f)).stem for f in configs.iterdir() if str(f).endswith(".yaml")}
+    assert files == {*PRESETS, *PIPELINE_PRESETS}  # every preset a file, every file a preset
+    settings = {name: load_config(name).drcpo.external_occlusion for name in PRESETS}
+    assert {k: (v.radius, v.viewpoint_z) for k, v in settings.items()} == PAPERS_E_HPR
+    # the defaults are PV-RCNN++'s, the paper's reference configuration
+    assert load_config().drcpo.external_occlusion == settings["pv_rcnn_plusplus"]
 
 
 @pytest.mark.parametrize("name", PRESETS)
-def test_a_loaded_preset_resolves_its_radius_and_viewpoint(name):
-    setting = load_config(name).drcpo.external_occlusion.setting
-    assert setting == DETECTOR_PRESETS[name]
-    # The overrides win; a later preset key switches both numbers.
-    own = ExternalOcclusionConfig(preset=name, radius=5.0, viewpoint_z=-1.0).setting
-    assert (own.radius, own.viewpoint_z) == (5.0, -1.0)
-    switched = load_config({"preset": name, "drcpo": {"external_occlusion": {"preset": "second"}}})
-    assert switched.drcpo.external_occlusion.setting == DETECTOR_PRESETS["second"]
+def test_keys_given_with_a_preset_override_its_radius_and_viewpoint(name):
+    own = load_config({"preset": name, "drcpo": {"external_occlusion": {"radius": 5.0}}})
+    setting = own.drcpo.external_occlusion
+    assert (setting.radius, setting.viewpoint_z) == (5.0, PAPERS_E_HPR[name][1])
+    assert ExternalOcclusionConfig(radius=5.0, viewpoint_z=-1.0).viewpoint_z == -1.0
 
 
 def test_configs_are_hashable_and_equal_by_value():

@@ -84,7 +84,7 @@ def test_entry_layers_defaults_difficulty_stages_and_class_names():
         ["Car"],
     )
     assert given.drcpo.exclude_difficulty == [] and given.drcpo.sample == {"Car": 3}
-    assert given.drcpo.external_occlusion.preset == "second"
+    assert given.drcpo.external_occlusion.viewpoint_z == 2.0  # SECOND's in the paper
     assert given.gt_sampling.enabled and given.global_augmentation.enabled
     assert not given.drcpo.enabled and given.gt_sampling.use_road_plane
 

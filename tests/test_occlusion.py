@@ -17,7 +17,6 @@ from hypothesis import strategies as st
 from drcpo.errors import ConfigError, DataError
 from drcpo.geometry import box_diagonal
 from drcpo.occlusion import (
-    HPR_PRESETS,
     external_occlusion,
     frame_grid,
     hidden_point_removal,
@@ -101,8 +100,7 @@ def test_frame_fixture_through_external_occlusion_preset(hpr_fixtures):
     with np.load(hpr_fixtures / "frame000001_R1e5_z0.npz") as data:
         expected = _fixture_mask(data)
         points = data["points"]
-    assert HPR_PRESETS["pv_rcnn_plusplus"].radius == 1e5
-    got = external_occlusion(points.astype(np.float32), "pv_rcnn_plusplus")
+    got = external_occlusion(points.astype(np.float32), 1e5, 0.0)  # PV-RCNN++'s in the paper
     assert _jaccard(got, expected) >= 0.999
 
 
@@ -308,15 +306,6 @@ def test_runs_in_forked_workers():
 # ----------------------------------------------------------------------------------------------
 # s-HPR, e-HPR, focus
 # ----------------------------------------------------------------------------------------------
-def test_presets_are_the_papers():
-    assert {k: (v.radius, v.viewpoint_z) for k, v in HPR_PRESETS.items()} == {
-        "second": (300000.0, 2.0),
-        "pointrcnn": (300000.0, 1.0),
-        "pv_rcnn": (100000.0, 0.0),
-        "pv_rcnn_plusplus": (100000.0, 0.0),
-    }
-
-
 def test_self_occlusion_uses_the_box_diagonal():
     rng = np.random.default_rng(12)
     box = np.array([20.0, 5.0, -0.9, 4.2, 1.8, 1.6, 0.7])
@@ -357,21 +346,18 @@ def test_objects_take_the_certified_hull_with_qhull_s_answer(method, monkeypatch
         np.testing.assert_array_equal(mask, self_occlusion(points, box, method=method))
 
 
-@pytest.mark.parametrize("preset", sorted(HPR_PRESETS))
-def test_external_occlusion_uses_the_preset(preset):
+@pytest.mark.parametrize(("radius", "viewpoint_z"), [(3e5, 2.0), (3e5, 1.0), (1e5, 0.0)])
+def test_external_occlusion_looks_from_the_viewpoint_height(radius, viewpoint_z):
     rng = np.random.default_rng(13)
     points = street_scene(rng, 3000)
-    setting = HPR_PRESETS[preset]
-    expected = hidden_point_removal(
-        points, (0, 0, setting.viewpoint_z), setting.radius, method="reference"
-    )
-    assert np.array_equal(external_occlusion(points, preset), expected)
-    custom = external_occlusion(points, preset, radius=500.0, viewpoint_z=0.5)
+    expected = hidden_point_removal(points, (0, 0, viewpoint_z), radius, method="reference")
+    assert np.array_equal(external_occlusion(points, radius, viewpoint_z), expected)
+    custom = external_occlusion(points, radius=500.0, viewpoint_z=0.5)
     assert np.array_equal(custom, hidden_point_removal(points, (0, 0, 0.5), 500.0))
     with pytest.raises(ConfigError):
-        external_occlusion(points, "pointpillars")
+        external_occlusion(points, radius=-1.0)
     with pytest.raises(ConfigError):
-        external_occlusion(points, preset, method="raytrace")
+        external_occlusion(points, method="raytrace")
 
 
 def test_counting_sort_is_the_stable_argsort(rng):
@@ -819,7 +805,7 @@ def test_auto_keeps_the_per_point_test_on_lidar_like_frames(rng, monkeypatch):
         "visible",
         lambda self, *args: calls.append(self.size) or original(self, *args),
     )
-    hidden_point_removal(points, radius=HPR_PRESETS["pv_rcnn"].radius)
+    hidden_point_removal(points, radius=1e5)
     assert calls == [len(points)]
 
 

@@ -805,7 +805,7 @@ def test_build_pipeline_kinds(synthetic_world):
         "GlobalScaling",
     ]
     drcpo = build_pipeline("second", db, index)
-    assert drcpo[1].config.external_occlusion.preset == "second"
+    assert drcpo[1].config.external_occlusion.viewpoint_z == 2.0  # SECOND's in the paper
     off = build_pipeline(
         {"gt_sampling": {"enabled": False}, "global_augmentation": {"enabled": False}}, db, index
     )

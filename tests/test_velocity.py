@@ -475,15 +475,6 @@ def test_global_rotation_and_scaling_move_velocities(rng):
     assert_boxes_match(out, naive_openpcdet(_nine(frame), scale=scale))
 
 
-def test_external_occlusion_takes_the_viewpoint_offset(rng):
-    points = np.column_stack([rng.uniform(-20, 20, (400, 2)), rng.uniform(-1, 1, 400)])
-    shifted = points + np.array([3.0, -2.0, 0.0])
-    moved = occlusion.external_occlusion(shifted, "second", viewpoint_xy=np.array([3.0, -2.0]))
-    at_origin = occlusion.external_occlusion(points, "second")
-    # the same scene seen from the same place relative to it: the same verdicts
-    assert (moved == at_origin).mean() > 0.99
-
-
 # The nuscenes preset: per-class defaults for the ten classes ----------------------------------
 NUSCENES = {"Car": "car", "Pedestrian": "pedestrian", "Cyclist": "bicycle"}
 KITTI_NAME = {nuscenes: kitti for kitti, nuscenes in NUSCENES.items()}
@@ -591,7 +582,7 @@ def test_multi_sweep_earlier_sweeps_are_settled_from_their_own_origins(world):
     added = out.metadata["box_source"] == "drcpo"
     boxes = out.boxes[added]
     objects = alone.points[transform_inside(alone.points, boxes)]
-    setting = transform.config.external_occlusion.setting
+    setting = transform.config.external_occlusion
     expected, from_key_origin = [], []
     for s in (1, 2):
         points = frame.points[frame.points[:, 4] == np.float32(LAGS[s])]

@@ -20,10 +20,10 @@ misspelt name (``Pedestrain``) is an error rather than a class that never occurs
 YAML files are read as UTF-8 with PyYAML's safe loader, except that a key given twice in one
 mapping is an error (naming the key and both lines) and ``5e4`` reads as a number, as in YAML 1.2.
 
-Detector presets (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``) choose the e-HPR
-viewpoint height and radius of the paper's reference configuration for each detector; they live
-as YAML files in ``drcpo/configs/`` next to ``default.yaml`` (the paper defaults, spelled out),
-and their numbers in :data:`DETECTOR_PRESETS`, the one table of them.
+Detector presets (``second``, ``pointrcnn``, ``pv_rcnn``, ``pv_rcnn_plusplus``) set the e-HPR
+viewpoint height and radius of the paper's reference configuration for each detector; like the
+pipeline presets they are YAML files in ``drcpo/configs/`` next to ``default.yaml`` (the paper
+defaults, spelled out), and nowhere else.
 
 Each stage's section is defined once, in the stage's module, and composed here:
 ``drcpo.construction`` is :class:`drcpo.construction.ConstructionConfig`, ``drcpo.placement``
@@ -62,12 +62,9 @@ from drcpo.config_fields import (
 from drcpo.construction import ConstructionConfig
 from drcpo.errors import ConfigError, shown
 from drcpo.index import IndexConfig
-from drcpo.occlusion.presets import HPR_PRESETS
-from drcpo.occlusion.presets import HPRPreset as EHPRSetting
 from drcpo.placement import PlacementConfig
 
 __all__ = [
-    "DETECTOR_PRESETS",
     "KITTI_CLASSES",
     "PIPELINES",
     "PIPELINE_PRESETS",
@@ -75,7 +72,6 @@ __all__ = [
     "AugmentConfig",
     "ConstructionConfig",
     "DRCPOConfig",
-    "EHPRSetting",
     "ExternalOcclusionConfig",
     "FlipConfig",
     "GTSamplingConfig",
@@ -93,17 +89,13 @@ __all__ = [
 ]
 
 
-#: The detector presets (``drcpo/configs/<name>.yaml``) and their e-HPR settings: the one table,
-#: kept as data in :mod:`drcpo.occlusion.presets` (which the occlusion functions read too).
-DETECTOR_PRESETS: dict[str, EHPRSetting] = HPR_PRESETS
 #: Whole-pipeline presets (config files in drcpo/configs): ``paper`` is the method as
 #: published (today's defaults), ``nuscenes`` sets nuScenes' ten classes, their mirroring and
 #: sample counts and the full circle around the sensor.
 PIPELINE_PRESETS: tuple[str, ...] = ("default", "paper", "nuscenes")
-#: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``).
-PRESETS: tuple[str, ...] = tuple(DETECTOR_PRESETS)
-#: The preset whose e-HPR settings the paper defaults use.
-DEFAULT_PRESET = "pv_rcnn_plusplus"
+#: Detector presets shipped with the package (``drcpo/configs/<name>.yaml``: their e-HPR
+#: radius and viewpoint height; the paper defaults are ``pv_rcnn_plusplus``'s).
+PRESETS: tuple[str, ...] = ("second", "pointrcnn", "pv_rcnn", "pv_rcnn_plusplus")
 #: Pipelines :func:`build_pipeline` can make.
 PIPELINES: tuple[str, ...] = ("drcpo", "cda")
 #: Class names the per-class keys may use unless ``known_classes`` says otherwise (KITTI's).
@@ -242,31 +234,22 @@ class ExternalOcclusionConfig(Checked):
     KEY_PATH = "drcpo.external_occlusion"
 
     enabled: bool = field(default=True, metadata=spec("bool"))
-    preset: str = field(
-        default=DEFAULT_PRESET,
-        metadata=spec("choice", "detector whose (R, z) is used", choices=PRESETS),
-    )
-    radius: float | None = field(
-        default=None,
+    radius: float = field(
+        default=100000.0,
         metadata=spec(
-            "float", "override R", low=0.0, low_open=True, high=MAX_RADIUS, optional=True
+            "float",
+            "HPR radius R, metres (a detector preset sets the paper's: PV-RCNN++'s by default)",
+            low=0.0,
+            low_open=True,
+            high=MAX_RADIUS,
         ),
     )
-    viewpoint_z: float | None = field(
-        default=None,
+    viewpoint_z: float = field(
+        default=0.0,
         metadata=spec(
-            "float", "override viewpoint height (m)", low=-100.0, high=100.0, optional=True
+            "float", "viewpoint height above the LiDAR origin, metres", low=-100.0, high=100.0
         ),
     )
-
-    @property
-    def setting(self) -> EHPRSetting:
-        """The radius and viewpoint height e-HPR uses: the preset's, or the overrides."""
-        preset = DETECTOR_PRESETS[self.preset]
-        return EHPRSetting(
-            radius=preset.radius if self.radius is None else self.radius,
-            viewpoint_z=preset.viewpoint_z if self.viewpoint_z is None else self.viewpoint_z,
-        )
 
 
 @dataclass(frozen=True, eq=False)

@@ -2,17 +2,15 @@
 e-HPR.
 
 The paper's two uses are :func:`self_occlusion` (s-HPR, per placed object, ``R`` = box
-diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R`` and
-the viewpoint height from :data:`HPR_PRESETS`); :func:`inserted_scope` (two steps) is e-HPR's
-``inserted`` scope. :func:`surface_samples` are the
-points on a box's faces that placement's "occluded" test decides by e-HPR before anything is
-built.
+diagonal x 200) and :func:`external_occlusion` (e-HPR, the whole frame after insertion, ``R``
+and the viewpoint height per detector in the presets' YAML files); :func:`inserted_scope`
+(two steps) is e-HPR's ``inserted`` scope. :func:`surface_samples` are the points on a box's
+faces that placement's "occluded" test decides by e-HPR before anything is built.
 
 Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 :mod:`drcpo.geometry`), never anything above (:mod:`drcpo.placement`,
 :mod:`drcpo.transforms`):
 
-* :mod:`~drcpo.occlusion.presets`: the paper's ``(R, z)`` per detector.
 * :mod:`~drcpo.occlusion.checks`: input checks.
 * :mod:`~drcpo.occlusion.grid`: points sorted into direction cells (numba), :class:`GridMemory`.
 * :mod:`~drcpo.occlusion.hull`: the certified hull of small clouds (numba).
@@ -49,7 +47,6 @@ from drcpo.occlusion.hpr import (
     HULL_KERNEL_MAX,
     hidden_point_removal,
 )
-from drcpo.occlusion.presets import HPR_PRESETS, HPRPreset
 from drcpo.occlusion.scopes import self_occlusion
 from drcpo.occlusion.view_windows import surface_samples
 
@@ -57,12 +54,10 @@ __all__ = [
     "AUTO_CROWDED",
     "AUTO_REFERENCE_MAX",
     "HPR_METHODS",
-    "HPR_PRESETS",
     "HULL_KERNEL_MAX",
     "MAX_RADIUS",
     "FrameGrid",
     "GridMemory",
-    "HPRPreset",
     "InsertedScope",
     "external_occlusion",
     "hidden_point_removal",

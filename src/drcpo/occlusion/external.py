@@ -32,7 +32,6 @@ from drcpo.occlusion.flip import _Setup
 from drcpo.occlusion.frame_grid import FrameGrid, GridInsertion
 from drcpo.occlusion.hpr import HPR_METHODS, _crowded, _resolve_method, hidden_point_removal
 from drcpo.occlusion.local import _local_grid
-from drcpo.occlusion.presets import HPR_PRESETS
 from drcpo.occlusion.view_windows import in_windows
 
 __all__ = [
@@ -44,35 +43,26 @@ __all__ = [
 
 def external_occlusion(
     points: np.ndarray,
-    preset: str = "pv_rcnn_plusplus",
+    radius: float = 1e5,
+    viewpoint_z: float = 0.0,
     *,
-    radius: float | None = None,
-    viewpoint_z: float | None = None,
-    viewpoint_xy: np.ndarray | None = None,
     method: str = "auto",
 ) -> np.ndarray:
     """e-HPR over a whole frame (after insertion), as the paper publishes it, from the
-    viewpoint ``(0, 0, z)``.
+    viewpoint ``(0, 0, viewpoint_z)``.
 
     Args:
         points: ``(N, 3 + C)`` the frame's points (metres).
-        preset: detector whose ``(R, z)`` is used, a key of :data:`HPR_PRESETS`.
-        radius, viewpoint_z: override the preset's ``R`` (metres) and viewpoint height (metres).
-        viewpoint_xy: ``(2,)`` x, y of the viewpoint, metres (default: 0, 0), e.g. a sensor
-            mounted off the LiDAR origin.
+        radius, viewpoint_z: HPR radius ``R`` and viewpoint height, metres (the defaults:
+            PV-RCNN++'s in the paper; the detector presets' YAML files hold the others, e.g.
+            ``load_config("second").drcpo.external_occlusion``).
         method: as in :func:`hidden_point_removal`.
 
     Returns:
         ``bool (N,)``: points kept (visible).
     """
-    if preset not in HPR_PRESETS:
-        raise ConfigError(f"unknown HPR preset {preset!r}; choose one of {', '.join(HPR_PRESETS)}")
-    setting = HPR_PRESETS[preset]
     xyz = _check_points(points)
-    height = setting.viewpoint_z if viewpoint_z is None else float(viewpoint_z)
-    x, y = (0.0, 0.0) if viewpoint_xy is None else (float(v) for v in viewpoint_xy)
-    r = setting.radius if radius is None else radius
-    return hidden_point_removal(xyz, (x, y, height), r, method=method)
+    return hidden_point_removal(xyz, (0.0, 0.0, float(viewpoint_z)), radius, method=method)
 
 
 class InsertedScope(ABC):

@@ -187,7 +187,7 @@ class DRCPO(Transform):
         c = self.config
         return (
             f"DRCPO({self.database!r}, sample={c.sample}, "
-            f"height={c.placement.height!r}, e_hpr={c.external_occlusion.preset})"
+            f"height={c.placement.height!r}, e_hpr_radius={c.external_occlusion.radius:g})"
         )
 
     # The steps ------------------------------------------------------------------------------
@@ -198,7 +198,7 @@ class DRCPO(Transform):
         # Multi-sweep: the steps on the key sweep, the others settled from their own origins.
         out = self._apply(split.key, rng, stats)
         settings = self.config.external_occlusion
-        setting = settings.setting if settings.enabled else None
+        setting = settings if settings.enabled else None
         return split.join(out, "drcpo", self.room, setting)
 
     def _apply(self, frame: Frame, rng: np.random.Generator, stats: Stats) -> Frame:
@@ -447,9 +447,9 @@ class DRCPO(Transform):
         return survivors < self.config.min_points_after
 
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
-        """e-HPR radius R (metres) and viewpoint ``(3,)`` of the configured preset/overrides:
-        the preset's height above the LiDAR frame's origin."""
-        setting = self.config.external_occlusion.setting
+        """e-HPR radius R (metres) and viewpoint ``(3,)``: ``viewpoint_z`` above the LiDAR
+        frame's origin (``drcpo.external_occlusion``)."""
+        setting = self.config.external_occlusion
         return float(setting.radius), np.array([0.0, 0.0, float(setting.viewpoint_z)])
 
     def _settle(

@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 
 from drcpo import occlusion
+from drcpo.config import ExternalOcclusionConfig
 from drcpo.errors import DataError
 from drcpo.frame import Frame
-from drcpo.occlusion.presets import HPRPreset
 from drcpo.occlusion.view_windows import grown_boxes, window_spans
 from drcpo.transforms.insertion import BOX_SOURCE, BoxQuery, take_rows, time_lag_column
 
@@ -59,7 +59,7 @@ class SweepSplit:
         out: Frame,
         source: str,
         room: float,
-        setting: HPRPreset | None,
+        setting: ExternalOcclusionConfig | None,
     ) -> Frame:
         """The output frame: DR.CPO's output on the key sweep (``out``; its boxes from
         ``source`` are the inserted objects, their points the ones inside them) with the earlier
@@ -69,9 +69,9 @@ class SweepSplit:
             out: the transform's output on :attr:`key`.
             source: the :data:`~drcpo.transforms.insertion.BOX_SOURCE` of the inserted boxes.
             room: metres by which an object's room exceeds its box.
-            setting: e-HPR's radius and viewpoint height (``radius``, ``viewpoint_z``: a
-                :class:`~drcpo.occlusion.presets.HPRPreset`); a sweep's viewpoint is its origin
-                raised by that height; ``None``: e-HPR off.
+            setting: e-HPR's radius and viewpoint height (``radius``, ``viewpoint_z`` of
+                ``drcpo.external_occlusion``); a sweep's viewpoint is its origin raised by that
+                height; ``None``: e-HPR off.
         """
         added = np.asarray(out.metadata.get(BOX_SOURCE, np.zeros(0, str))) == source
         boxes = out.boxes[added] if len(added) == len(out.boxes) else np.zeros((0, 7))
