@@ -3,7 +3,7 @@
 :mod:`~drcpo.database.store` reads and writes it (memory-mapped arrays, a manifest with
 checksums); :mod:`~drcpo.database.build` cuts it out of KITTI frames or imports OpenPCDet's and
 MMDetection3D's databases, whose pickled infos :mod:`~drcpo.database.safe_pickle` reads without
-running any code.
+running any code (the globals such a pickle may name: :mod:`~drcpo.database.pickle_globals`).
 """
 
 from drcpo.database import safe_pickle
