@@ -25,7 +25,7 @@ from hypothesis.extra import numpy as hnp
 from test_safe_pickle import assert_same_tree
 
 from drcpo.database import safe_pickle
-from drcpo.database.build import validate_dbinfos
+from drcpo.database.dbinfos import validate_dbinfos
 from drcpo.database.pickle_globals import ALLOWED_GLOBALS
 from drcpo.errors import DataError
 

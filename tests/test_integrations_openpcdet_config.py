@@ -28,7 +28,7 @@ def sample_db(tmp_path_factory):
 
     if not KITTI_SAMPLE.is_dir():
         pytest.skip(f"KITTI sample not found at {KITTI_SAMPLE} (only CI and developers have it)")
-    from drcpo.database.build import import_openpcdet
+    from drcpo.database.dbinfos import import_openpcdet
     from drcpo.index import IndexConfig, build_index
 
     out = tmp_path_factory.mktemp("openpcdet") / "db"
