@@ -24,6 +24,7 @@ LAYERS: dict[str, int] = {
     "drcpo.frame": 1,
     "drcpo.geometry": 1,
     "drcpo.outputs": 1,
+    "drcpo.staging": 1,
     "drcpo.config_fields": 1,
     "drcpo.partitions": 2,
     "drcpo.ground": 2,

@@ -879,7 +879,7 @@ def test_augment_cli_writes_kitti_layout_and_stats(kitti_world, kitti_sample, tm
 def test_augment_kitti_leaves_no_output_when_a_frame_fails(kitti_world, kitti_sample, tmp_path):
     from drcpo.datasets.export import augment_kitti
     from drcpo.errors import DataError
-    from drcpo.outputs import staging_path
+    from drcpo.staging import staging_path
 
     class Failing(GlobalFlip):
         def apply(self, frame, rng, stats):
