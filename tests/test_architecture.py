@@ -42,6 +42,7 @@ LAYERS: dict[str, int] = {
     "drcpo.synth.nuscenes": 3,
     "drcpo.evaluation": 3,
     "drcpo.construction": 4,
+    "drcpo.construction_kernels": 4,
     "drcpo.index": 4,
     "drcpo.similarity": 4,
     "drcpo.placement": 4,
