@@ -362,7 +362,7 @@ class SynthCase:
 
 def synthetic_case(seed: int, index: int) -> SynthCase:
     """Frame ``index`` of seed ``seed``: the field-of-view points and labels, as KITTI's."""
-    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.datasets.kitti_writer import reference_calibration
     from drcpo.synth import frame_rng, synthesize_frame
 
@@ -455,7 +455,7 @@ class AnotherActor:
         self.stages, self.case, self.seed = list(stages), case, seed
 
     def __call__(self, frame: Frame, rng: np.random.Generator) -> Frame:
-        from drcpo.datasets.kitti import fov_mask
+        from drcpo.datasets.kitti_coordinates import fov_mask
         from drcpo.synth.truth import true_inserted_returns
 
         if frame is not self.case.frame:
@@ -500,7 +500,7 @@ class Tally:
 
 def score_frame(case: SynthCase, stages: Sequence, seed: int, tally: Tally) -> None:
     """Augment ``case`` with ``stages`` and add its figures to ``tally``."""
-    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.synth import LidarConfig
     from drcpo.synth.truth import solids_in_box, true_ground_height, true_inserted_returns
 
@@ -965,7 +965,8 @@ def _sensor_on_beam(sensor, points: np.ndarray) -> list[int]:
 
 def run_kitti(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     from drcpo.database import import_openpcdet
-    from drcpo.datasets.kitti import KittiDataset, fov_mask
+    from drcpo.datasets.kitti import KittiDataset
+    from drcpo.datasets.kitti_coordinates import fov_mask
 
     root = Path(args.kitti)
     dbinfos = root / "kitti_dbinfos_train.pkl"

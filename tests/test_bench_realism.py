@@ -128,7 +128,7 @@ def test_frame_ground_heights_use_the_footprint_and_skip_labelled_boxes():
 # --- a frame scored end to end against its truth ----------------------------------------------
 def hand_case():
     """A flat street with a wall 40 m ahead, swept by the default sensor."""
-    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.datasets.kitti_writer import reference_calibration
 
     wall = make_solids([(BOX, (40.5, 0.0, -MOUNT + 3.0), (0.5, 30.0, 3.0), 0.0, "facade")])
@@ -239,7 +239,7 @@ class BoxesOnly:
 
 
 def test_another_actor_inserts_a_second_truth_at_the_stages_boxes():
-    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.synth.truth import true_inserted_returns
 
     case = hand_case()

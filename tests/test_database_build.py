@@ -20,7 +20,8 @@ from drcpo.database.build import (
     points_in_boxes_openpcdet,
 )
 from drcpo.database.dbinfos import import_mmdet3d, import_openpcdet
-from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.datasets.kitti import KittiDataset
+from drcpo.datasets.kitti_coordinates import fov_mask
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import from_canonical, points_in_boxes, rotate_points_z, wrap_angle

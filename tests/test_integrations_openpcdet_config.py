@@ -14,7 +14,8 @@ import sys
 import numpy as np
 import pytest
 
-from drcpo.datasets.kitti import Calibration, read_calib
+from drcpo.datasets.kitti import read_calib
+from drcpo.datasets.kitti_coordinates import Calibration
 from drcpo.errors import ConfigError, DataError
 from drcpo.integrations import openpcdet
 from drcpo.transforms import GlobalFlip, GlobalRotation, GlobalScaling, Stats

@@ -122,7 +122,8 @@ def test_auto_on_kittis_camera_view_renders_on_the_whole_sweeps_beams(kitti_samp
     casts its rays, between the road and 1.5 m over the sensor at 4-50 m, within 0.1 degree of
     the beams of the one estimated from the whole sweep (the same beam, seen from its own
     origin: ``bench_realism.py --kitti``'s measure)."""
-    from drcpo.datasets.kitti import KittiDataset, fov_mask
+    from drcpo.datasets.kitti import KittiDataset
+    from drcpo.datasets.kitti_coordinates import fov_mask
 
     dataset = KittiDataset(kitti_sample, "train")
     assert len(dataset.frame_ids) == 6

@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from drcpo.datasets import kitti_writer
-from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.datasets.kitti import KittiDataset
+from drcpo.datasets.kitti_coordinates import fov_mask
 from drcpo.errors import OutputError
 from drcpo.frame import Frame
 from drcpo.outputs import OutputKind, atomic_write_bytes
