@@ -108,7 +108,8 @@ def database_and_index(counts: dict[str, int], k: int, work: Path, seed: int = 0
 
 
 def kitti_frames(limit: int) -> list[Frame]:
-    from drcpo.datasets.kitti import KittiDataset, fov_mask
+    from drcpo.datasets.kitti import KittiDataset
+    from drcpo.datasets.kitti_coordinates import fov_mask
 
     dataset = KittiDataset(KITTI_SAMPLE, "train")
     frames = []
@@ -122,7 +123,7 @@ def kitti_frames(limit: int) -> list[Frame]:
 
 
 def synthetic_frames(limit: int, seed: int = 0) -> list[Frame]:
-    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.datasets.kitti_writer import reference_calibration
     from drcpo.synth import frame_rng, synthesize_frame
 

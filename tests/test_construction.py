@@ -3,12 +3,14 @@ import pytest
 
 from drcpo.construction import (
     ConstructionConfig,
-    _Box,  # test seam: the numba gather kernel, against partition_index
-    _gather,
-    _numpy_sum,  # test seam: numpy.mean's pairwise sum, checked bit for bit
     _stored,
     construct_object,
     construct_objects,
+)
+from drcpo.construction_kernels import (
+    _Box,  # test seam: the numba gather kernel, against partition_index
+    _gather,
+    _numpy_sum,  # test seam: numpy.mean's pairwise sum, checked bit for bit
 )
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError, DataError

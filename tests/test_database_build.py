@@ -17,11 +17,11 @@ from drcpo.database.build import (
     DEFAULT_CLASSES,
     build_database,
     frame_records,
-    import_mmdet3d,
-    import_openpcdet,
     points_in_boxes_openpcdet,
 )
-from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.database.dbinfos import import_mmdet3d, import_openpcdet
+from drcpo.datasets.kitti import KittiDataset
+from drcpo.datasets.kitti_coordinates import fov_mask
 from drcpo.errors import ConfigError, DataError
 from drcpo.frame import Frame
 from drcpo.geometry import from_canonical, points_in_boxes, rotate_points_z, wrap_angle

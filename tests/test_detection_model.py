@@ -23,7 +23,7 @@ from detection.heads import (
 )
 from detection.scoring import heading_errors
 
-from drcpo.datasets.kitti import camera_boxes_to_lidar
+from drcpo.datasets.kitti_coordinates import camera_boxes_to_lidar
 from drcpo.datasets.kitti_writer import reference_calibration
 from drcpo.evaluation import read_kitti_objects
 from drcpo.frame import Frame

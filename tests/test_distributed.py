@@ -18,7 +18,7 @@ from export_support import random_transform, small_kitti, tree_bytes
 
 from drcpo.datasets.export import augment_kitti
 from drcpo.errors import ConfigError, DataError
-from drcpo.outputs import staging_path
+from drcpo.staging import staging_path
 
 REQUIRED = os.environ.get("DRCPO_REQUIRE_RAY") == "1"
 RAY_HINT = 'the distributed tests need Ray: pip install -e ".[test,ray]"'

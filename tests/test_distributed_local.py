@@ -11,7 +11,7 @@ from export_support import random_transform, small_kitti, tree_bytes
 from drcpo.datasets.export import augment_kitti
 from drcpo.distributed.local import augment_kitti_processes
 from drcpo.errors import DataError
-from drcpo.outputs import staging_path
+from drcpo.staging import staging_path
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,8 @@ from export_support import random_transform, small_kitti, tree_bytes
 
 from drcpo.datasets.export import TIMINGS_FILE, augment_kitti
 from drcpo.errors import DataError, OutputError
-from drcpo.outputs import Interrupted, staging_path
+from drcpo.outputs import Interrupted
+from drcpo.staging import staging_path
 from drcpo.transforms import GlobalFlip
 
 

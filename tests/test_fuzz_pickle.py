@@ -25,7 +25,8 @@ from hypothesis.extra import numpy as hnp
 from test_safe_pickle import assert_same_tree
 
 from drcpo.database import safe_pickle
-from drcpo.database.build import validate_dbinfos
+from drcpo.database.dbinfos import validate_dbinfos
+from drcpo.database.pickle_globals import ALLOWED_GLOBALS
 from drcpo.errors import DataError
 
 SOURCE = "fuzz.pkl"
@@ -160,7 +161,7 @@ def test_synthetic_pickles_round_trip_and_survive_mutation(payload, protocol, da
 
 
 # Crafted opcode streams -----------------------------------------------------------------------
-_GLOBALS = [f"c{module}\n{name}\n".encode() for module, name in safe_pickle.ALLOWED_GLOBALS] + [
+_GLOBALS = [f"c{module}\n{name}\n".encode() for module, name in ALLOWED_GLOBALS] + [
     b"cos\nsystem\n",
     b"cnumpy\nload\n",
     b"cbuiltins\neval\n",

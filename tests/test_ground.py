@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from drcpo.datasets.kitti import Calibration
+from drcpo.datasets.kitti_coordinates import Calibration
 from drcpo.errors import ConfigError, DataError
 from drcpo.geometry import rotation_matrix_z
 from drcpo.ground import (

@@ -14,7 +14,8 @@ import sys
 import numpy as np
 import pytest
 
-from drcpo.datasets.kitti import Calibration, read_calib
+from drcpo.datasets.kitti import read_calib
+from drcpo.datasets.kitti_coordinates import Calibration
 from drcpo.errors import ConfigError, DataError
 from drcpo.integrations import openpcdet
 from drcpo.transforms import GlobalFlip, GlobalRotation, GlobalScaling, Stats
@@ -28,7 +29,7 @@ def sample_db(tmp_path_factory):
 
     if not KITTI_SAMPLE.is_dir():
         pytest.skip(f"KITTI sample not found at {KITTI_SAMPLE} (only CI and developers have it)")
-    from drcpo.database.build import import_openpcdet
+    from drcpo.database.dbinfos import import_openpcdet
     from drcpo.index import IndexConfig, build_index
 
     out = tmp_path_factory.mktemp("openpcdet") / "db"

@@ -6,19 +6,21 @@ from scipy.spatial import Delaunay
 
 from drcpo.database import safe_pickle
 from drcpo.datasets.kitti import (
-    DEFAULT_IMAGE_SHAPE,
-    Calibration,
     KittiDataset,
-    camera_boxes_to_lidar,
-    fov_mask,
     kitti_difficulty,
-    lidar_boxes_to_camera,
     read_calib,
     read_image_shape,
     read_labels,
     read_plane,
     read_points,
     read_split,
+)
+from drcpo.datasets.kitti_coordinates import (
+    DEFAULT_IMAGE_SHAPE,
+    Calibration,
+    camera_boxes_to_lidar,
+    fov_mask,
+    lidar_boxes_to_camera,
 )
 from drcpo.errors import DataError
 from drcpo.geometry import box_corners
@@ -335,7 +337,7 @@ def test_fov_mask_reproduces_openpcdet_num_points_in_gt(kitti_sample):
 def test_products_in_blocks_equal_one_product(rng):
     # Large point sets go through the calibration's products in blocks (so that BLAS keeps to
     # one thread); every row must come out as from one product.
-    from drcpo.datasets.kitti import _PRODUCT_ROWS, _product  # test seam: the blocks
+    from drcpo.datasets.kitti_coordinates import _PRODUCT_ROWS, _product  # test seam: the blocks
 
     rows = (rng.normal(size=(2 * _PRODUCT_ROWS + 123, 4)) * 30).astype(np.float32)
     matrix = rng.normal(size=(4, 3)).astype(np.float32)

@@ -8,15 +8,8 @@ import stat
 import numpy as np
 import pytest
 
-from drcpo.datasets.kitti import (
-    Calibration,
-    KittiDataset,
-    lidar_boxes_to_camera,
-    read_calib,
-    read_labels,
-    read_points,
-    read_split,
-)
+from drcpo.datasets.kitti import KittiDataset, read_calib, read_labels, read_points, read_split
+from drcpo.datasets.kitti_coordinates import Calibration, lidar_boxes_to_camera
 from drcpo.datasets.kitti_writer import (
     calib_text,
     calibration_matrices,

@@ -14,8 +14,8 @@ from drcpo.datasets.nuscenes import (
     NUSCENES_CLASSES,
     NuScenesDataset,
     read_pcd_bin,
-    yaw_quaternion,
 )
+from drcpo.datasets.nuscenes_geometry import yaw_quaternion
 from drcpo.datasets.nuscenes_writer import (
     NUSCENES_MANIFEST,
     AnnotationRecord,

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from drcpo.construction import _add_source, _Box, _gather, _Stored
+from drcpo.construction_kernels import _add_source, _Box, _gather, _Stored
 from drcpo.database import GroundTruthDatabase
 from drcpo.index import partition_occupancy
 from drcpo.partitions import (

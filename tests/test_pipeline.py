@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from drcpo.database import GroundTruthDatabase, ObjectRecord
-from drcpo.datasets.kitti import Calibration
+from drcpo.datasets.kitti_coordinates import Calibration
 from drcpo.errors import ConfigError
 from drcpo.frame import Frame
 from drcpo.geometry import bev_overlap_area, box_corners, from_canonical, points_in_boxes
@@ -459,7 +459,7 @@ MIN_POINTS = 5
 @pytest.fixture(scope="module")
 def synthetic_world():
     """A synthetic database of object surfaces, its index, and two ray-cast frames (camera FOV)."""
-    from drcpo.datasets.kitti import fov_mask
+    from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.datasets.kitti_writer import reference_calibration
     from drcpo.index import IndexConfig, build_index
     from drcpo.synth import frame_rng, synthesize_frame
@@ -487,7 +487,8 @@ def kitti_world(kitti_sample, tmp_path_factory):
     """The database built from the real KITTI sample, its index, and its frames (camera FOV)."""
     if not _KITTI_CACHE:
         from drcpo.database.build import build_database
-        from drcpo.datasets.kitti import KittiDataset, fov_mask
+        from drcpo.datasets.kitti import KittiDataset
+        from drcpo.datasets.kitti_coordinates import fov_mask
         from drcpo.index import IndexConfig, build_index
 
         out = tmp_path_factory.mktemp("kitti") / "db"
@@ -862,7 +863,7 @@ def test_augment_cli_writes_kitti_layout_and_stats(kitti_world, kitti_sample, tm
 def test_augment_kitti_leaves_no_output_when_a_frame_fails(kitti_world, kitti_sample, tmp_path):
     from drcpo.datasets.export import augment_kitti
     from drcpo.errors import DataError
-    from drcpo.outputs import staging_path
+    from drcpo.staging import staging_path
 
     class Failing(GlobalFlip):
         def apply(self, frame, rng, stats):

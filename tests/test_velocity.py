@@ -652,7 +652,7 @@ def test_importing_nine_value_dbinfos_keeps_canonical_velocities(tmp_path):
     from conftest import KITTI_SAMPLE
 
     from drcpo.database import safe_pickle
-    from drcpo.database.build import import_openpcdet
+    from drcpo.database.dbinfos import import_openpcdet
 
     if not KITTI_SAMPLE.is_dir():
         pytest.skip(f"KITTI sample not found at {KITTI_SAMPLE} (only CI and developers have it)")

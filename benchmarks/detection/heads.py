@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, Calibration
+from drcpo.datasets.kitti_coordinates import DEFAULT_IMAGE_SHAPE, Calibration
 from drcpo.datasets.kitti_writer import label_lines, project_boxes
 from drcpo.frame import Frame
 from drcpo.geometry import wrap_angle

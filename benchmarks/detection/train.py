@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, KittiDataset, fov_mask
+from drcpo.datasets.kitti import KittiDataset
+from drcpo.datasets.kitti_coordinates import DEFAULT_IMAGE_SHAPE, fov_mask
 from drcpo.frame import Frame
 from drcpo.geometry import box_members
 from drcpo.transforms import STATS_KEY

@@ -271,7 +271,7 @@ def import_openpcdet_command(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
 ) -> None:
     """Convert an OpenPCDet ground-truth database (dbinfos pickle + gt_database/) to drcpo's."""
-    from drcpo.database.build import import_openpcdet
+    from drcpo.database.dbinfos import import_openpcdet
 
     _import_database(import_openpcdet, dbinfos, out, root, overwrite)
 
@@ -288,7 +288,7 @@ def import_mmdet3d_command(
 ) -> None:
     """Convert an MMDetection3D ground-truth database (dbinfos pickle + *_gt_database/; boxes and
     points relative to the bottom centre) to drcpo's."""
-    from drcpo.database.build import import_mmdet3d
+    from drcpo.database.dbinfos import import_mmdet3d
 
     _import_database(import_mmdet3d, dbinfos, out, root, overwrite)
 

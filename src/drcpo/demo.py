@@ -33,7 +33,8 @@ from rich.table import Table
 from drcpo.config import DRCPOConfig, load_config
 from drcpo.construction import ConstructionConfig, construct_object
 from drcpo.database import GroundTruthDatabase, build_database
-from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.datasets.kitti import KittiDataset
+from drcpo.datasets.kitti_coordinates import fov_mask
 from drcpo.errors import DrcpoError
 from drcpo.frame import Frame
 from drcpo.geometry import points_in_boxes

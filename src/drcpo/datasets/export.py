@@ -1,7 +1,7 @@
 """Offline generation: a KITTI split augmented by a transform, written in KITTI layout.
 
 Resumable: every frame's files are written atomically into a staging directory beside the output
-(:func:`drcpo.outputs.write_staged`), so a run that fails or is killed keeps the frames it
+(:func:`drcpo.staging.write_staged`), so a run that fails or is killed keeps the frames it
 finished and the same command run again augments only the others. The output is the same bytes
 however often a run was interrupted and whichever processes augmented which frames (each frame
 uses its own generator, :func:`frame_seed`): only ``timings.jsonl`` (how long each frame took)
@@ -23,10 +23,12 @@ from typing import Any
 import numpy as np
 
 from drcpo.datasets import kitti_writer
-from drcpo.datasets.kitti import KittiDataset, fov_mask
+from drcpo.datasets.kitti import KittiDataset
+from drcpo.datasets.kitti_coordinates import fov_mask
 from drcpo.errors import OutputError
 from drcpo.frame import Frame
-from drcpo.outputs import OutputKind, atomic_write_bytes, write_staged
+from drcpo.outputs import OutputKind, atomic_write_bytes
+from drcpo.staging import write_staged
 from drcpo.transforms.base import STATS_KEY, Transform, without_timings
 
 __all__ = [
@@ -250,7 +252,7 @@ def augment_kitti(
     split, frames, seed).
 
     Frames are written one by one, atomically, into the staging directory
-    ``.<out name>.staging`` beside ``out`` (:func:`drcpo.outputs.write_staged`), which becomes
+    ``.<out name>.staging`` beside ``out`` (:func:`drcpo.staging.write_staged`), which becomes
     ``out`` once complete: ``out`` never holds a half-written output. A run that fails or is
     killed leaves the staging directory; the same call again skips the frames it holds (same
     source, split, frames, seed, ``fov_only``, transform config and database, else it is refused;

@@ -21,13 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drcpo.datasets.kitti import (
-    DEFAULT_IMAGE_SHAPE,
-    OCCLUSION_LEVELS,
-    Calibration,
-    check_split_name,
-    lidar_boxes_to_camera,
-)
+from drcpo.datasets.kitti import OCCLUSION_LEVELS, check_split_name
+from drcpo.datasets.kitti_coordinates import DEFAULT_IMAGE_SHAPE, Calibration, lidar_boxes_to_camera
 from drcpo.errors import DataError
 from drcpo.geometry import rotation_matrix_z, wrap_angle
 from drcpo.outputs import atomic_write_bytes
@@ -205,9 +200,9 @@ def label_lines(
 ) -> list[str]:
     """KITTI ``label_2`` lines for LiDAR boxes ``(M, 7)`` (OpenPCDet convention).
 
-    Camera boxes come from :func:`~drcpo.datasets.kitti.lidar_boxes_to_camera`; alpha is
-    ``ry - arctan2(x, z)`` of the box in the rectified camera frame; the 2D box and, unless
-    given, the truncation come from :func:`project_boxes`. ``occlusion`` defaults to 3
+    Camera boxes come from :func:`~drcpo.datasets.kitti_coordinates.lidar_boxes_to_camera`;
+    alpha is ``ry - arctan2(x, z)`` of the box in the rectified camera frame; the 2D box and,
+    unless given, the truncation come from :func:`project_boxes`. ``occlusion`` defaults to 3
     (unknown); given, each must be a KITTI level (0 to 3, or -1). Boxes entirely behind the
     camera get an empty 2D box at (0, 0). Every positive size is written so that it reads back
     positive (below a millimetre in exponent form), as the reader requires.

@@ -323,9 +323,9 @@ def _check_input(data_dict: Mapping[str, Any]) -> np.ndarray:
 
 
 def drcpo_calibration(calib: Any) -> Any:
-    """drcpo's :class:`~drcpo.datasets.kitti.Calibration` from OpenPCDet's (``P2``, ``R0``,
-    ``V2C``) or drcpo's own."""
-    from drcpo.datasets.kitti import Calibration
+    """drcpo's :class:`~drcpo.datasets.kitti_coordinates.Calibration` from OpenPCDet's (``P2``,
+    ``R0``, ``V2C``) or drcpo's own."""
+    from drcpo.datasets.kitti_coordinates import Calibration
 
     if isinstance(calib, Calibration):
         return calib

@@ -13,6 +13,7 @@ Modules, each importing only those listed before it (and :mod:`drcpo.errors`,
 
 * :mod:`~drcpo.occlusion.checks`: input checks.
 * :mod:`~drcpo.occlusion.grid`: points sorted into direction cells (numba), :class:`GridMemory`.
+* :mod:`~drcpo.occlusion.hull_order`: the order the certified hull takes its points in (numba).
 * :mod:`~drcpo.occlusion.hull`: the certified hull of small clouds (numba).
 * :mod:`~drcpo.occlusion.kernels`: the per-point supporting-plane test (numba).
 * :mod:`~drcpo.occlusion.frame_kernels`: :class:`FrameGrid`'s kernels (numba).

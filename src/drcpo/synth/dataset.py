@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from drcpo.datasets.kitti import DEFAULT_IMAGE_SHAPE, Calibration
+from drcpo.datasets.kitti_coordinates import DEFAULT_IMAGE_SHAPE, Calibration
 from drcpo.datasets.kitti_writer import (
     REFERENCE_CALIB,
     project_boxes,

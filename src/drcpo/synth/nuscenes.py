@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from drcpo.datasets.nuscenes import yaw_quaternion
+from drcpo.datasets.nuscenes_geometry import yaw_quaternion
 from drcpo.datasets.nuscenes_writer import (
     AnnotationRecord,
     SceneRecord,

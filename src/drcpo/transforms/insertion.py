@@ -122,7 +122,7 @@ def road_plane_heights(plane: np.ndarray, calib: Any, xyz: np.ndarray) -> np.nda
 
     ``plane`` is ``(a, b, c, d)`` in rectified camera coordinates (``a x + b y + c z + d = 0``,
     y pointing down), as in KITTI's ``planes/*.txt``; ``calib`` a
-    :class:`~drcpo.datasets.kitti.Calibration`. Same arithmetic as OpenPCDet's
+    :class:`~drcpo.datasets.kitti_coordinates.Calibration`. Same arithmetic as OpenPCDet's
     ``put_boxes_on_road_planes``: project the point into the camera frame, solve the plane for y
     there, and map the result back to LiDAR.
     """
