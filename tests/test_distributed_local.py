@@ -4,6 +4,7 @@ same bytes as one, a stopped run resumes on either, a worker's error comes back 
 from __future__ import annotations
 
 import shutil
+import signal
 
 import pytest
 from export_support import random_transform, small_kitti, tree_bytes
@@ -57,6 +58,8 @@ def test_worker_processes_write_the_bytes_of_one_process(
     )  # fmt: skip
     assert tree_bytes(tmp_path / "out") == tree_bytes(reference / kind)
     assert summary["frames"] == 8 and seen[-1] == (8, 8)
+    report = summary["processes"]
+    assert report["startup_s"] > 0 and len({w["pid"] for w in report["workers"]}) == 2
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
@@ -89,6 +92,25 @@ def test_a_bad_frame_in_a_worker_raises_its_own_error(kitti, tmp_path):
     (root / "training" / "velodyne" / "000005.bin").write_bytes(b"12345")  # not N x 4 float32
     with pytest.raises(DataError, match="000005.bin"):
         augment_kitti_processes(root, "train", random_transform(), tmp_path / "out", workers=2)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_worker_that_cannot_start_raises_its_error_before_any_frame(kitti, database, tmp_path):
+    def hung(signum, frame):
+        raise TimeoutError("the run hung: a pool restarts a worker whose start-up raised")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(120)
+    try:
+        with pytest.raises(DataError, match="no candidate index") as raised:
+            augment_kitti_processes(
+                kitti, "train", drcpo_pipeline(database), tmp_path / "out", workers=2,
+                index_path=tmp_path / "no-index",
+            )  # fmt: skip
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert any("in worker process" in note for note in raised.value.__notes__)
     assert not (tmp_path / "out").exists()
 
 
