@@ -3,6 +3,8 @@ same bytes as one, a stopped run resumes on either, a worker's error comes back 
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import shutil
 import signal
 
@@ -11,7 +13,7 @@ from export_support import random_transform, small_kitti, tree_bytes
 
 from drcpo.datasets.export import augment_kitti
 from drcpo.distributed.local import augment_kitti_processes
-from drcpo.errors import DataError
+from drcpo.errors import DataError, DrcpoError
 from drcpo.staging import staging_path
 
 
@@ -112,6 +114,33 @@ def test_a_worker_that_cannot_start_raises_its_error_before_any_frame(kitti, dat
         signal.signal(signal.SIGALRM, previous)
     assert any("in worker process" in note for note in raised.value.__notes__)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_worker_killed_mid_run_stops_it_with_a_clear_error(kitti, reference, tmp_path):
+    # A worker killed outright (the kernel's out-of-memory killer, a user's kill -9) sends
+    # nothing back: the run must say so rather than wait for its frames for ever.
+    def hung(signum, frame):
+        raise TimeoutError("the run hung on a dead worker")
+
+    def kill_one(done: int, total: int) -> None:
+        if done == 1:
+            os.kill(multiprocessing.active_children()[0].pid, signal.SIGKILL)
+
+    out = tmp_path / "out"
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(120)
+    try:
+        with pytest.raises(DrcpoError, match="a worker process died while augmenting frame"):
+            augment_kitti_processes(
+                kitti, "train", random_transform(), out, seed=9, workers=2, progress=kill_one
+            )
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert not out.exists() and not multiprocessing.active_children()
+    # what was written is kept, and the next run finishes the same bytes
+    augment_kitti_processes(kitti, "train", random_transform(), out, seed=9, workers=2)
+    assert tree_bytes(out) == tree_bytes(reference / "global")
 
 
 def test_cli_augment_with_worker_processes(kitti, database, reference, tmp_path):

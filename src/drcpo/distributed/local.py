@@ -14,11 +14,14 @@ import queue
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Any
 
 from drcpo.datasets.export import augment_kitti
 from drcpo.distributed.augment import FrameWorker, transform_sources
+from drcpo.errors import DrcpoError
 from drcpo.transforms.base import Transform
 
 __all__ = ["augment_kitti_processes"]
@@ -34,8 +37,7 @@ def _start(args: tuple[Any, ...], cores: Any, ready: Any) -> None:
     try:
         _WORKER.append(FrameWorker(*args))
     except Exception as exc:
-        # Raised here, the pool would start a new worker in its place for ever and the run
-        # would never end: the driver raises it instead, before any frame is handed out.
+        # Raised here, it would only say that the pool broke: the driver raises it as it was.
         exc.add_note(f"in worker process {os.getpid()}:\n{traceback.format_exc()}")
         try:
             ready.put(exc)
@@ -70,8 +72,10 @@ def augment_kitti_processes(
     (a registered transform) over its database opened from disk, and its index (default
     ``database.path / "index"``). At most two frames per worker are handed out ahead; when the
     run stops (an error, ``progress`` raising), the frames being written are finished before
-    the processes go. A worker's error is raised here as it was raised there; one raised while
-    a worker starts, before any frame is handed out. The summary adds ``processes``:
+    the processes go. A worker's error is raised here as it was raised there, one raised while
+    a worker starts before any frame is written; a worker that dies (killed, out of memory)
+    stops the run with a :class:`~drcpo.errors.DrcpoError` saying so (the frames written are
+    kept: a new run resumes from them). The summary adds ``processes``:
     ``startup_s`` (spawning the processes up to all of them warmed) and per worker its
     :meth:`~drcpo.distributed.augment.FrameWorker.info` at start-up.
     """
@@ -87,41 +91,33 @@ def augment_kitti_processes(
         start = time.perf_counter()
         count = min(int(workers), len(numbers))
         context = multiprocessing.get_context("spawn")  # no state of this process is inherited
-        cores, ready = context.Queue(), context.SimpleQueue()
+        cores, ready = context.Queue(), context.Queue()
         available = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
         for k in range(count):
             cores.put(available[k % len(available)] if len(available) >= count else None)
-        with context.Pool(count, initializer=_start, initargs=(args, cores, ready)) as pool:
-            started = [ready.get() for _ in range(count)]
-            for info in started:
-                if isinstance(info, Exception):
-                    raise info
+        pool = ProcessPoolExecutor(count, context, _start, (args, cores, ready))
+        jobs: dict[Future, int] = {}
+        todo = iter(numbers)
+
+        def submit(k: int) -> None:
+            for n in itertools.islice(todo, k):
+                jobs[pool.submit(_augment, str(staging), n)] = n
+
+        try:
+            submit(2 * count)  # (the pool starts its processes as work arrives)
+            report["workers"] = _started(ready, count, jobs)
             report["startup_s"] = time.perf_counter() - start
-            report["workers"] = started
-            # Frames come back as they are written, not in order: a slow frame at the head
-            # would otherwise leave the other workers idle once the frames ahead are done.
-            finished: queue.SimpleQueue[int] = queue.SimpleQueue()
-            jobs: dict[int, Any] = {}
-
-            def submit(n: int) -> None:
-                jobs[n] = pool.apply_async(
-                    _augment, (str(staging), n),
-                    callback=lambda _, n=n: finished.put(n),
-                    error_callback=lambda _, n=n: finished.put(n),
-                )  # fmt: skip
-
-            todo = iter(numbers)
-            for n in itertools.islice(todo, 2 * count):
-                submit(n)
-            try:
-                while jobs:
-                    number = jobs.pop(finished.get()).get()  # a worker's error raised here
-                    for n in itertools.islice(todo, 1):
-                        submit(n)
+            while jobs:
+                # frames come back as they are written, not in order: a slow frame at the
+                # head would otherwise leave the other workers idle
+                for job in wait(jobs, return_when=FIRST_COMPLETED).done:
+                    number = jobs.pop(job)
+                    _result(job, number)  # a worker's error raised here
+                    submit(1)
                     yield number
-            finally:
-                for job in jobs.values():  # no frame is cut off half-way when the pool goes
-                    job.wait()
+        finally:
+            # no frame is cut off half-way: those being written finish, the others never start
+            pool.shutdown(wait=True, cancel_futures=True)
 
     summary = augment_kitti(
         root, split, transform, out, frames, seed, fov_only, overwrite, progress, inputs,
@@ -129,3 +125,30 @@ def augment_kitti_processes(
     )  # fmt: skip
     summary["processes"] = report
     return summary
+
+
+def _started(ready: Any, count: int, jobs: dict[Future, int]) -> list[dict[str, Any]]:
+    """Each worker's :meth:`~drcpo.distributed.augment.FrameWorker.info` once warmed; its
+    start-up error raised as it was raised there, or the pool's if a worker died."""
+    started: list[Any] = []
+    while len(started) < count:
+        try:
+            started.append(ready.get(timeout=0.5))
+        except queue.Empty:
+            for job, number in jobs.items():
+                if job.done():
+                    _result(job, number)
+            continue
+        if isinstance(started[-1], Exception):
+            raise started[-1]
+    return started
+
+
+def _result(job: Future, number: int) -> int:
+    try:
+        return job.result()
+    except BrokenProcessPool as exc:
+        raise DrcpoError(
+            f"a worker process died while augmenting frame number {number} (killed, or out of "
+            "memory?); the frames written so far are kept and a new run resumes from them"
+        ) from exc
