@@ -27,6 +27,7 @@ LAYERS: dict[str, int] = {
     "drcpo.config_fields": 1,
     "drcpo.partitions": 2,
     "drcpo.ground": 2,
+    "drcpo.ground_plane": 2,
     "drcpo.collisions": 2,
     "drcpo.datasets": 2,
     "drcpo.datasets.nuscenes": 2,
