@@ -41,6 +41,7 @@ LAYERS: dict[str, int] = {
     "drcpo.evaluation": 3,
     "drcpo.construction": 4,
     "drcpo.index": 4,
+    "drcpo.index_build": 4,
     "drcpo.similarity": 4,
     "drcpo.placement": 4,
     "drcpo.poses": 4,

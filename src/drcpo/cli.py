@@ -379,7 +379,8 @@ def index(
 
     from drcpo.config import load_config
     from drcpo.database import GroundTruthDatabase
-    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT, build_index, indexed_mask
+    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT
+    from drcpo.index_build import build_index, indexed_mask
     from drcpo.outputs import check_output
 
     settings = load_config(config).index

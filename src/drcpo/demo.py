@@ -37,7 +37,8 @@ from drcpo.datasets.kitti import KittiDataset, fov_mask
 from drcpo.errors import DrcpoError
 from drcpo.frame import Frame
 from drcpo.geometry import points_in_boxes
-from drcpo.index import CandidateIndex, build_index
+from drcpo.index import CandidateIndex
+from drcpo.index_build import build_index
 from drcpo.outputs import OutputKind, atomic_write_bytes, check_output
 from drcpo.partitions import partition_counts
 from drcpo.synth.dataset import matches, synth_parameters, write_synthetic_kitti
