@@ -54,6 +54,7 @@ LAYERS: dict[str, int] = {
     "drcpo.integrations": 9,
     "drcpo.demo": 9,
     "drcpo.cli": 9,
+    "drcpo.cli_console": 9,
     "drcpo": 9,
 }
 
