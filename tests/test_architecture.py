@@ -55,6 +55,7 @@ LAYERS: dict[str, int] = {
     "drcpo.demo": 9,
     "drcpo.cli": 9,
     "drcpo.cli_console": 9,
+    "drcpo.cli_data": 9,
     "drcpo": 9,
 }
 
