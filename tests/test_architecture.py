@@ -53,6 +53,7 @@ LAYERS: dict[str, int] = {
     "drcpo.distributed": 8,
     "drcpo.integrations": 9,
     "drcpo.demo": 9,
+    "drcpo.demo_figures": 9,
     "drcpo.cli": 9,
     "drcpo.cli_console": 9,
     "drcpo.cli_data": 9,
