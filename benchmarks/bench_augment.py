@@ -39,7 +39,8 @@ import numpy as np
 
 from drcpo.database import GroundTruthDatabase, ObjectRecord
 from drcpo.frame import Frame
-from drcpo.index import IndexConfig, build_index, load_index
+from drcpo.index import IndexConfig, load_index
+from drcpo.index_build import build_index
 from drcpo.pipeline import build_pipeline
 
 KITTI_SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_sample"

@@ -59,7 +59,7 @@ LABELS = {"one": "one process", "processes": "processes", "cluster": "cluster"}
 def prepare(work: Path, frames: int) -> tuple[Path, Path]:
     """The synthetic KITTI root (all frames in split train) and its database with index."""
     from drcpo.database.build import build_database
-    from drcpo.index import build_index
+    from drcpo.index_build import build_index
     from drcpo.synth import write_synthetic_kitti
 
     kitti, db = work / "kitti", work / "db"

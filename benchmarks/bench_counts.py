@@ -54,7 +54,8 @@ def pool(work: Path, seed: int, frames: int) -> Path:
 def database(work: Path, root: Path) -> str:
     from drcpo.database import GroundTruthDatabase
     from drcpo.database.build import build_database
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     db = work / f"db_{root.name}"
     if not (db / "manifest.json").is_file():

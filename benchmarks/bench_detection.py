@@ -121,7 +121,8 @@ def prepare_data(work: Path, plan: Plan) -> dict[str, Any]:
     from drcpo.database.build import build_database
     from drcpo.datasets.kitti import read_split
     from drcpo.datasets.kitti_writer import write_image_sets
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     train_root, val_root = work / "train", work / "val"
     jobs = [

@@ -38,7 +38,8 @@ import numpy as np
 
 from drcpo.database import GroundTruthDatabase
 from drcpo.geometry import canonical_iou3d
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 from drcpo.similarity import SimilaritySearch, similarity_recall
 
 KITTI = {"Car": 14_357, "Pedestrian": 2_207, "Cyclist": 734}

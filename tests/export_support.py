@@ -48,7 +48,8 @@ def tree_bytes(root: Path, timings: bool = False) -> dict[str, bytes]:
 def drcpo_world(tmp_path: Path):
     """A small KITTI root, a database built from it and its saved candidate index."""
     from drcpo.database.build import build_database
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     root = small_kitti(tmp_path / "kitti")
     db = build_database(root, "train", tmp_path / "db")

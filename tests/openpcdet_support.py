@@ -33,7 +33,8 @@ def sample_database(out: Path) -> Path:
     """drcpo's database of the KITTI sample at ``out``, imported from OpenPCDet's dbinfos (as
     the README says) and indexed with a small K; the tests' and benchmarks' shared fixture."""
     from drcpo.database import import_openpcdet
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     database = import_openpcdet(KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)
     build_index(database, IndexConfig(k=20)).save(out)

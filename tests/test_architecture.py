@@ -28,6 +28,7 @@ LAYERS: dict[str, int] = {
     "drcpo.config_fields": 1,
     "drcpo.partitions": 2,
     "drcpo.ground": 2,
+    "drcpo.ground_plane": 2,
     "drcpo.collisions": 2,
     "drcpo.datasets": 2,
     "drcpo.datasets.nuscenes": 2,
@@ -42,6 +43,7 @@ LAYERS: dict[str, int] = {
     "drcpo.construction": 4,
     "drcpo.construction_kernels": 4,
     "drcpo.index": 4,
+    "drcpo.index_build": 4,
     "drcpo.similarity": 4,
     "drcpo.placement": 4,
     "drcpo.poses": 4,
@@ -53,7 +55,10 @@ LAYERS: dict[str, int] = {
     "drcpo.distributed": 8,
     "drcpo.integrations": 9,
     "drcpo.demo": 9,
+    "drcpo.demo_figures": 9,
     "drcpo.cli": 9,
+    "drcpo.cli_console": 9,
+    "drcpo.cli_data": 9,
     "drcpo": 9,
 }
 

@@ -18,7 +18,8 @@ from test_pipeline import synthetic_database, synthetic_frame
 
 import drcpo
 from drcpo.frame import Frame
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 from drcpo.pipeline import build_pipeline
 
 

@@ -244,7 +244,8 @@ def test_config_grids_and_padded_class_maxima(database, rng):
 
 def test_real_kitti_database_with_its_index(kitti_sample, tmp_path):
     from drcpo.database.build import build_database
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     database = build_database(kitti_sample, "train", tmp_path / "db", classes="all")
     index = build_index(database, IndexConfig())

@@ -37,7 +37,8 @@ from test_pipeline import synthetic_database, synthetic_frame
 from test_velocity import DB_INTENSITY, feature_database, feature_frame
 
 from drcpo.frame import VELOCITY, Frame, validate_frame
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 from drcpo.pipeline import build_pipeline
 from drcpo.transforms import (
     DRCPO,

@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 from drcpo.cli import app
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import DataError
-from drcpo.index import INDEX_DIRNAME, IndexConfig, build_index, load_index
+from drcpo.index import INDEX_DIRNAME, IndexConfig, load_index
+from drcpo.index_build import build_index
 
 
 @pytest.fixture

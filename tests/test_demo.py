@@ -15,8 +15,11 @@ from matplotlib.image import imread
 from typer.testing import CliRunner
 
 import drcpo.demo
+import drcpo.demo_figures
 from drcpo.cli import app
-from drcpo.demo import DEFAULT_PRESETS, closest_match, inserted_mask
+from drcpo.demo import DEFAULT_PRESETS
+from drcpo.demo_figures import closest_match, inserted_mask
+from drcpo.errors import DrcpoError
 from drcpo.frame import Frame
 
 #: Every stage of the demo, in order: all of them must run.
@@ -233,12 +236,12 @@ def test_side_view_picks_a_class_every_pool_has_and_a_dense_real_object():
     other = _pool(["Car", "Car", "Cyclist"], [30.0, 19.5, 8.0], [250, 90, 40])
     # the real Car at 20 m is nearer both, but too sparse: the one at 31 m (and the inserted
     # nearest it, however sparse the paper's is)
-    assert drcpo.demo._side_view_picks([real, paper, other]) == ("Car", [1, 0, 0])
+    assert drcpo.demo_figures._side_view_picks([real, paper, other]) == ("Car", [1, 0, 0])
     # no Car inserted by one preset: the next class every pool has
     no_car = _pool(["Pedestrian"], [14.0], [30])
-    assert drcpo.demo._side_view_picks([real, paper, no_car]) == ("Pedestrian", [2, 1, 0])
+    assert drcpo.demo_figures._side_view_picks([real, paper, no_car]) == ("Pedestrian", [2, 1, 0])
     # no real object dense enough: the sparse ones
     sparse = _pool(["Car", "Car"], [40.0, 21.5], [3, 5])
-    assert drcpo.demo._side_view_picks([sparse, paper, other]) == ("Car", [1, 0, 1])
-    with pytest.raises(drcpo.demo.DemoError, match="side view"):
-        drcpo.demo._side_view_picks([real, _pool(["Cyclist"], [5.0], [50])])
+    assert drcpo.demo_figures._side_view_picks([sparse, paper, other]) == ("Car", [1, 0, 1])
+    with pytest.raises(DrcpoError, match="side view"):
+        drcpo.demo_figures._side_view_picks([real, _pool(["Cyclist"], [5.0], [50])])

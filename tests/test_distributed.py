@@ -51,7 +51,7 @@ def kitti(tmp_path_factory):
 def database(kitti, tmp_path_factory):
     """A database of the small root's cars, with its index (what DR.CPO needs)."""
     from drcpo.database.build import build_database
-    from drcpo.index import build_index
+    from drcpo.index_build import build_index
 
     path = tmp_path_factory.mktemp("db") / "db"
     db = build_database(kitti, "train", path, ["Car"])
@@ -346,7 +346,8 @@ def test_cluster_index_equals_one_process(cluster, tmp_path, approximate_above):
 
     from drcpo.database import GroundTruthDatabase
     from drcpo.distributed import build_index_cluster
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     many_objects().save(tmp_path / "db")
     database = GroundTruthDatabase.open(tmp_path / "db")

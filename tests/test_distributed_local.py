@@ -25,7 +25,7 @@ def kitti(tmp_path_factory):
 @pytest.fixture(scope="module")
 def database(kitti, tmp_path_factory):
     from drcpo.database.build import build_database
-    from drcpo.index import build_index
+    from drcpo.index_build import build_index
 
     path = tmp_path_factory.mktemp("db") / "db"
     db = build_database(kitti, "train", path, ["Car"])

@@ -270,7 +270,8 @@ def test_a_resume_with_another_candidate_index_is_refused(tmp_path):
     from export_support import drcpo_world
 
     root, db, _ = drcpo_world(tmp_path)
-    from drcpo.index import IndexConfig, build_index, load_index
+    from drcpo.index import IndexConfig, load_index
+    from drcpo.index_build import build_index
     from drcpo.pipeline import build_pipeline
 
     out = tmp_path / "out"

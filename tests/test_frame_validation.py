@@ -13,7 +13,8 @@ from test_pipeline import synthetic_database, synthetic_frame
 
 from drcpo.errors import DataError
 from drcpo.frame import DICT_FIELDS, Frame, validate_frame
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 from drcpo.pipeline import build_pipeline
 from drcpo.transforms import DRCPO, GlobalFlip, GlobalRotation, GlobalScaling, GroundTruthSampling
 
@@ -41,7 +42,8 @@ for seed in range(6):
 SYNTHETIC_SETUP = """
 from test_pipeline import synthetic_database
 from drcpo.frame import Frame
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 db = synthetic_database(np.random.default_rng(7), {"Car": 60, "Pedestrian": 30, "Cyclist": 20})
 pipeline = build_pipeline("default", db, build_index(db, IndexConfig(k=20)))
 rng = np.random.default_rng(0)
@@ -52,7 +54,8 @@ frame = Frame(np.column_stack([xyz, rng.uniform(0, 1, 5000)]).astype(np.float32)
 KITTI_SETUP = """
 from drcpo.database.build import build_database
 from drcpo.datasets.kitti import KittiDataset
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 root, out = sys.argv[1], sys.argv[2]
 db = build_database(root, "train", out)
 build_index(db, IndexConfig(k=20)).save(out)

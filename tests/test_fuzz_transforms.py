@@ -17,7 +17,8 @@ from test_pipeline import synthetic_database
 
 from drcpo.errors import DataError
 from drcpo.frame import MAX_COORDINATE, Frame
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 from drcpo.pipeline import build_pipeline
 from drcpo.transforms import DRCPO, GlobalFlip, GlobalRotation, GlobalScaling, GroundTruthSampling
 

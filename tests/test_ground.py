@@ -13,8 +13,8 @@ from drcpo.ground import (
     _bin_lowest_points,
     _fill_heights,
     _ground_cells,
-    road_plane_to_lidar,
 )
+from drcpo.ground_plane import road_plane_to_lidar
 
 
 def tilted(xy):

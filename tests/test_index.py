@@ -7,14 +7,8 @@ import pytest
 from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError, DataError
 from drcpo.geometry import canonical_iou3d
-from drcpo.index import (
-    CandidateIndex,
-    IndexConfig,
-    build_index,
-    indexed_mask,
-    load_index,
-    partition_occupancy,
-)
+from drcpo.index import CandidateIndex, IndexConfig, load_index
+from drcpo.index_build import build_index, indexed_mask, partition_occupancy
 from drcpo.partitions import grid_for, mirror_points, num_partitions, partition_counts
 from drcpo.similarity import SimilaritySearch, similarity_recall
 
@@ -459,12 +453,12 @@ def test_k_above_the_bound_is_refused(k):
 
 
 def test_candidate_table_too_large_for_memory_is_refused_before_allocating(monkeypatch):
-    import drcpo.index
+    import drcpo.index_build
 
     db = random_database(np.random.default_rng(18), 300, classes=("Car", "Van"))
     largest = max(int((db.names == c).sum()) for c in ("Car", "Van"))
     # test seam: the memory probe, so that the refusal is tested without a huge table
-    monkeypatch.setattr(drcpo.index, "_memory_bytes", lambda: 1 << 20)  # a 1 MiB machine
+    monkeypatch.setattr(drcpo.index_build, "_memory_bytes", lambda: 1 << 20)  # a 1 MiB machine
     with pytest.raises(ConfigError) as info:
         build_index(db, IndexConfig(k=5000, min_points=0))
     message = str(info.value)

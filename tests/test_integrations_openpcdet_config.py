@@ -30,7 +30,8 @@ def sample_db(tmp_path_factory):
     if not KITTI_SAMPLE.is_dir():
         pytest.skip(f"KITTI sample not found at {KITTI_SAMPLE} (only CI and developers have it)")
     from drcpo.database.dbinfos import import_openpcdet
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
 
     out = tmp_path_factory.mktemp("openpcdet") / "db"
     database = import_openpcdet(KITTI_SAMPLE / "kitti_dbinfos_train.pkl", out)

@@ -10,7 +10,7 @@ import pytest
 
 from drcpo.construction_kernels import _add_source, _Box, _gather, _Stored
 from drcpo.database import GroundTruthDatabase
-from drcpo.index import partition_occupancy
+from drcpo.index_build import partition_occupancy
 from drcpo.partitions import (
     cell_of,
     flat_cell,

@@ -461,7 +461,8 @@ def synthetic_world():
     """A synthetic database of object surfaces, its index, and two ray-cast frames (camera FOV)."""
     from drcpo.datasets.kitti_coordinates import fov_mask
     from drcpo.datasets.kitti_writer import reference_calibration
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
     from drcpo.synth import frame_rng, synthesize_frame
 
     db = synthetic_database(
@@ -489,7 +490,8 @@ def kitti_world(kitti_sample, tmp_path_factory):
         from drcpo.database.build import build_database
         from drcpo.datasets.kitti import KittiDataset
         from drcpo.datasets.kitti_coordinates import fov_mask
-        from drcpo.index import IndexConfig, build_index
+        from drcpo.index import IndexConfig
+        from drcpo.index_build import build_index
 
         out = tmp_path_factory.mktemp("kitti") / "db"
         db = build_database(kitti_sample, "train", out)

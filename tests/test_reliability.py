@@ -51,7 +51,8 @@ def test_deeply_nested_json_is_an_unreadable_file_not_a_traceback(tmp_path):
 
 
 def test_an_edited_index_is_refused_on_load(tmp_path):
-    from drcpo.index import IndexConfig, build_index, load_index
+    from drcpo.index import IndexConfig, load_index
+    from drcpo.index_build import build_index
 
     rng = np.random.default_rng(1)
     sizes = rng.integers(6, 30, 12)
@@ -129,7 +130,8 @@ def test_an_occlusion_that_is_not_a_kitti_level_is_refused_on_read_and_write(tmp
 
 
 def test_overwrite_removes_only_what_drcpo_wrote_naming_anything_else(tmp_path):
-    from drcpo.index import IndexConfig, build_index
+    from drcpo.index import IndexConfig
+    from drcpo.index_build import build_index
     from drcpo.synth import write_synthetic_kitti
 
     db = _database(tmp_path / "db")

@@ -18,7 +18,8 @@ from drcpo.database.build import build_database_from, frame_records
 from drcpo.errors import DataError
 from drcpo.frame import VELOCITY, Frame, rotate_velocities, validate_frame
 from drcpo.geometry import wrap_angle
-from drcpo.index import IndexConfig, build_index
+from drcpo.index import IndexConfig
+from drcpo.index_build import build_index
 from drcpo.transforms import DRCPO, GlobalFlip, GlobalRotation, GlobalScaling, GroundTruthSampling
 from drcpo.transforms.insertion import placed_object, update_box_metadata
 

@@ -41,7 +41,7 @@ _LAZY = {
     "import_mmdet3d": "drcpo.database",
     "CandidateIndex": "drcpo.index",
     "IndexConfig": "drcpo.index",
-    "build_index": "drcpo.index",
+    "build_index": "drcpo.index_build",
     "load_index": "drcpo.index",
     "hidden_point_removal": "drcpo.occlusion",
     "augment_kitti": "drcpo.datasets.export",

@@ -1,101 +1,44 @@
 """Command-line interface: build-db, import-openpcdet, import-mmdet3d, info, index, augment,
 synth, evaluate, demo.
 
+Here: the ``drcpo`` app (the console script :func:`main`) and the commands that index, augment,
+evaluate and run the demo; the commands that make data (build-db, import-openpcdet,
+import-mmdet3d, info, synth) are in :mod:`drcpo.cli_data`.
+
 Every command prints a summary at the end. On bad input it prints one line naming the culprit
-and exits with status 1: any :class:`drcpo.errors.DrcpoError`, out of memory, or an operating
-system error (the path and the reason: permission denied, disk full, ...); Ctrl-C prints
-"interrupted" and exits with 130 (SIGINT or SIGTERM while an output is written: 128 + the signal
-number, after removing the unfinished output). Usage errors (an option out of range) exit with
-2. Set ``DRCPO_DEBUG=1`` to get the traceback instead.
+and exits with status 1; Ctrl-C prints "interrupted" and exits with 130 (every case, and
+``DRCPO_DEBUG=1`` for the traceback: :mod:`drcpo.cli_console`). Usage errors (an option out of
+range) exit with 2.
 """
 
 from __future__ import annotations
 
 import json
-import os
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
 from rich.table import Table
-from rich.text import Text
 from typer.core import TyperGroup
 
-from drcpo.errors import DrcpoError
-from drcpo.outputs import Interrupted
+from drcpo.cli_console import fail, progress_bar, safety_net
+from drcpo.cli_data import (
+    CLUSTER_HELP,
+    VERIFY_HELP,
+    build_db,
+    import_mmdet3d_command,
+    import_openpcdet_command,
+    info,
+    synth,
+)
 
 __all__ = ["app", "main"]
 
 if TYPE_CHECKING:  # the evaluator loads its kernels: imported by its command only
     from drcpo.evaluation import KittiEvaluation
-
-console = Console(stderr=True)
-VERIFY_HELP = (
-    "Check the database's files against its manifest checksum (and for NaN/inf) on opening; "
-    "--no-verify skips it for huge databases verified once already."
-)
-CLUSTER_HELP = (
-    "Spread the work over a Ray cluster (pip install drcpo[ray]): 'local' starts one on this "
-    "machine, else a running cluster's address (every node sees the same paths). The output is "
-    "the same as without it."
-)
-
-
-def say_error(message: str) -> None:
-    """Print ``error: message`` on stderr as one line."""
-    # Not wrapped (paths stay whole for copying) and not read as markup (paths may hold "[").
-    console.print(Text.assemble(("error:", "bold red"), " ", message), soft_wrap=True)
-
-
-def fail(message: str) -> None:
-    """Print an error message and exit with status 1."""
-    say_error(message)
-    raise typer.Exit(1)
-
-
-@contextmanager
-def safety_net() -> Iterator[None]:
-    """Turn the errors a user can meet into one line on stderr and an exit status (no traceback).
-
-    :class:`DrcpoError`, :class:`MemoryError` and :class:`OSError` exit with 1,
-    :class:`KeyboardInterrupt` with 130. Anything else is a bug in drcpo and keeps its traceback;
-    with ``DRCPO_DEBUG=1`` every exception does.
-    """
-    if os.environ.get("DRCPO_DEBUG") == "1":
-        yield
-        return
-    try:
-        yield
-    except DrcpoError as exc:
-        _exit(str(exc))
-    except Interrupted as exc:  # SIGINT/SIGTERM while an output was being written
-        console.print(Text.assemble(("interrupted:", "bold red"), " ", str(exc)), soft_wrap=True)
-        raise SystemExit(exc.exit_status) from None
-    except KeyboardInterrupt:
-        console.print("interrupted", soft_wrap=True, markup=False)
-        raise SystemExit(130) from None
-    except MemoryError as exc:
-        _exit(f"out of memory ({exc})" if str(exc) else "out of memory")
-    except BrokenPipeError:
-        raise  # stdout closed early (`drcpo info --json | head`): typer exits quietly
-    except OSError as exc:
-        _exit(os_error_message(exc))
-
-
-def _exit(message: str) -> NoReturn:
-    say_error(message)
-    raise SystemExit(1) from None
-
-
-def os_error_message(exc: OSError) -> str:
-    """``path: reason`` (``source -> target: reason`` for a rename or link) of an OS error."""
-    reason = exc.strerror or str(exc) or type(exc).__name__
-    paths = [str(path) for path in (exc.filename, exc.filename2) if path is not None]
-    return f"{' -> '.join(paths)}: {reason}" if paths else reason
 
 
 class _SafeGroup(TyperGroup):
@@ -115,209 +58,6 @@ app = typer.Typer(
 )
 
 
-def class_table(summary: dict[str, dict[str, int]], title: str) -> Table:
-    table = Table(title=title)
-    table.add_column("class")
-    table.add_column("objects", justify="right")
-    table.add_column("points", justify="right")
-    for name, row in summary.items():
-        table.add_row(name, str(row["objects"]), str(row["points"]))
-    table.add_row(
-        "[bold]total",
-        str(sum(r["objects"] for r in summary.values())),
-        str(sum(r["points"] for r in summary.values())),
-    )
-    return table
-
-
-@contextmanager
-def progress_bar(description: str) -> Iterator[Callable[[int, int], None]]:
-    """A rich progress bar on stderr; yields a ``progress(done, total)`` callback."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-    columns = (*Progress.get_default_columns()[:1], BarColumn(), MofNCompleteColumn())
-    with Progress(*columns, TimeElapsedColumn(), console=console) as bar:
-        task = bar.add_task(description, total=None)
-        yield lambda done, total: bar.update(task, completed=done, total=total)
-
-
-def _class_list(classes: list[str] | None, extra: list[str]) -> list[str] | str:
-    """``--classes`` values: repeated, comma-separated or space-separated (``Car Pedestrian``)."""
-    if extra and not classes:
-        fail(f"unexpected argument(s): {' '.join(extra)}")
-    if not classes:
-        from drcpo.database.build import DEFAULT_CLASSES
-
-        return list(DEFAULT_CLASSES)
-    names = [name for item in [*classes, *extra] for name in item.split(",") if name]
-    return "all" if names == ["all"] else names
-
-
-@app.command("build-db", context_settings={"allow_extra_args": True})
-def build_db(
-    ctx: typer.Context,
-    out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
-    kitti: Annotated[
-        Path | None, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")
-    ] = None,
-    nuscenes: Annotated[
-        Path | None,
-        typer.Option("--nuscenes", help="nuScenes-style root (v1.0-*/ tables, samples/, sweeps/)."),
-    ] = None,
-    split: Annotated[str, typer.Option(help="KITTI: frames of ImageSets/<split>.txt.")] = "train",
-    version: Annotated[str, typer.Option(help="nuScenes: the tables' version.")] = "v1.0-trainval",
-    scenes: Annotated[
-        Path | None,
-        typer.Option(help="nuScenes: a file of scene names, one per line (default: all scenes)."),
-    ] = None,
-    sweeps: Annotated[
-        int, typer.Option(min=0, help="nuScenes: earlier sweeps joined to each key sweep.")
-    ] = 0,
-    classes: Annotated[
-        list[str] | None,
-        typer.Option(
-            help="Classes to keep (e.g. --classes Car Pedestrian), or 'all' for every "
-            "non-DontCare class. Default: Car Pedestrian Cyclist (KITTI), the ten detection "
-            "classes (nuScenes)."
-        ),
-    ] = None,
-    workers: Annotated[
-        int, typer.Option(min=1, help="Processes reading frames (with --cluster: its workers).")
-    ] = 1,
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
-    cluster: Annotated[str | None, typer.Option(help=CLUSTER_HELP)] = None,
-) -> None:
-    """Build a ground-truth database from a KITTI split or a nuScenes-style data set."""
-    if (kitti is None) == (nuscenes is None):
-        fail("build-db: give exactly one of --kitti ROOT or --nuscenes ROOT")
-    if nuscenes is not None:
-        _build_db_nuscenes(
-            ctx, nuscenes, out, version, scenes, sweeps, classes, workers, overwrite, cluster
-        )
-        return
-    from drcpo.database.build import build_database
-
-    chosen = _class_list(classes, list(ctx.args))
-    with progress_bar(f"frames of {split}") as progress:
-        if cluster is None:
-            database = build_database(
-                kitti, split, out, chosen, workers=workers, overwrite=overwrite, progress=progress
-            )
-        else:
-            from drcpo.distributed import build_database_cluster
-
-            database = build_database_cluster(
-                kitti, split, out, chosen, overwrite, progress, cluster, workers
-            )
-    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
-
-
-def _build_db_nuscenes(
-    ctx: typer.Context,
-    root: Path,
-    out: Path,
-    version: str,
-    scenes: Path | None,
-    sweeps: int,
-    classes: list[str] | None,
-    workers: int,
-    overwrite: bool,
-    cluster: str | None,
-) -> None:
-    """``build-db --nuscenes``: the key samples of the chosen scenes, ``sweeps`` joined."""
-    from drcpo.database.build import build_database_from
-    from drcpo.datasets.nuscenes import NUSCENES_CLASSES, NuScenesDataset
-
-    chosen = list(NUSCENES_CLASSES) if not classes else _class_list(classes, list(ctx.args))
-    dataset = NuScenesDataset(root, version, scenes=scenes, sweeps=sweeps)
-    parameters = {
-        "source": "nuscenes",
-        "root": str(root.resolve()),
-        "version": version,
-        "scenes": None if scenes is None else str(scenes),
-        "sweeps": sweeps,
-    }
-    with progress_bar(f"samples of {version}") as progress:
-        if cluster is None:
-            database = build_database_from(
-                dataset, out, chosen, workers, overwrite, progress, parameters=parameters
-            )
-        else:
-            from drcpo.distributed import build_dataset_cluster
-
-            database = build_dataset_cluster(
-                dataset, out, chosen, overwrite, progress, cluster, workers, parameters
-            )
-    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
-
-
-def _import_database(
-    importer: Callable[..., Any], dbinfos: Path, out: Path, root: Path | None, overwrite: bool
-) -> None:
-    """Run a framework database importer with a progress bar and print what it made."""
-    with progress_bar("objects") as progress:
-        database = importer(dbinfos, out, root=root, overwrite=overwrite, progress=progress)
-    Console().print(class_table(database.summary(), f"{out} ({len(database)} objects)"))
-
-
-@app.command("import-openpcdet")
-def import_openpcdet_command(
-    dbinfos: Annotated[Path, typer.Argument(help="OpenPCDet *_dbinfos_*.pkl file.")],
-    out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
-    root: Annotated[
-        Path | None,
-        typer.Option(help="Data root the gt_database paths are relative to (default: the pkl's)."),
-    ] = None,
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
-) -> None:
-    """Convert an OpenPCDet ground-truth database (dbinfos pickle + gt_database/) to drcpo's."""
-    from drcpo.database.dbinfos import import_openpcdet
-
-    _import_database(import_openpcdet, dbinfos, out, root, overwrite)
-
-
-@app.command("import-mmdet3d")
-def import_mmdet3d_command(
-    dbinfos: Annotated[Path, typer.Argument(help="MMDetection3D *_dbinfos_*.pkl file.")],
-    out: Annotated[Path, typer.Option("--out", help="Database directory to create.")],
-    root: Annotated[
-        Path | None,
-        typer.Option(help="Data root the gt_database paths are relative to (default: the pkl's)."),
-    ] = None,
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing database.")] = False,
-) -> None:
-    """Convert an MMDetection3D ground-truth database (dbinfos pickle + *_gt_database/; boxes and
-    points relative to the bottom centre) to drcpo's."""
-    from drcpo.database.dbinfos import import_mmdet3d
-
-    _import_database(import_mmdet3d, dbinfos, out, root, overwrite)
-
-
-@app.command()
-def info(
-    db: Annotated[Path, typer.Argument(help="Database directory.")],
-    as_json: Annotated[bool, typer.Option("--json", help="One JSON object on stdout.")] = False,
-    verify: Annotated[bool, typer.Option(help=VERIFY_HELP)] = True,
-) -> None:
-    """Describe a ground-truth database: objects and points per class."""
-    from drcpo.database import GroundTruthDatabase
-
-    database = GroundTruthDatabase.open(db, verify=verify)
-    summary = database.summary()
-    if as_json:
-        payload = {
-            "classes": summary,
-            "format_version": database.manifest.get("format_version"),
-            "objects": len(database),
-            "points": len(database.points),
-            "checksum": database.checksum,
-            "verified": database.verified,
-        }
-        typer.echo(json.dumps(payload))
-        return
-    Console().print(class_table(summary, f"{db} ({len(database)} objects)"))
-
-
 INDEX_CONFIG_HELP = (
     "YAML config file, or a preset: the index is built with its `index` section and the "
     "partition grids and mirrored classes of its drcpo.construction, so that DR.CPO with this "
@@ -326,7 +66,6 @@ INDEX_CONFIG_HELP = (
 )
 
 
-@app.command()
 def index(
     db: Annotated[Path, typer.Argument(help="Database directory (the index goes to DB/index/).")],
     config: Annotated[str | None, typer.Option(help=INDEX_CONFIG_HELP)] = None,
@@ -379,7 +118,8 @@ def index(
 
     from drcpo.config import load_config
     from drcpo.database import GroundTruthDatabase
-    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT, build_index, indexed_mask
+    from drcpo.index import INDEX_DIRNAME, INDEX_OUTPUT
+    from drcpo.index_build import build_index, indexed_mask
     from drcpo.outputs import check_output
 
     settings = load_config(config).index
@@ -427,7 +167,6 @@ def index(
     Console().print(table)
 
 
-@app.command()
 def augment(
     kitti: Annotated[Path, typer.Option("--kitti", help="KITTI root (ImageSets/, training/).")],
     db: Annotated[Path, typer.Option("--db", help="Ground-truth database (with index/).")],
@@ -502,123 +241,6 @@ def augment(
     Console().print(table)
 
 
-SYNTH_LAYOUTS = ("kitti", "nuscenes")
-
-
-@app.command()
-def synth(
-    out: Annotated[Path, typer.Option("--out", help="Data root to create.")],
-    frames: Annotated[
-        int,
-        typer.Option(min=1, help="Frames to generate (nuscenes: key samples, in whole scenes)."),
-    ] = 10,
-    seed: Annotated[
-        int, typer.Option(min=0, help="Random seed, >= 0 (frame or scene i uses (seed, i)).")
-    ] = 0,
-    val_fraction: Annotated[
-        float, typer.Option(min=0.0, max=0.99, help="kitti: share of frames listed in val.txt.")
-    ] = 0.5,
-    azimuth_step: Annotated[
-        float | None,
-        typer.Option(
-            min=0.01, max=10.0, help="kitti: LiDAR azimuth step, degrees (default: the sensor's)."
-        ),
-    ] = None,
-    street_angle: Annotated[
-        float | None,
-        typer.Option(
-            min=0.0,
-            max=90.0,
-            help="Largest absolute yaw of the street from the sensor's x axis, degrees "
-            "(default: 0.1 rad, about 5.7).",
-        ),
-    ] = None,
-    layout: Annotated[
-        str, typer.Option(help="kitti (KITTI object layout) or nuscenes (tables and sweeps).")
-    ] = "kitti",
-    sensor: Annotated[
-        str | None,
-        typer.Option(help="hdl64e or hdl32e (default: hdl64e for kitti, hdl32e for nuscenes)."),
-    ] = None,
-    scene_samples: Annotated[
-        int, typer.Option(min=1, max=100, help="nuscenes: key samples (2 Hz) per scene.")
-    ] = 5,
-    version: Annotated[
-        str, typer.Option(help="nuscenes: the table directory's name.")
-    ] = "v1.0-trainval",
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing output.")] = False,
-) -> None:
-    """Generate a synthetic data set: a ray-cast LiDAR (HDL-64E or 32-beam HDL-32E) in
-    procedural streets, in KITTI or nuScenes layout."""
-    from drcpo.synth import WorldConfig, lidar_preset
-
-    if layout not in SYNTH_LAYOUTS:
-        fail(f"--layout {layout!r} is not one of {', '.join(SYNTH_LAYOUTS)}")
-    sensor = sensor or ("hdl64e" if layout == "kitti" else "hdl32e")
-    lidar = lidar_preset(sensor)
-    world = WorldConfig() if street_angle is None else WorldConfig().with_street_angle(street_angle)
-    if layout == "nuscenes":
-        if azimuth_step is not None:
-            fail("--azimuth-step is for --layout kitti; nuscenes uses the sensor's own")
-        _synth_nuscenes(out, frames, seed, sensor, world, scene_samples, version, overwrite)
-        return
-    from dataclasses import replace
-
-    from drcpo.synth import write_synthetic_kitti
-
-    if azimuth_step is not None:
-        lidar = replace(lidar, azimuth_step_deg=azimuth_step)
-    with progress_bar("synthetic frames") as progress:
-        summary = write_synthetic_kitti(
-            out, frames, seed, world, lidar, val_fraction, overwrite, progress
-        )
-    points = summary["points"]
-    table = Table(title=f"{out}: {frames} frames")
-    table.add_column("")
-    table.add_column("value", justify="right")
-    spread = f"{min(points):,} / {sum(points) / len(points):,.0f} / {max(points):,}"
-    table.add_row("points per frame (min / mean / max)", spread)
-    for name, count in sorted(summary["objects"].items()):
-        table.add_row(f"labelled {name}", str(count))
-    for level, count in sorted(summary["occlusion"].items()):
-        table.add_row(f"occlusion level {level}", str(count))
-    table.add_row("ms per frame", f"{summary['ms_per_frame']:.0f}")
-    Console().print(table)
-
-
-def _synth_nuscenes(
-    out: Path,
-    samples: int,
-    seed: int,
-    sensor: str,
-    world: Any,
-    scene_samples: int,
-    version: str,
-    overwrite: bool,
-) -> None:
-    """``drcpo synth --layout nuscenes``: ``samples`` key samples in scenes of
-    ``scene_samples`` each (rounded up to whole scenes)."""
-    from drcpo.synth.nuscenes import NuScenesSynthConfig, write_synthetic_nuscenes
-
-    scenes = -(-samples // scene_samples)
-    config = NuScenesSynthConfig(samples=min(samples, scene_samples), sensor=sensor, world=world)
-    with progress_bar("synthetic scenes") as progress:
-        summary = write_synthetic_nuscenes(out, scenes, seed, config, version, overwrite, progress)
-    points = summary["points"]
-    table = Table(title=f"{out}: {scenes} scenes, {summary['samples']} samples")
-    table.add_column("")
-    table.add_column("value", justify="right")
-    table.add_row("sweeps (20 Hz)", str(summary["sweeps"]))
-    spread = f"{min(points):,} / {sum(points) / len(points):,.0f} / {max(points):,}"
-    table.add_row("points per key sweep (min / mean / max)", spread)
-    for name, count in sorted(summary["objects"].items()):
-        table.add_row(f"boxes {name} (with points)", str(count))
-    table.add_row("moving objects", str(summary["moving"]))
-    table.add_row("ms per sweep", f"{summary['ms_per_sweep']:.0f}")
-    Console().print(table)
-
-
-@app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Output directory.")] = Path("drcpo_demo"),
     frames: Annotated[
@@ -633,7 +255,6 @@ def demo(
     run_demo(out, frames=frames, seed=seed, augment_frames=augment_frames)
 
 
-@app.command()
 def evaluate(
     gt: Annotated[Path, typer.Option("--gt", help="KITTI root (ImageSets/, training/label_2/).")],
     pred: Annotated[
@@ -684,6 +305,18 @@ def evaluation_table(result: KittiEvaluation, title: str) -> Table:
             table.add_row(name if i == 0 else "", metric, threshold, *cells)
         table.add_section()
     return table
+
+
+# The commands, in the order ``drcpo --help`` lists them.
+app.command("build-db", context_settings={"allow_extra_args": True})(build_db)
+app.command("import-openpcdet")(import_openpcdet_command)
+app.command("import-mmdet3d")(import_mmdet3d_command)
+app.command()(info)
+app.command()(index)
+app.command()(augment)
+app.command()(synth)
+app.command()(demo)
+app.command()(evaluate)
 
 
 def main() -> None:

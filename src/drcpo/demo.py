@@ -8,11 +8,9 @@ Every stage is mandatory: one that fails stops the demo with a :class:`DemoError
 (``drcpo demo``: one line, exit status 1), and the summary's ``stages`` lists the stages that
 ran, in order.
 
-Figures written under ``OUT``: ``bev.png`` (original / after ground-truth sampling / after
-DR.CPO with each preset), ``construction.png`` (one object's iterative construction),
-``density.png`` (points per object against distance, per class: the frames' own objects against
-those each preset inserted), ``side_view.png`` (a real object and one inserted by each preset at
-about the same distance, as the sensor saw them and from the side), plus ``summary.json``.
+Written under ``OUT``: the figures ``bev.png``, ``construction.png``, ``density.png`` and
+``side_view.png`` (:mod:`drcpo.demo_figures` draws them, and says what each shows), plus
+``summary.json``.
 """
 
 from __future__ import annotations
@@ -31,38 +29,32 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from drcpo.config import DRCPOConfig, load_config
-from drcpo.construction import ConstructionConfig, construct_object
 from drcpo.database import GroundTruthDatabase, build_database
 from drcpo.datasets.kitti import KittiDataset
 from drcpo.datasets.kitti_coordinates import fov_mask
+from drcpo.demo_figures import (
+    CLASSES,
+    draw_bev,
+    draw_construction,
+    draw_density,
+    draw_side_view,
+    inserted_mask,
+)
 from drcpo.errors import DrcpoError
 from drcpo.frame import Frame
-from drcpo.geometry import points_in_boxes
-from drcpo.index import CandidateIndex, build_index
+from drcpo.index import CandidateIndex
+from drcpo.index_build import build_index
 from drcpo.outputs import OutputKind, atomic_write_bytes, check_output
-from drcpo.partitions import partition_counts
 from drcpo.synth.dataset import matches, synth_parameters, write_synthetic_kitti
 from drcpo.synth.sensor import LidarConfig
 from drcpo.synth.world import WorldConfig
 from drcpo.transforms import DRCPO, GroundTruthSampling, Transform
-from drcpo.viz import (
-    BevPanel,
-    ConstructionStep,
-    DistanceSeries,
-    ObjectView,
-    bev_figure,
-    construction_figure,
-    density_figure,
-    side_view_figure,
-)
 
 __all__ = [
     "DEFAULT_AUGMENTED",
     "DEFAULT_FRAMES",
     "DEFAULT_PRESETS",
     "DemoError",
-    "closest_match",
-    "inserted_mask",
     "run_demo",
 ]
 
@@ -70,12 +62,6 @@ DEFAULT_FRAMES = 16
 DEFAULT_AUGMENTED = 4
 #: The DR.CPO presets the demo compares (names of packaged configs, or YAML paths).
 DEFAULT_PRESETS: tuple[str, ...] = ("paper",)
-MAX_CONSTRUCTION_PANELS = 8
-CLASSES = ("Car", "Pedestrian", "Cyclist")
-#: The real object of the side view has at least this many points when one has (scan lines show).
-SIDE_VIEW_POINTS = 40
-#: Colour and marker of each preset's series, in the order the presets are given.
-PRESET_STYLES = (("#ff7f0e", "D"), ("#2ca02c", "s"), ("#9467bd", "^"), ("#8c564b", "v"))
 
 
 class DemoError(DrcpoError):
@@ -324,24 +310,6 @@ def _stage_ms(frames: list[Frame]) -> dict[str, float]:
 
 
 # Figures --------------------------------------------------------------------------------------
-def inserted_mask(original: Frame, augmented: Frame) -> np.ndarray:
-    """``bool (M,)``: boxes of ``augmented`` that are not boxes of ``original``."""
-    if len(original.boxes) == 0:
-        return np.ones(len(augmented.boxes), dtype=bool)
-    delta = np.abs(augmented.boxes[:, None, :] - original.boxes[None, :, :]).max(axis=2)
-    return ~(delta < 1e-6).any(axis=1)
-
-
-def _inserted_per_frame(originals: list[Frame], group: list[Frame]) -> dict[str, float]:
-    """Mean objects per frame of each class that the transform added."""
-    counts = {c: 0 for c in CLASSES}
-    for original, frame in zip(originals, group, strict=True):
-        names = frame.names[inserted_mask(original, frame)]
-        for c in CLASSES:
-            counts[c] += int(np.sum(names == c))
-    return {c: counts[c] / max(len(group), 1) for c in CLASSES}
-
-
 def _figures(
     run: _Run,
     out: Path,
@@ -354,227 +322,28 @@ def _figures(
 ) -> dict[str, Path]:
     figures: dict[str, Path] = {}
     with run.stage("figures", f"drawing figures into {out}"):
-        titles = {"gt sampling": "after ground-truth sampling"}
-        shown = _most_inserted(originals, results)
-        first = originals[shown]
-        title = f"original (frame {first.frame_id})"
-        panels = [BevPanel(first.points, first.boxes, first.names.tolist(), title)]
-        for label, group in results.items():
-            frame = group[shown]
-            panels.append(
-                BevPanel(
-                    frame.points,
-                    frame.boxes,
-                    frame.names.tolist(),
-                    titles.get(label, f"after DR.CPO, preset {label}"),
-                    inserted_mask(first, frame),
-                )
-            )
-        figures["bev"] = bev_figure(panels, out / "bev.png")
+        figures["bev"] = draw_bev(originals, results, out / "bev.png")
         preset_results = {label: results[label] for label in presets}
-        figures["density"] = density_figure(
-            _density_series(originals, preset_results), out / "density.png", classes=CLASSES
-        )
-        figures["side_view"] = _side_view(originals, preset_results, out / "side_view.png")
+        figures["density"] = draw_density(originals, preset_results, out / "density.png")
+        figures["side_view"] = draw_side_view(originals, preset_results, out / "side_view.png")
     with run.stage("construction figure", "drawing one object's iterative construction"):
-        name, row, steps = _construction_steps(database, index, seed)
-        title = (
-            f"iterative construction of database object {row} ({name}), seen from above\n"
-            "blue: its own points (mirrored); orange: points added from candidates; "
-            "green: share of each column's partitions above the density threshold"
-        )
-        figures["construction"] = construction_figure(steps, out / "construction.png", title)
+        figures["construction"] = draw_construction(database, index, seed, out / "construction.png")
     for path in figures.values():
         run.console.print(f"    wrote {path}")
     return figures
 
 
-def _most_inserted(originals: list[Frame], results: dict[str, list[Frame]]) -> int:
-    """The augmented frame into which the last transform (the last preset) inserted most."""
-    if not results:
-        return 0
-    group = list(results.values())[-1]
-    counts = [int(inserted_mask(o, a).sum()) for o, a in zip(originals, group, strict=True)]
-    return int(np.argmax(counts))
-
-
-def _objects(frames: list[Frame], originals: list[Frame] | None = None) -> dict[str, np.ndarray]:
-    """The labelled objects of ``frames`` (only those not in ``originals``, when given), as
-    ``frame`` (index into ``frames``), ``box`` (index into its boxes), ``names``, ``distance``
-    (metres, from the sensor) and ``points`` (points in the box)."""
-    columns: dict[str, list] = {"frame": [], "box": [], "names": [], "distance": [], "points": []}
-    for i, frame in enumerate(frames):
-        chosen = (
-            np.ones(len(frame.boxes), bool)
-            if originals is None
-            else inserted_mask(originals[i], frame)
-        )
-        rows = np.flatnonzero(chosen)
-        boxes = frame.boxes[rows]
-        columns["frame"] += [i] * len(rows)
-        columns["box"] += rows.tolist()
-        columns["names"] += frame.names[rows].tolist()
-        columns["distance"] += np.hypot(boxes[:, 0], boxes[:, 1]).tolist()
-        columns["points"] += points_in_boxes(frame.points, boxes).sum(axis=0).tolist()
-    return {
-        "frame": np.array(columns["frame"], dtype=np.int64),
-        "box": np.array(columns["box"], dtype=np.int64),
-        "names": np.array(columns["names"], dtype=str),
-        "distance": np.array(columns["distance"], dtype=np.float64),
-        "points": np.array(columns["points"], dtype=np.int64),
-    }
-
-
-def _density_series(
-    originals: list[Frame], results: dict[str, list[Frame]]
-) -> list[DistanceSeries]:
-    """The frames' own labelled objects, then those each preset inserted."""
-    real = _objects(originals)
-    series = [
-        DistanceSeries(
-            "real (the frames' labels)",
-            real["distance"],
-            real["points"],
-            "#1f77b4",
-            "o",
-            real["names"],
-        )
-    ]
-    for k, (label, group) in enumerate(results.items()):
-        colour, marker = PRESET_STYLES[k % len(PRESET_STYLES)]
-        new = _objects(group, originals)
-        text = f"inserted, preset {label}"
-        series.append(
-            DistanceSeries(text, new["distance"], new["points"], colour, marker, new["names"])
-        )
-    return series
-
-
-def closest_match(reference: np.ndarray, candidates: Sequence[np.ndarray]) -> tuple[int, list[int]]:
-    """The reference distance and, from each group of candidate distances, the one nearest it,
-    chosen so that the largest gap to the reference is smallest.
-
-    Args:
-        reference: ``(R,)`` distances, metres.
-        candidates: ``K`` arrays ``(C_k,)`` of distances, metres.
-
-    Returns ``(i, [j_0, ..., j_{K-1}])``; ties go to the lowest index. Raises ``ValueError``
-    when ``reference`` or any group is empty.
-    """
-    reference = np.asarray(reference, dtype=np.float64).reshape(-1)
-    groups = [np.asarray(c, dtype=np.float64).reshape(-1) for c in candidates]
-    if len(reference) == 0 or any(len(g) == 0 for g in groups):
-        raise ValueError("closest_match needs at least one distance in every group")
-    nearest, gaps = [], []
-    for group in groups:
-        gap = np.abs(group[None, :] - reference[:, None])  # (R, C_k)
-        nearest.append(np.argmin(gap, axis=1))  # argmin: the first of equal gaps
-        gaps.append(gap.min(axis=1))
-    worst = np.max(gaps, axis=0) if gaps else np.zeros(len(reference))
-    i = int(np.argmin(worst))
-    return i, [int(n[i]) for n in nearest]
-
-
-def _side_view_picks(pools: list[dict[str, np.ndarray]]) -> tuple[str, list[int]]:
-    """``(class, [row of each pool])``: one object per pool (of :func:`_objects`; the first is
-    the real ones), of one class, at about the same distance (:func:`closest_match`): Cars when
-    every pool has one, else the next class. The real object has at least
-    :data:`SIDE_VIEW_POINTS` points when one has; an inserted one has points, however few (a
-    sparse one shows what its preset does at that distance)."""
-    for least in (SIDE_VIEW_POINTS, 1):
-        for name in CLASSES:
-            fewest = [least] + [1] * (len(pools) - 1)
-            rows = [
-                np.flatnonzero((p["names"] == name) & (p["points"] >= n))
-                for p, n in zip(pools, fewest, strict=True)
-            ]
-            if all(len(r) for r in rows):
-                distances = [p["distance"][r] for p, r in zip(pools, rows, strict=True)]
-                i, js = closest_match(distances[0], distances[1:])
-                return name, [int(r[k]) for r, k in zip(rows, [i, *js], strict=True)]
-    raise DemoError(
-        "no class has both a real object and one inserted by every preset with points to draw "
-        "in the side view (more --augment-frames?)"
-    )
-
-
-def _side_view(originals: list[Frame], results: dict[str, list[Frame]], path: Path) -> Path:
-    """A real object next to one inserted by each preset (:func:`_side_view_picks`)."""
-    pools = [_objects(originals), *(_objects(group, originals) for group in results.values())]
-    name, picks = _side_view_picks(pools)
-    frames = [originals, *results.values()]
-    titles = [f"real {name}", *(f"inserted, preset {label}" for label in results)]
-    views = []
-    for pool, group, row, title in zip(pools, frames, picks, titles, strict=True):
-        frame = group[int(pool["frame"][row])]
-        box = frame.boxes[int(pool["box"][row])]
-        inside = points_in_boxes(frame.points, box[None])[:, 0]
-        views.append(ObjectView(frame.points[inside], box, f"{title} (frame {frame.frame_id})"))
-    return side_view_figure(
-        views,
-        path,
-        # the synthetic world's sensor, which recorded the frames, at the origin
-        elevations_deg=np.asarray(LidarConfig().elevations_deg),
-        title=(
-            f"a {name} as the sensor saw it (top; grey lines: its beams' elevations) and from "
-            "the side (bottom): a real one and one each preset inserted at about the same distance"
-        ),
-    )
-
-
-def _construction_steps(
-    database: GroundTruthDatabase, index: CandidateIndex, seed: int
-) -> tuple[str, int, list[ConstructionStep]]:
-    """``(class, database row, steps)`` of the construction of one sparse indexed Car."""
-    rows = [r for r in database.rows_of_class("Car") if len(index.candidates_of(int(r)))]
-    if not rows:
-        raise DemoError("no Car of the database has candidates in the index (more --frames?)")
-    # A sparse (far or occluded) but not empty car shows the filling best.
-    rows = sorted(rows, key=lambda r: database.num_points[r])
-    sparse = [r for r in rows if database.num_points[r] >= 30] or rows
-    row = int(sparse[len(sparse) // 4])
-    name = str(database.names[row])
-    max_counts = np.asarray(index.max_counts[name])
-    grid = tuple(index.grids[name])
-
-    def build(iterations: int | None):
-        config = (
-            ConstructionConfig()
-            if iterations is None
-            else ConstructionConfig(max_iterations=iterations)
-        )
-        rng = np.random.default_rng(seed)  # same draws each time: runs share their prefix
-        return construct_object(database, row, index.candidates_of(row), rng, config, max_counts)
-
-    total = build(None).iterations
-    shown = np.unique(np.round(np.linspace(0, total, min(total + 1, MAX_CONSTRUCTION_PANELS))))
-    steps, threshold, source_count = [], 0.0, 0
-    for iterations in shown.astype(int).tolist():
-        built = build(iterations)
-        counts = partition_counts(built.points, built.dims, grid)
-        fillable = max_counts[: len(counts)] > 0
-        density = counts / np.where(fillable, max_counts[: len(counts)], 1)
-        if iterations == 0:
-            occupied = fillable & (counts > 0)
-            threshold = float(density[occupied].mean()) if occupied.any() else 0.0
-            source_count = len(built.points)
-        above = fillable & (density > threshold)
-        added = np.arange(len(built.points)) >= source_count
-        steps.append(
-            ConstructionStep(
-                built.points,
-                added,
-                built.dims,
-                above.reshape(grid),
-                fillable.reshape(grid),
-                built.coverage,
-                built.iterations,
-            )
-        )
-    return name, row, steps
-
-
 # Summary --------------------------------------------------------------------------------------
+def _inserted_per_frame(originals: list[Frame], group: list[Frame]) -> dict[str, float]:
+    """Mean objects per frame of each class that the transform added."""
+    counts = {c: 0 for c in CLASSES}
+    for original, frame in zip(originals, group, strict=True):
+        names = frame.names[inserted_mask(original, frame)]
+        for c in CLASSES:
+            counts[c] += int(np.sum(names == c))
+    return {c: counts[c] / max(len(group), 1) for c in CLASSES}
+
+
 def _print_summary(console: Console, summary: dict[str, Any], results: dict) -> None:
     groups = ["original", *results]
     table = Table(

@@ -1,7 +1,7 @@
 """The candidate index's first stage: for every object of a class, the ``s`` objects whose boxes
 are most alike (canonical IoU), found exactly by a grid search over box sizes or approximately;
 :func:`similarity_recall` measures how much of the exact answer the approximate
-mode keeps. See :mod:`drcpo.index` for the whole method."""
+mode keeps. See :mod:`drcpo.index_build` for the whole method."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """``drcpo index`` on a cluster: each class's objects are ranked in blocks of query rows
-(:func:`~drcpo.index.rank_candidates`' blocks) by long-lived actors, which get the class's
+(:func:`~drcpo.index_build.rank_candidates`' blocks) by long-lived actors, which get the class's
 arrays once through Ray's shared-memory store; the driver writes the blocks into the table in
 block order, so the index is the one a single process builds (the exact first stage included)."""
 
@@ -19,7 +19,8 @@ from drcpo.distributed.cluster import (
     require_ray,
     run_on_actors,
 )
-from drcpo.index import CandidateIndex, IndexConfig, build_index
+from drcpo.index import CandidateIndex, IndexConfig
+from drcpo.index_build import build_index
 
 __all__ = ["BlockRanker", "build_index_cluster"]
 
@@ -40,7 +41,8 @@ class BlockRanker:
 
 
 class _ClusterBlocks:
-    """A ``map_blocks`` for :func:`~drcpo.index.build_index`: the same actors for every class."""
+    """A ``map_blocks`` for :func:`~drcpo.index_build.build_index`: the same actors for every
+    class."""
 
     def __init__(self, workers: int) -> None:
         self.workers = workers
@@ -83,9 +85,9 @@ def build_index_cluster(
     cluster: str | Cluster | None = LOCAL,
     workers: int = 2,
 ) -> CandidateIndex:
-    """:func:`~drcpo.index.build_index` with each class's blocks ranked by ``workers`` actors of
-    ``cluster`` (:func:`~drcpo.distributed.cluster.connect`); the same index. A cluster this
-    call started is shut down at its end."""
+    """:func:`~drcpo.index_build.build_index` with each class's blocks ranked by ``workers``
+    actors of ``cluster`` (:func:`~drcpo.distributed.cluster.connect`); the same index. A cluster
+    this call started is shut down at its end."""
     with connected(cluster, workers):
         blocks = _ClusterBlocks(workers)
         try:

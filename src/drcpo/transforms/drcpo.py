@@ -17,7 +17,7 @@ from drcpo.database import GroundTruthDatabase
 from drcpo.errors import ConfigError
 from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
-from drcpo.index import indexed_mask
+from drcpo.index_build import indexed_mask
 from drcpo.occlusion.view_windows import grown_boxes, surface_samples, window_spans
 from drcpo.transforms import sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
