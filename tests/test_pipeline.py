@@ -19,6 +19,12 @@ from drcpo.transforms import (
     Stats,
     transform_from_config,
 )
+from drcpo.transforms.drcpo_insertion import (
+    Inserted,
+    Insertion,
+    _sparse_originals,
+    external_occlusion,
+)
 from drcpo.transforms.insertion import BoxQuery, match_features, road_plane_heights
 
 SIZES = {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)}
@@ -775,9 +781,10 @@ def test_nothing_inserted_changes_nothing(synthetic_world):
     removed = np.zeros(9, dtype=bool)
     removed[[0, 1]] = True  # the car keeps 4 of its 6
     removed[6] = True  # the tiny one keeps 2 of its 3
-    assert transform._sparse_originals(sparse, removed).tolist() == [True, False]
+    minimum = transform.config.min_points_after
+    assert _sparse_originals(sparse, removed, minimum).tolist() == [True, False]
     removed[1] = False  # the car keeps 5
-    assert transform._sparse_originals(sparse, removed).tolist() == [False, False]
+    assert _sparse_originals(sparse, removed, minimum).tolist() == [False, False]
 
 
 def test_drcpo_config_round_trip_and_checks(synthetic_world):
@@ -931,9 +938,14 @@ def test_view_windows_cover_the_boxes_and_nothing_opposite(rng):
     assert hit[len(inside) // 2 : len(inside)].all()
 
 
-def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng):
-    from drcpo.transforms.drcpo_parts import Insertion as _Insertion
+def e_hpr_of(transform, points, owner, insertions):
+    """DR.CPO's e-HPR step on points inserted into a frame of which nothing was cleared."""
+    inserted = Inserted(points, owner, np.full(int((owner < 0).sum()), -1))
+    setting, minimum = transform.e_hpr_setting(), transform.config.min_points_after
+    return external_occlusion(inserted, insertions, setting, minimum)
 
+
+def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng):
     db, index, _ = synthetic_world
     transform = DRCPO(db, index)
     # A wall 20 m ahead, a second layer right behind part of it (hidden before anything is
@@ -946,9 +958,8 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng)
     points = np.concatenate([wall, layer, cube])
     points = np.column_stack([points, np.zeros(len(points))]).astype(np.float32)
     owner = np.repeat([-1, 0], [len(wall) + len(layer), len(cube)])
-    keep, dropped = transform._external_occlusion(
-        points, owner, [_Insertion(0, "Car", box, box, points[-4000:])]
-    )
+    cube_object = Insertion(0, "Car", box, box, points[-4000:])
+    keep, dropped = e_hpr_of(transform, points, owner, [cube_object])
     assert not dropped.any()  # the cube stays, with its visible face
     shadow = (np.abs(wall[:, 1]) < 0.8) & (np.abs(wall[:, 2]) < 0.8)
     assert not keep[: len(wall)][shadow].any()  # the wall behind the box is hidden now
@@ -957,8 +968,6 @@ def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng)
 
 
 def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, rng):
-    from drcpo.transforms.drcpo_parts import Insertion as _Insertion
-
     db, index, _ = synthetic_world
     transform = DRCPO(db, index)
     # A wall 15 m ahead; object A (3 points, too few to keep) right in front of wall point P;
@@ -975,10 +984,10 @@ def test_points_hidden_only_by_a_dropped_object_stay(synthetic_world, rng):
     points = np.column_stack([xyz, np.zeros(len(xyz))]).astype(np.float32)
     owner = np.repeat([-1, 0, 1], [len(wall), len(a_points), len(cube)])
     insertions = [
-        _Insertion(0, "Pedestrian", box_a, box_a, points[len(wall) : len(wall) + 3]),
-        _Insertion(1, "Car", box_b, box_b, points[len(wall) + 3 :]),
+        Insertion(0, "Pedestrian", box_a, box_a, points[len(wall) : len(wall) + 3]),
+        Insertion(1, "Car", box_b, box_b, points[len(wall) + 3 :]),
     ]
-    keep, dropped = transform._external_occlusion(points, owner, insertions)
+    keep, dropped = e_hpr_of(transform, points, owner, insertions)
     assert dropped.tolist() == [True, False]
     assert keep[p]  # hidden by A alone: A is gone, so P stays
     assert keep[: len(wall)].all()  # nothing of the wall lies behind B

@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -198,6 +198,37 @@ class CandidateIndex:
     def densities_of(self, row: int, name: str) -> np.ndarray:
         """Partition densities ``float32 (P,)`` of object ``row`` of class ``name``."""
         return self.densities[row, : self.num_partitions(name)]
+
+    def check_matches(
+        self, database: GroundTruthDatabase, construction: Any, classes: Sequence[str]
+    ) -> None:
+        """ConfigError unless this index covers ``database`` and partitions and mirrors each of
+        ``classes`` as ``construction`` (a :class:`~drcpo.construction.ConstructionConfig`)
+        does: it does when built from the same config (``drcpo index DB --config``); this
+        catches one built from another."""
+        if len(self.candidates) != len(database):
+            raise ConfigError(
+                f"the candidate index covers {len(self.candidates)} objects but the "
+                f"database has {len(database)}; rebuild it with `drcpo index`"
+            )
+        rebuild = (
+            f"rebuild the index from this config: `drcpo index {database.path or 'DB'} "
+            "--config <your config.yaml> --overwrite`"
+        )
+        for name in classes:
+            if name not in self.grids:
+                continue  # no indexed object of this class: it is never sampled
+            grid = construction.grid(name)
+            if tuple(self.grids[name]) != tuple(grid):
+                raise ConfigError(
+                    f"drcpo.construction.grids.{name} = {list(grid)} but the candidate index "
+                    f"was built with {list(self.grids[name])}; {rebuild}"
+                )
+            if (name in construction.mirror) != (name in self.config.mirror):
+                raise ConfigError(
+                    f"drcpo.construction.mirror and the candidate index disagree on whether "
+                    f"{name} is mirrored; {rebuild}"
+                )
 
     # Persistence --------------------------------------------------------------------------
     def manifest(self) -> dict[str, Any]:

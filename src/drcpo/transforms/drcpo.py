@@ -1,6 +1,7 @@
 """DR.CPO (Shin et al. 2023) as one transform: sample, place, construct, s-HPR, insert, e-HPR and
 settle the labels; each step's work lives in its own module (:mod:`drcpo.placement`,
-:mod:`drcpo.construction`, :mod:`drcpo.occlusion`), this one orders them."""
+:mod:`drcpo.construction`, :mod:`drcpo.occlusion`, :mod:`drcpo.transforms.drcpo_insertion`),
+this one orders them."""
 
 from __future__ import annotations
 
@@ -18,19 +19,16 @@ from drcpo.errors import ConfigError
 from drcpo.frame import VELOCITY, Frame
 from drcpo.geometry import box_holding
 from drcpo.index_build import indexed_mask
-from drcpo.occlusion.view_windows import grown_boxes, surface_samples, window_spans
-from drcpo.transforms import sweeps
+from drcpo.occlusion.view_windows import grown_boxes, surface_samples
+from drcpo.transforms import drcpo_insertion, sweeps
 from drcpo.transforms.base import Stats, Transform, config_body, register
-from drcpo.transforms.drcpo_parts import Insertion
+from drcpo.transforms.drcpo_insertion import Inserted, Insertion
 from drcpo.transforms.insertion import (
     BOX_SOURCE,
     BoxQuery,
-    key_sweep,
     placed_object,
     sampling_pools,
     take_rows,
-    update_box_metadata,
-    with_box_sources,
 )
 
 __all__ = [
@@ -115,7 +113,7 @@ class DRCPO(Transform):
             for fov in (False, True)
         }
         classes = [name for name, count in config.sample.items() if count > 0]
-        self._check_index(classes)
+        index.check_matches(database, config.construction, classes)
         indexed = indexed_mask(database, index.config)
         self._pools = {
             name: pool[indexed[pool]]
@@ -134,35 +132,6 @@ class DRCPO(Transform):
         the frame's points within it make way for the object."""
         built = self.config.construction
         return float(built.margin) + 2.0 * _FIT_PAD
-
-    def _check_index(self, classes: Sequence[str]) -> None:
-        """The index must partition and mirror each class as construction does (it does when
-        built from this config, ``drcpo index DB --config``; this catches one built from
-        another)."""
-        if len(self.index.candidates) != len(self.database):
-            raise ConfigError(
-                f"the candidate index covers {len(self.index.candidates)} objects but the "
-                f"database has {len(self.database)}; rebuild it with `drcpo index`"
-            )
-        built = self.config.construction
-        rebuild = (
-            f"rebuild the index from this config: `drcpo index {self.database.path or 'DB'} "
-            "--config <your config.yaml> --overwrite`"
-        )
-        for name in classes:
-            if name not in self.index.grids:
-                continue  # no indexed object of this class: it is never sampled
-            grid = built.grid(name)
-            if tuple(self.index.grids[name]) != tuple(grid):
-                raise ConfigError(
-                    f"drcpo.construction.grids.{name} = {list(grid)} but the candidate index "
-                    f"was built with {list(self.index.grids[name])}; {rebuild}"
-                )
-            if (name in built.mirror) != (name in self.index.config.mirror):
-                raise ConfigError(
-                    f"drcpo.construction.mirror and the candidate index disagree on whether "
-                    f"{name} is mirrored; {rebuild}"
-                )
 
     @classmethod
     def from_config(
@@ -221,14 +190,17 @@ class DRCPO(Transform):
             insertions = self._insertions(rows, boxes, visible, stats)
             record["points_out"] = sum(len(i.points) for i in insertions)
         with stats.stage("drcpo.insert", len(frame)) as record:
-            points, owner, cleared_by = self._insert(frame, insertions)
-            record["points_out"] = len(points)
-        with stats.stage("drcpo.external_occlusion", len(points)) as record:
+            inserted = drcpo_insertion.insert(frame, insertions, self.room)
+            record["points_out"] = len(inserted.points)
+        with stats.stage("drcpo.external_occlusion", len(inserted.points)) as record:
             grid = frame_grid() if frame_grid is not None and insertions else None
-            keep, dropped = self._external_occlusion(points, owner, insertions, grid, cleared_by)
+            setting = self.e_hpr_setting() if self.config.external_occlusion.enabled else None
+            keep, dropped = drcpo_insertion.external_occlusion(
+                inserted, insertions, setting, self.config.min_points_after, grid
+            )
             record["points_out"] = int(keep.sum())
         with stats.stage("drcpo.labels", int(keep.sum())) as record:
-            out = self._settle(frame, points, owner, keep, dropped, cleared_by, insertions, stats)
+            out = self._labels(frame, inserted, keep, dropped, insertions, stats)
             record["points_out"] = len(out)
         return out
 
@@ -370,156 +342,38 @@ class DRCPO(Transform):
             insertions.append(Insertion(int(row), name, box, label, points))
         return insertions
 
-    def _insert(
-        self,
-        frame: Frame,
-        insertions: Sequence[Insertion],
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Points after insertion (the frame's points outside the objects' room, see
-        :attr:`room`, then the objects'), each point's owner (-1: an original point, else the
-        insertion's number) and, per frame point, the insertion it had to make room for (-1:
-        none)."""
-        cleared_by = np.full(len(frame), -1, dtype=np.int64)
-        if not insertions:
-            return frame.points, cleared_by.copy(), cleared_by
-        cleared_by = self._room_owners(frame, np.array([i.placed for i in insertions]))
-        original = cleared_by < 0
-        points = np.concatenate(
-            [take_rows(frame.points, original), *(i.points for i in insertions)]
-        )
-        key_sweep(points, frame, int(np.count_nonzero(original)))
-        owner = np.concatenate(
-            [np.full(int(original.sum()), -1)]
-            + [np.full(len(i.points), j) for j, i in enumerate(insertions)]
-        ).astype(np.int64)
-        return points, owner, cleared_by
-
-    def _external_occlusion(
-        self,
-        points: np.ndarray,
-        owner: np.ndarray,
-        insertions: Sequence[Insertion],
-        grid: occlusion.FrameGrid | None = None,
-        cleared_by: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Points kept by e-HPR, ``bool (N,)``, and the insertions left with too few points in
-        their box, ``bool (len(insertions),)``. e-HPR itself is :mod:`drcpo.occlusion.external`'s
-        (:func:`~drcpo.occlusion.inserted_scope`); this applies the label rule: the inserted
-        points are decided first, each exactly against the whole frame, and hidden ones go;
-        then, for the original points behind the boxes of the objects that keep enough points,
-        in their view windows (the directions they cover), those hidden with the objects but
-        visible without them go. With ``grid`` (the frame's
-        :class:`~drcpo.occlusion.FrameGrid`) and ``cleared_by`` (see :meth:`_insert`), the
-        frame's points are not sorted again."""
-        settings = self.config.external_occlusion
-        keep = np.ones(len(points), dtype=bool)
-        if not settings.enabled or len(points) == 0 or not insertions:
-            return keep, self._dropped(points, owner, insertions, keep)
-        radius, viewpoint = self.e_hpr_setting()
-        first = int(np.count_nonzero(owner < 0))  # the original points come first
-        scope = occlusion.inserted_scope(
-            points,
-            owner >= 0,
-            viewpoint,
-            radius,
-            grid=grid if cleared_by is not None else None,
-            cleared=None if cleared_by is None else cleared_by >= 0,
-        )
-        # The label rule on the inserted points left; the view windows of the objects kept.
-        dropped = self._dropped(points[first:], owner[first:], insertions, ~scope.removed_inserted)
-        kept = np.flatnonzero(~dropped)
-        windows = window_spans(grown_boxes([insertions[k].placed for k in kept]), viewpoint, True)
-        removed = np.concatenate([scope.removed_behind(windows), scope.removed_inserted])
-        return ~removed, dropped
-
-    def _dropped(
-        self,
-        points: np.ndarray,
-        owner: np.ndarray,
-        insertions: Sequence[Insertion],
-        keep: np.ndarray,
-    ) -> np.ndarray:
-        """``bool (len(insertions),)``: objects with fewer than ``min_points_after`` of their
-        points that ``keep`` (``bool (N,)``) holds in their own box (some may lie outside)."""
-        if not insertions:
-            return np.zeros(0, dtype=bool)
-        survivors = BoxQuery(points).own_counts(owner, [i.box for i in insertions], keep)
-        return survivors < self.config.min_points_after
-
     def e_hpr_setting(self) -> tuple[float, np.ndarray]:
         """e-HPR radius R (metres) and viewpoint ``(3,)``: ``viewpoint_z`` above the LiDAR
         frame's origin (``drcpo.external_occlusion``)."""
         setting = self.config.external_occlusion
         return float(setting.radius), np.array([0.0, 0.0, float(setting.viewpoint_z)])
 
-    def _settle(
+    def _labels(
         self,
         frame: Frame,
-        points: np.ndarray,
-        owner: np.ndarray,
+        inserted: Inserted,
         keep: np.ndarray,
         dropped: np.ndarray,
-        cleared_by: np.ndarray,
         insertions: Sequence[Insertion],
         stats: Stats,
     ) -> Frame:
-        """The output frame: drop inserted objects and original boxes left with too few points.
-
-        An inserted object of ``dropped`` goes with all its points, and the frame points it
-        displaced come back (e-HPR removed frame points only behind the objects kept), so it
-        leaves no trace. An original box is dropped when it lost points and is left with fewer
-        than ``min_points_after``, unless it had fewer already.
-        """
-        original_rows = np.flatnonzero(cleared_by < 0)  # frame row of each original point
-        removed = cleared_by >= 0
-        if dropped.any():
-            removed &= ~np.append(dropped, False)[cleared_by]  # (index -1: the frame's own)
-        removed[original_rows[~keep[: len(original_rows)]]] = True
+        """The output frame (:func:`~drcpo.transforms.drcpo_insertion.settle`), each object's
+        fate and each original box dropped recorded."""
         for insertion, gone in zip(insertions, dropped, strict=True):
             if gone:
                 stats.rejected(self.name, insertion.name, "external_occlusion")
             else:
                 stats.added(self.name, insertion.name)
         kept = [i for i, gone in zip(insertions, dropped, strict=True) if not gone]
-        drop_original = self._sparse_originals(frame, removed)
-        for name in frame.names[drop_original]:
-            stats.label_dropped(str(name))
-        inserted_keep = keep & ~np.append(dropped, True)[owner]  # (index -1: not inserted)
-        kept_boxes = np.flatnonzero(~drop_original)
         added_values = {BOX_SOURCE: np.full(len(kept), "drcpo")}
         if kept and frame.metadata.get(VELOCITY) is not None and self.database.velocity is not None:
             # The source's canonical velocity turned to the new heading (a mirrored
             # construction keeps the source's: mirroring fills the shape, not the motion).
             headings = [i.box[6] for i in kept]
             added_values[VELOCITY] = self.database.velocities([i.row for i in kept], headings)
-        return frame.replace(
-            points=np.concatenate(
-                [take_rows(frame.points, ~removed), take_rows(points, inserted_keep)]
-            ),
-            boxes=np.concatenate(
-                [frame.boxes[kept_boxes], grown_boxes([i.box for i in kept], 0.0)]
-            ),
-            names=np.concatenate([frame.names[kept_boxes], [i.name for i in kept]]),
-            metadata=update_box_metadata(
-                with_box_sources(frame.metadata, len(frame.boxes)) if kept else frame.metadata,
-                len(frame.boxes),
-                keep=kept_boxes if drop_original.any() else None,
-                added=len(kept),
-                added_values=added_values,
-            ),
+        out, drop_original = drcpo_insertion.settle(
+            frame, inserted, keep, dropped, insertions, self.config.min_points_after, added_values
         )
-
-    def _sparse_originals(self, frame: Frame, removed: np.ndarray) -> np.ndarray:
-        """``bool (M,)``: frame boxes that lost points and now hold fewer than the minimum,
-        having held at least the minimum before. Only boxes holding removed points can have
-        lost any, so only those are counted."""
-        minimum = self.config.min_points_after
-        drop = np.zeros(len(frame.boxes), dtype=bool)
-        if not removed.any() or len(frame.boxes) == 0:
-            return drop
-        lost = BoxQuery(take_rows(frame.points, removed)).counts(frame.boxes)
-        touched = np.flatnonzero(lost)
-        if len(touched):
-            had = BoxQuery(frame.points).counts(frame.boxes[touched])
-            drop[touched] = (had >= minimum) & (had - lost[touched] < minimum)
-        return drop
+        for name in frame.names[drop_original]:
+            stats.label_dropped(str(name))
+        return out
