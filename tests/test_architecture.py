@@ -6,6 +6,7 @@ counts too."""
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -241,3 +242,15 @@ def test_the_kernel_counter_counts_parameters(tmp_path):
         "def g(a, b, c, d, e, f, g, h, i):\n    return a\n"
     )
     assert kernel_parameters(source, "m") == {"m.f": 3}
+
+
+def test_every_kernel_family_names_an_existing_reference_test():
+    # docs/architecture.md lists each numba kernel family with the test holding its naive
+    # reference; the list must not name a test that was renamed or deleted.
+    text = ARCHITECTURE.read_text()
+    listed = text.split("Kernel families and their references", 1)[1].split("\n\n", 2)[1]
+    named = re.findall(r"`(test_\w+\.py)::(test_\w+)`", listed)
+    assert len(named) >= 20
+    for file, test in named:
+        source = (Path(__file__).parent / file).read_text()
+        assert re.search(rf"^def {test}\(", source, re.MULTILINE), f"{file}::{test}"

@@ -234,6 +234,124 @@ def test_bad_arguments_raise_clear_errors():
 
 
 # --------------------------------------------------------------------------------------------
+# The matching kernels against OpenPCDet's loops written out (compute_statistics_jit,
+# get_thresholds), over a dense overlap matrix
+# --------------------------------------------------------------------------------------------
+def naive_statistics(overlap, gt_flags, dt_flags, score, alphas, excused, threshold, first):
+    """One pass of OpenPCDet's compute_statistics_jit: every object (flag -1: not of the class)
+    in order against every detection in order. ``first``: the pass without a score threshold
+    that picks the highest-scoring free detection and returns the true positives' scores;
+    else (tp, fp, fn, orientation similarity) at ``threshold``, each object taking the free
+    counted detection of largest overlap, else the first free ignored one. ``overlap`` holds 0
+    where a pair does not overlap above the class's minimum."""
+    gt_alpha, dt_alpha = alphas
+    assigned = np.zeros(len(score), bool)
+    tp = fn = 0
+    similarity, scores = 0.0, []
+    for g in range(len(gt_flags)):
+        if gt_flags[g] == -1:
+            continue
+        det, valid, max_overlap, took_ignored = -1, None, 0.0, False
+        for d in range(len(score)):
+            if dt_flags[d] == -1 or assigned[d] or overlap[g, d] <= 0:
+                continue
+            if first:
+                if valid is None or score[d] > valid:
+                    det, valid = d, score[d]
+            elif score[d] < threshold:
+                continue
+            elif dt_flags[d] == 0 and (overlap[g, d] > max_overlap or took_ignored):
+                det, valid, max_overlap, took_ignored = d, 1, overlap[g, d], False
+            elif valid is None and dt_flags[d] == 1:
+                det, valid, took_ignored = d, 1, True
+        if valid is None:
+            fn += gt_flags[g] == 0
+        elif gt_flags[g] == 1 or dt_flags[det] == 1:
+            assigned[det] = True
+        else:
+            tp += 1
+            scores.append(score[det])
+            similarity += (1.0 + np.cos(gt_alpha[g] - dt_alpha[det])) / 2.0
+            assigned[det] = True
+    if first:
+        return np.array(scores)
+    counted = (dt_flags == 0) & ~assigned & (score >= threshold) & ~excused
+    return tp, int(counted.sum()), fn, similarity
+
+
+def naive_thresholds(scores, num_gt, points=41):
+    """OpenPCDet's get_thresholds: a score is kept when its recall is nearer the next sample
+    recall than the following score's (the last always)."""
+    scores = np.sort(scores)[::-1]
+    current, kept = 0.0, []
+    for i, value in enumerate(scores):
+        left = (i + 1) / num_gt
+        right = (i + 2) / num_gt if i < len(scores) - 1 else left
+        if right - current < current - left and i < len(scores) - 1:
+            continue
+        kept.append(value)
+        current += 1 / (points - 1.0)
+    return np.array(kept)
+
+
+def matching_case(rng, objects, detections):
+    """Random flags, scores and overlaps with many ties (a few distinct values each)."""
+    gt_flags = rng.choice([0, 0, 0, 1, -1], objects)
+    dt_flags = rng.choice([0, 0, 0, 1, -1], detections)
+    score = rng.choice([0.1, 0.3, 0.5, 0.5, 0.7, 0.9], detections)
+    score += rng.choice([0, 1e-3], detections)
+    overlap = rng.choice([0.0, 0.0, 0.0, 0.6, 0.75, 0.9], (objects, detections))
+    alphas = (rng.uniform(-np.pi, np.pi, objects), rng.uniform(-np.pi, np.pi, detections))
+    excused = rng.random(detections) < 0.15
+    return overlap, gt_flags, dt_flags, score, alphas, excused
+
+
+def test_matching_kernels_follow_openpcdets_loops():
+    from drcpo.evaluation.kitti import (  # test seams: the numba kernels of _precision
+        _Candidates,
+        _counts_at,
+        _Detections,
+        _matched_scores,
+        _Objects,
+        _recall_thresholds,
+    )
+
+    def check(case):
+        overlap, gt_flags, dt_flags, score, alphas, excused = case
+        # The kernels' candidate lists, as _precision builds them: per object in order, its
+        # counted or ignored detections above the minimum overlap, in detection order.
+        usable = (gt_flags[:, None] >= 0) & (dt_flags[None] >= 0) & (overlap > 0)
+        gi, di = np.nonzero(usable)
+        start = np.concatenate([[0], np.cumsum(np.bincount(gi, minlength=len(gt_flags)))])
+        scores = naive_statistics(*case, None, first=True)
+        got = _matched_scores(gt_flags, start, di, dt_flags, score)
+        np.testing.assert_array_equal(got, scores)
+        valid = int((gt_flags == 0).sum())
+        thresholds = naive_thresholds(scores, valid)
+        np.testing.assert_array_equal(_recall_thresholds(np.sort(got)[::-1], valid), thresholds)
+        # every threshold found, and ties: scores exactly at a threshold, above all, none
+        floors = np.concatenate([thresholds, [0.5, 0.5 + 1e-3, 2.0, 0.0, -np.inf]])
+        counts = _counts_at(
+            floors,
+            _Objects(gt_flags, alphas[0]),
+            _Candidates(start, di, overlap[gi, di]),
+            _Detections(dt_flags, score, alphas[1], excused),
+        )
+        want = np.array([naive_statistics(*case, f, first=False) for f in floors]).reshape(-1, 4)
+        np.testing.assert_array_equal(counts[:, :3], want[:, :3])
+        np.testing.assert_allclose(counts[:, 3], want[:, 3], rtol=1e-12)
+        return thresholds
+
+    rng = np.random.default_rng(61)
+    for objects, detections in [(30, 40), (80, 60), (5, 0), (0, 7), (0, 0), (1, 1), (300, 200)] * 3:
+        check(matching_case(rng, objects, detections))
+    # Every object found once, at 97 distinct scores: all 41 recall points get a threshold.
+    n = 97
+    perfect = (np.eye(n) * 0.9, np.zeros(n, int), np.zeros(n, int), rng.permutation(n) / n)
+    assert len(check((*perfect, (np.zeros(n), np.zeros(n)), np.zeros(n, bool)))) == 41
+
+
+# --------------------------------------------------------------------------------------------
 # Files and the CLI
 # --------------------------------------------------------------------------------------------
 def _kitti_root(tmp_path: Path, frames: int = 12, seed: int = 3) -> tuple[Path, Path]:

@@ -291,3 +291,77 @@ def test_placement_obstacle_counts_follow_the_naive_rule(adversarial):
     counts = _non_ground_counts(points[finite].astype(np.float32), boxes, ground, 0.0)
     want = naive_mask(points[finite].astype(np.float32), boxes, 0.0).sum(axis=0)
     np.testing.assert_array_equal(counts, want)
+
+
+# --------------------------------------------------------------------------------------------
+# The box-frame kernels against naive references: box_holding's extents, rotate_points_z
+# --------------------------------------------------------------------------------------------
+def naive_box_holding(box, points, pad):
+    """box_holding spelled out in plain Python floats: each point in the box's frame (as
+    naive_in_box computes it), the lowest and highest coordinate per axis; unchanged when
+    those lie within the box, else every face moved out to the farthest point within ``pad``
+    of it or beyond it, plus ``pad``, and the new centre taken back to the world frame."""
+    cos, sin = float(np.cos(box[6:7])[0]), float(np.sin(box[6:7])[0])
+    local = []
+    for p in points:
+        ox, oy = float(p[0]) - float(box[0]), float(p[1]) - float(box[1])
+        local.append((ox * cos + oy * sin, -ox * sin + oy * cos, float(p[2]) - float(box[2])))
+    half = [float(box[3 + a]) / 2.0 for a in range(3)]
+    lowest = [min(q[a] for q in local) for a in range(3)]
+    highest = [max(q[a] for q in local) for a in range(3)]
+    if all(lowest[a] >= -half[a] and highest[a] <= half[a] for a in range(3)):
+        return np.asarray(box, dtype=np.float64)
+    low = [min(-half[a], lowest[a] - pad) for a in range(3)]
+    high = [max(half[a], highest[a] + pad) for a in range(3)]
+    shift = [(low[a] + high[a]) / 2.0 for a in range(3)]
+    return np.array(
+        [
+            box[0] + (shift[0] * cos - shift[1] * sin),
+            box[1] + (shift[0] * sin + shift[1] * cos),
+            box[2] + shift[2],
+            *(high[a] - low[a] for a in range(3)),
+            box[6],
+        ]
+    )
+
+
+def test_box_holding_follows_the_naive_extents(adversarial):
+    points, boxes = adversarial
+    points = points[np.isfinite(points[:, :3]).all(axis=1)]
+    rng = np.random.default_rng(21)
+    for dtype in (np.float64, np.float32):
+        for box in boxes[:14]:  # near the origin and at 1e6 m: the extents are exact there
+            for pad in (1e-4, 0.0, 0.5):
+                # all the points (grows), its own face points (unchanged), one point, a few
+                for chosen in (points, points[:40], points[rng.integers(0, len(points), 1)]):
+                    chosen = chosen.astype(dtype)
+                    np.testing.assert_array_equal(
+                        g.box_holding(box, chosen, pad), naive_box_holding(box, chosen, pad)
+                    )
+        inside = g.from_canonical(rng.uniform(-0.5, 0.5, (50, 3)) * boxes[0, 3:6], boxes[0])
+        np.testing.assert_array_equal(g.box_holding(boxes[0], inside.astype(dtype)), boxes[0])
+    np.testing.assert_array_equal(g.box_holding(boxes[3], np.zeros((0, 3))), boxes[3])
+
+
+def test_rotate_points_z_follows_the_naive_rotation():
+    # Every row's x, y rotated in Python floats with numpy's cos and sin of the angle,
+    # stored in the points' dtype; z and the features untouched.
+    rng = np.random.default_rng(22)
+    points = np.concatenate(
+        [
+            rng.normal(0, 30, (300, 5)),
+            [[0.0, 0.0, 1.0, 2.0, 3.0], [1e12, -1e12, 0.0, 0.0, 0.0], [np.nan, 1.0, 0.0, 0, 0]],
+            [[np.inf, 0.0, 0.0, 0.0, 0.0], [-0.0, 5e-324, 0.0, 0.0, 0.0]],
+        ]
+    )
+    for angle in (0.0, np.pi, -np.pi / 2, 0.7, 1e-9, 40.0):
+        cos, sin = float(np.cos(np.float64(angle))), float(np.sin(np.float64(angle)))
+        for dtype in (np.float64, np.float32):
+            cloud = points.astype(dtype)
+            want = cloud.copy()
+            for i, (x, y) in enumerate(cloud[:, :2].astype(np.float64).tolist()):
+                want[i, 0], want[i, 1] = cos * x - sin * y, sin * x + cos * y
+            got = g.rotate_points_z(cloud, angle)
+            assert got.dtype == dtype
+            np.testing.assert_array_equal(got, want)
+            assert g.rotate_points_z(cloud[:0], angle).shape == (0, 5)

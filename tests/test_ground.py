@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -14,7 +16,7 @@ from drcpo.ground import (
     _fill_heights,
     _ground_cells,
 )
-from drcpo.ground_plane import road_plane_to_lidar
+from drcpo.ground_plane import fit_plane, road_plane_to_lidar
 
 
 def tilted(xy):
@@ -202,6 +204,132 @@ def test_lowest_points_per_cell_in_the_points_dtype(rng):
             members = np.flatnonzero(cells == c)
             last = members[z[members] == z[members].min()][-1]
             np.testing.assert_array_equal(row, [x[last], y[last], z[last]])
+
+
+def naive_ransac_plane(seeds, rng, config):
+    """The RANSAC fit step by step: the same draws (the triples, then the scored subset);
+    each triple's normal (p1 - p0) x (p2 - p0), kept when within max_tilt_deg of vertical and
+    not degenerate; its inliers |n . p - n . p0| <= threshold * |n| (n . p summed x, y, z);
+    the first hypothesis with the most inliers among the scored seeds; least squares on its
+    inliers among all seeds (all seeds when no hypothesis or fewer than 3 inliers)."""
+
+    def lstsq(xyz):
+        design = np.column_stack([xyz[:, 0], xyz[:, 1], np.ones(len(xyz))])
+        return np.linalg.lstsq(design, xyz[:, 2], rcond=None)[0]
+
+    def distances(points, n):
+        return points[:, 0] * n[0] + points[:, 1] * n[1] + points[:, 2] * n[2]
+
+    if len(seeds) < 3:
+        return None
+    picks = rng.integers(0, len(seeds), size=(config.ransac_iterations, 3))
+    scored = seeds[rng.choice(len(seeds), 1000, replace=False)] if len(seeds) > 1000 else seeds
+    cos_tilt = float(np.cos(np.deg2rad(config.max_tilt_deg)))
+    best, best_count = None, -1
+    for a, b, c in seeds[picks]:
+        n = [
+            (b[1] - a[1]) * (c[2] - a[2]) - (b[2] - a[2]) * (c[1] - a[1]),
+            (b[2] - a[2]) * (c[0] - a[0]) - (b[0] - a[0]) * (c[2] - a[2]),
+            (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]),
+        ]
+        norm = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+        if not (abs(n[2]) >= cos_tilt * norm and norm > 1e-9):
+            continue
+        offset, limit = n[0] * a[0] + n[1] * a[1] + n[2] * a[2], config.ransac_threshold * norm
+        count = int((np.abs(distances(scored, n) - offset) <= limit).sum())
+        if count > best_count:  # the first of equals
+            best, best_count = (n, offset, limit), count
+    if best is None:
+        return lstsq(seeds)
+    n, offset, limit = best
+    chosen = seeds[np.abs(distances(seeds, n) - offset) <= limit]
+    return lstsq(chosen) if len(chosen) >= 3 else lstsq(seeds)
+
+
+def test_ransac_plane_follows_the_naive_fit():
+    rng = np.random.default_rng(41)
+    xy = rng.uniform(-40, 40, (1500, 2))
+    plane = 0.02 * xy[:, 0] - 0.01 * xy[:, 1] - 1.7
+    noisy = np.column_stack([xy, plane + rng.normal(0, 0.05, len(xy))])
+    noisy[::7, 2] += rng.uniform(0.5, 3.0, len(noisy[::7]))  # roofs and walls
+    lattice = np.column_stack([np.indices((6, 6)).reshape(2, -1).T * 2.0, np.zeros(36)])
+    lattice[::3, 2] = 0.5  # integer-ish heights: inlier counts tie between planes
+    wall = np.column_stack([np.zeros(30), rng.uniform(-5, 5, 30), rng.uniform(-2, 2, 30)])
+    copies = np.repeat(noisy[:5], 8, axis=0)  # repeated seeds: degenerate triples
+    cases = {
+        "noisy": noisy,  # more than 1000 seeds: scored on a subset
+        "small": noisy[:200],
+        "lattice": lattice,
+        "copies": copies,
+        "wall": wall,  # every hypothesis too steep: least squares on all seeds
+        "three": noisy[:3],
+        "two": noisy[:2],
+    }
+    for name, seeds in cases.items():
+        for config in (GroundConfig(), GroundConfig(ransac_iterations=7, max_tilt_deg=5.0)):
+            for seed in range(3):
+                want = naive_ransac_plane(seeds, np.random.default_rng(seed), config)
+                got = fit_plane(
+                    seeds,
+                    np.random.default_rng(seed),
+                    config.ransac_iterations,
+                    config.ransac_threshold,
+                    config.max_tilt_deg,
+                )
+                if want is None:
+                    assert got is None, name
+                else:
+                    np.testing.assert_array_equal(got, want, err_msg=name)
+
+
+def naive_height_at(model, xy):
+    """Bilinear interpolation between cell centres, one query at a time: the query's cell
+    coordinates clamped to the grid, the four surrounding centres (fewer on a one-cell-wide
+    grid), then the plane's slope for the way from the clamped point to the query."""
+    nx, ny = model.heights.shape
+    cs = model.cell_size
+    out = []
+    for x, y in xy.tolist():
+        gx, gy = (x - model.origin[0]) / cs - 0.5, (y - model.origin[1]) / cs - 0.5
+        if math.isnan(gx) or math.isnan(gy):
+            out.append(math.nan)
+            continue
+        cx, cy = min(max(gx, 0.0), nx - 1.0), min(max(gy, 0.0), ny - 1.0)
+        i0, j0 = min(math.floor(cx), max(nx - 2, 0)), min(math.floor(cy), max(ny - 2, 0))
+        i1, j1 = min(i0 + 1, nx - 1), min(j0 + 1, ny - 1)
+        fx, fy = cx - i0, cy - j0
+        h = model.heights
+        value = (
+            h[i0, j0] * (1 - fx) * (1 - fy)
+            + h[i0, j1] * (1 - fx) * fy
+            + h[i1, j0] * fx * (1 - fy)
+            + h[i1, j1] * fx * fy
+        )
+        out.append(value + (gx - cx) * cs * model.plane[0] + (gy - cy) * cs * model.plane[1])
+    return np.array(out)
+
+
+def test_height_at_follows_the_naive_bilinear_interpolation():
+    rng = np.random.default_rng(42)
+    grids = (((7, 5), 1.0), ((1, 6), 0.5), ((4, 1), 2.0), ((1, 1), 1.0), ((30, 40), 1.0))
+    for shape, cell in grids:  # one cell wide or long: fewer than four centres
+        heights = rng.normal(-1.7, 0.3, shape)
+        plane = np.array([0.03, -0.02, -1.7])
+        origin = np.array([-3.0, 7.5])
+        model = GroundModel(plane, origin, cell, heights, np.ones(shape, bool), "points")
+        extent = origin + np.array(shape) * cell
+        inside = rng.uniform(origin, extent, (300, 2))
+        outside = rng.uniform(origin - 20, extent + 20, (300, 2))
+        centres = origin + (np.indices(shape).reshape(2, -1).T + 0.5) * cell  # exact nodes
+        edges = np.array([origin, extent, [origin[0], extent[1]], origin + cell / 2])
+        odd = np.array([[np.nan, 0.0], [0.0, np.nan], [1e9, -1e9]])
+        xy = np.concatenate([inside, outside, centres, edges, odd])
+        got = model.height_at(xy)
+        want = naive_height_at(model, xy)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_allclose(model.height_at(centres), heights.reshape(-1), atol=1e-12)
+    assert model.height_at(np.zeros((0, 2))).shape == (0,)
 
 
 def test_bad_input_is_rejected():

@@ -3,6 +3,7 @@ fixtures), its handling of copies, and the inputs it leaves to the general path.
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -164,3 +165,99 @@ def test_threads_give_the_same_answers():
     for a, b in zip(alone, together, strict=True):
         assert a is not None
         np.testing.assert_array_equal(a, b)
+
+
+# --------------------------------------------------------------------------------------------
+# The insertion order (drcpo.occlusion.hull_order) against a naive reference
+# --------------------------------------------------------------------------------------------
+def test_hilbert_rank_walks_from_each_cell_to_a_neighbour():
+    from drcpo.occlusion.hull_order import _hilbert_rank
+
+    for side in (1, 2, 4, 8, 32):
+        rank = _hilbert_rank(side)
+        assert sorted(rank.tolist()) == list(range(side * side))  # a walk through every cell
+        row, col = np.divmod(np.argsort(rank), side)  # the cells in walk order
+        assert (np.abs(np.diff(row)) + np.abs(np.diff(col)) == 1).all()
+        assert rank[0] == 0  # starting in a corner
+
+
+def naive_insertion_order(flipped, ranges, radius, axis):
+    """The order by its definition, one point at a time in Python floats: each point's
+    coordinates (u, v) across the unit mean direction (on e1, the coordinate axis least
+    aligned with it made orthogonal, and e2 = direction x e1); empty when a point lies 84
+    degrees or more from the direction or the first three do not span a triangle. Then the
+    extremes of u (first of equals), the point farthest from their line, the nearest point
+    (least range, first of equals) of each coarse cell in the cells' boustrophedon order,
+    and every other point by its fine cell's Hilbert rank, then by index."""
+    from drcpo.occlusion.hull_order import _HILBERT_RANK, _HILBERT_SIDE
+
+    n = len(ranges)
+    norm = math.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
+    if not norm > 0.0:
+        return []
+    d = [axis[0] / norm, axis[1] / norm, axis[2] / norm]
+    k = min(range(3), key=lambda a: abs(d[a]))  # first of equals: x, then y
+    e1 = [(1.0 if a == k else 0.0) - d[k] * d[a] for a in range(3)]
+    norm = math.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+    e1 = [e / norm for e in e1]
+    e2 = [d[1] * e1[2] - d[2] * e1[1], d[2] * e1[0] - d[0] * e1[2], d[0] * e1[1] - d[1] * e1[0]]
+    rows = flipped[:n].tolist()
+    u, v = [], []
+    for i, p in enumerate(rows):
+        if not p[0] * d[0] + p[1] * d[1] + p[2] * d[2] > 0.1 * (2.0 * radius - ranges[i]):
+            return []
+        u.append(p[0] * e1[0] + p[1] * e1[1] + p[2] * e1[2])
+        v.append(p[0] * e2[0] + p[1] * e2[1] + p[2] * e2[2])
+    a, b = u.index(min(u)), u.index(max(u))
+    du, dv = u[b] - u[a], v[b] - v[a]
+    off = [abs(du * (v[i] - v[a]) - dv * (u[i] - u[a])) for i in range(n)]
+    c = off.index(max(off))
+    if a == b or c in (a, b):
+        return []
+    side, fine = max(1, int(math.sqrt(n / 16.0))), _HILBERT_SIDE
+    su = 1.0 / max(du, 1e-300) * (1.0 - 1e-9)
+    sv = 1.0 / max(max(v) - min(v), 1e-300) * (1.0 - 1e-9)
+    nearest, coarse, fine_rank = {}, [], []
+    for i in range(n):
+        x, y = (u[i] - u[a]) * su, (v[i] - min(v)) * sv
+        row, col = min(side - 1, int(x * side)), min(side - 1, int(y * side))
+        cell = row * side + (side - 1 - col if row % 2 else col)
+        coarse.append(cell)
+        if cell not in nearest or ranges[i] < ranges[nearest[cell]]:
+            nearest[cell] = i
+        fine_rank.append(
+            _HILBERT_RANK[min(fine - 1, int(x * fine)) * fine + min(fine - 1, int(y * fine))]
+        )
+    first = [a, b, c] + [nearest[k] for k in sorted(nearest) if nearest[k] not in (a, b, c)]
+    rest = [i for i in range(n) if i not in (a, b, c) and nearest[coarse[i]] != i]
+    return first + sorted(rest, key=lambda i: (fine_rank[i], i))
+
+
+def flip(points, radius):
+    """Ranges and flipped points (the viewpoint at the origin, appended), as the hull flips."""
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    ranges = np.sqrt(xyz[:, 0] * xyz[:, 0] + xyz[:, 1] * xyz[:, 1] + xyz[:, 2] * xyz[:, 2])
+    flipped = xyz + xyz * (2.0 * (radius - ranges) / ranges)[:, None]
+    return np.vstack([flipped, np.zeros((1, 3))]), ranges
+
+
+def test_insertion_order_follows_the_naive_order():
+    from drcpo.occlusion.hull_order import _insertion_order
+
+    rng = np.random.default_rng(9)
+    cases = [lidar_object(rng, int(count)) for count in (4, 17, 300, 2000)]
+    lattice = np.indices((8, 8, 3)).reshape(3, -1).T * 0.25 + [10.0, -1.0, -1.0]  # ties in u
+    cases.append((lattice, 1e4))
+    ranged = lidar_object(rng, 200)[0][:, :3].astype(np.float64)
+    cases.append((np.vstack([ranged, ranged[:50]]), 1e3))  # copies: equal ranges, equal u
+    cases.append((np.vstack([ranged, [[-10.0, 0.0, 0.0]]]), 1e3))  # one point behind: empty
+    cases.append((np.tile(ranged[:1], (6, 1)), 1e3))  # all one point: no triangle, empty
+    cases.append((np.array([[5.0, 0, 0], [6, 0, 0], [7, 0, 0], [8, 0, 0]]), 1e3))  # one line
+    for points, radius in cases:
+        flipped, ranges = flip(points, radius)
+        for axis in (flipped[:-1].sum(axis=0), np.array([1.0, 0.0, 0.0]), np.zeros(3)):
+            want = naive_insertion_order(flipped, ranges.tolist(), radius, axis.tolist())
+            got = _insertion_order(flipped, ranges, radius, axis)
+            np.testing.assert_array_equal(got, np.array(want, dtype=np.int64))
+            if want:
+                assert sorted(want) == list(range(len(ranges)))  # a permutation

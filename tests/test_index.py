@@ -128,6 +128,34 @@ def test_grid_search_first_stage_is_exact_on_continuous_sizes(rng):
         np.testing.assert_array_equal(ious[b], iou[b, expected])
 
 
+def test_approximate_mode_ranks_its_neighbours_as_the_naive_sort(rng):
+    # The approximate first stage: the L1 nearest neighbours in log-size space (the tree's
+    # answer, taken as given), then the best s of them but the query itself by canonical IoU,
+    # ties to the lower id; -1 where fewer than s remain.
+    dims = np.round(np.exp(rng.normal([1.36, 0.48, 0.42], [0.11, 0.06, 0.09], (1500, 3))), 1)
+    dims[:40] = dims[40]  # a large group of identical boxes: only some are searchable
+    for s, factor in ((8, 1.5), (30, 1.0), (1, 3.0)):
+        search = SimilaritySearch(dims, s, mode="approximate", approx_factor=factor)
+        queries = np.concatenate([np.arange(0, 60), rng.integers(0, len(dims), 100)])
+        ids, ious = search.top(queries)
+        _, near = search.tree.query(search.u[queries], k=search.neighbours, p=1)
+        for b, q in enumerate(queries):
+            others = search.pool[near[b].reshape(-1)]
+            others = others[others != q]
+            iou = canonical_iou3d(dims[q], dims[others])
+            best = np.lexsort((others, -iou))[:s]
+            want_ids = np.full(s, -1)
+            want_ids[: len(best)] = others[best]
+            want_ious = np.full(s, -1.0)
+            want_ious[: len(best)] = iou[best]
+            np.testing.assert_array_equal(ids[b], want_ids)
+            np.testing.assert_array_equal(ious[b], want_ious)
+    # Fewer neighbours than s (a tree over two objects): the rest is padding.
+    few = SimilaritySearch(np.array([[1.0, 1.0, 1.0], [2.0, 1.0, 1.0]]), 1, mode="approximate")
+    few.neighbours = 1  # only the query itself comes back
+    np.testing.assert_array_equal(few.top(np.array([0, 1]))[0], [[-1], [-1]])
+
+
 def test_blocks_do_not_change_the_result():
     db = random_database(np.random.default_rng(4), 600)
     one = build_index(db, IndexConfig(k=20, block_size=1000))

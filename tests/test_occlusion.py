@@ -152,6 +152,39 @@ def test_fast_paths_equal_reference_on_lattices(seed):
         assert np.array_equal(got, reference), trial
 
 
+def test_per_point_test_equals_qhull_written_out():
+    # The per-point plane test ("local", drcpo.occlusion.kernels) against HPR's definition
+    # with Qhull (test_hull.qhull_visible): street scenes, blobs with exact copies, integer
+    # lattices (points on one ray, coplanar quadruples), each asked about every point and
+    # about a random half.
+    from test_hull import qhull_visible
+
+    rng = np.random.default_rng(51)
+    cases = []
+    for seed in range(3):
+        scene = street_scene(np.random.default_rng(seed), 2500, fov=[None, 0.8, None][seed])
+        cases.append((scene, np.array([0.0, 0.0, [0.0, 1.0, 2.0][seed]]), [1e3, 1e4, 1e5][seed]))
+    blob = rng.normal(size=(300, 3)) * [2.0, 0.5, 1.0] + [12.0, -3.0, 0.5]
+    blob = np.vstack([blob, blob[rng.integers(0, 300, 60)]])
+    cases += [(blob, np.zeros(3), 1e3), (blob, np.zeros(3), 40.0)]  # 40: R near the ranges
+    for _ in range(6):
+        lattice = rng.integers(-6, 7, size=(int(rng.integers(20, 300)), 3)).astype(float)
+        lattice = lattice[np.abs(lattice).sum(axis=1) > 0]  # none at the viewpoint
+        cases.append((lattice, np.zeros(3), float(10 ** rng.uniform(1.5, 4))))
+    decided = 0
+    for points, viewpoint, radius in cases:
+        want = qhull_visible(points, viewpoint, radius)
+        if want is None:  # Qhull cannot build this hull; the planar rule is tested elsewhere
+            continue
+        decided += 1
+        got = hidden_point_removal(points, viewpoint, radius, method="local")
+        np.testing.assert_array_equal(got, want)
+        query = rng.random(len(points)) < 0.5
+        asked = hidden_point_removal(points, viewpoint, radius, method="local", query=query)
+        np.testing.assert_array_equal(asked, want | ~query)  # the others: reported visible
+    assert decided >= 8
+
+
 @pytest.mark.parametrize("method", ALL_METHODS)
 def test_invariant_to_point_order(method):
     rng = np.random.default_rng(7)
@@ -713,19 +746,22 @@ def test_frame_grid_declines_where_auto_takes_one_hull():
         FrameGrid.build(np.vstack([frame, [[np.nan, 0, 0]]]))
 
 
-def test_frame_grid_windows_select_by_direction(rng):
-    from drcpo.occlusion import FrameGrid
-
-    points = rng.normal(0, 20, (4000, 3))
-    grid = FrameGrid.build(points, (0.0, 0.0, 0.5))
-    rel = points - [0.0, 0.0, 0.5]
-    # libm's atan2 (math's), which the grid uses on every CPU
+def naive_directions(points, viewpoint):
+    """Azimuth, elevation and distance ``(N,)`` of points seen from ``viewpoint``, in float64
+    with libm's atan2 (math's), which the kernels use on every CPU."""
+    rel = np.asarray(points, dtype=np.float64)[:, :3] - np.asarray(viewpoint, dtype=np.float64)
     horizontal = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1])
-    azimuth = np.array([math.atan2(y, x) for x, y in rel[:, :2]])
+    azimuth = np.array([math.atan2(y, x) for x, y in rel[:, :2].tolist()])
     elevation = np.array([math.atan2(z, h) for z, h in zip(rel[:, 2], horizontal, strict=True)])
     distance = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1] + rel[:, 2] * rel[:, 2])
-    windows = np.array([[-0.3, 0.2, -0.1, 0.3, 10.0], [2.9, np.pi, -1.0, 1.0, -np.inf]])
-    expected = np.zeros(len(points), dtype=bool)
+    return azimuth, elevation, distance
+
+
+def naive_in_windows(points, windows, viewpoint):
+    """A point is in a window when its azimuth and elevation lie in the window's closed
+    ranges and it is at least the window's nearest distance away; in any window, in any."""
+    azimuth, elevation, distance = naive_directions(points, viewpoint)
+    expected = np.zeros(len(azimuth), dtype=bool)
     for az0, az1, el0, el1, near in windows:
         expected |= (
             (azimuth >= az0)
@@ -734,12 +770,57 @@ def test_frame_grid_windows_select_by_direction(rng):
             & (elevation <= el1)
             & (distance >= near)
         )
+    return expected
+
+
+def test_frame_grid_windows_select_by_direction(rng):
+    from drcpo.occlusion import FrameGrid
+
+    points = rng.normal(0, 20, (4000, 3))
+    grid = FrameGrid.build(points, (0.0, 0.0, 0.5))
+    windows = np.array([[-0.3, 0.2, -0.1, 0.3, 10.0], [2.9, np.pi, -1.0, 1.0, -np.inf]])
+    expected = naive_in_windows(points, windows, (0.0, 0.0, 0.5))
     assert expected.sum() > 50
     np.testing.assert_array_equal(grid.in_windows(windows), expected)
     rows = np.flatnonzero(expected)[:40]
     got = grid.directions(rows)
-    for values, want in zip(got, (azimuth, elevation, distance), strict=True):
+    for values, want in zip(got, naive_directions(points, (0.0, 0.0, 0.5)), strict=True):
         np.testing.assert_array_equal(values, want[rows])
+
+
+def test_in_windows_follows_the_naive_rule():
+    # view_windows.in_windows (its own kernel, not the FrameGrid's) on windows whose bounds
+    # are some points' own azimuth, elevation and distance (exact ties: closed bounds), the
+    # seam at +-pi, float32 and float64 points, NaN and a point at the viewpoint.
+    from drcpo.occlusion.view_windows import in_windows, window_spans
+
+    rng = np.random.default_rng(52)
+    viewpoint = np.array([0.3, -0.2, 1.7])
+    points = np.vstack([rng.normal(0, 20, (3000, 3)), [[np.nan, 0.0, 0.0], viewpoint]])
+    for dtype in (np.float64, np.float32):
+        cloud = points.astype(dtype)
+        azimuth, elevation, distance = naive_directions(cloud, viewpoint)
+        a, b, c = rng.choice(3000, (3, 6))
+        windows = np.array(
+            [
+                [azimuth[a[0]], azimuth[a[1]], elevation[b[0]], elevation[b[1]], -np.inf],
+                [azimuth[a[2]], azimuth[a[3]], -1.0, elevation[b[2]], distance[c[0]]],
+                [-np.pi, azimuth[a[4]], elevation[b[3]], np.pi / 2, distance[c[1]]],
+                [azimuth[a[5]], np.pi, -np.pi / 2, elevation[b[4]], 0.0],
+            ]
+        )
+        windows[:, :2].sort(axis=1)
+        windows[:, 2:4].sort(axis=1)
+        boxes = np.array(
+            [[-10.0, 0.3, -1.0, 4.0, 1.8, 1.5, 0.4], [9.0, 2.0, 0.0, 1.0, 1.0, 2.0, 0]]
+        )
+        spans = window_spans(boxes, viewpoint, behind=True)  # the first crosses the seam
+        for case in (windows, windows[:1], spans, np.zeros((0, 5))):
+            want = naive_in_windows(cloud, case, viewpoint)
+            np.testing.assert_array_equal(in_windows(cloud, case, viewpoint), want)
+        assert naive_in_windows(cloud, windows, viewpoint).sum() > 100
+        np.testing.assert_array_equal(in_windows(cloud, None, viewpoint), np.ones(len(cloud), bool))
+        assert in_windows(cloud[:0], windows, viewpoint).shape == (0,)
 
 
 # ----------------------------------------------------------------------------------------------

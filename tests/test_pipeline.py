@@ -25,7 +25,13 @@ from drcpo.transforms.drcpo_insertion import (
     _sparse_originals,
     external_occlusion,
 )
-from drcpo.transforms.insertion import BoxQuery, match_features, road_plane_heights
+from drcpo.transforms.insertion import (
+    BoxQuery,
+    match_features,
+    placed_object,
+    placed_objects,
+    road_plane_heights,
+)
 
 SIZES = {"Car": (3.9, 1.6, 1.56), "Pedestrian": (0.8, 0.6, 1.73), "Cyclist": (1.76, 0.6, 1.73)}
 GROUND_Z = -1.73
@@ -401,6 +407,54 @@ def test_placed_object_is_from_canonical_bit_for_bit(dim, rng):
         got = placed_object(canonical, box, dim)
         assert got.dtype == np.float32
         np.testing.assert_array_equal(got, expected)
+
+
+def naive_place(canonical, box, dim):
+    """One row at a time in Python floats: x, y turned by the heading (numpy's cos and sin)
+    and moved to the box, z moved, each cast to float32 once; the features copied, missing
+    columns left 0."""
+    cos, sin = float(np.cos(np.float64(box[6]))), float(np.sin(np.float64(box[6])))
+    out = np.zeros((len(canonical), dim), np.float32)
+    for i, row in enumerate(np.asarray(canonical, np.float32).tolist()):
+        x, y, z = row[0], row[1], row[2]
+        out[i, :3] = [(cos * x - sin * y) + box[0], (sin * x + cos * y) + box[1], z + box[2]]
+        features = row[3:dim]
+        out[i, 3 : 3 + len(features)] = features
+    return out
+
+
+def test_placing_and_scaling_kernels_follow_the_naive_rows():
+    rng = np.random.default_rng(31)
+    canonical = (rng.normal(size=(200, 4)) * [2.0, 1.0, 0.8, 1.0]).astype(np.float32)
+    canonical[:3, :3] = [[0.0, 0.0, 0.0], [-0.0, 1e-45, -1e-30], [9.9e5, -9.9e5, 1.0]]
+    boxes = np.array(
+        [
+            [31.7, -12.3, -0.9, 4.0, 1.7, 1.5, 0.0],
+            [-1e5, 1e5, 2.0, 4.0, 1.7, 1.5, np.pi],
+            [0.0, 0.0, 0.0, 1.0, 1.0, 1.0, -2.9],
+            [1e-3, 5.0, -1.7, 1.0, 1.0, 1.0, 1e-12],
+        ]
+    )
+    for box in boxes:
+        for dim in (3, 4, 6):
+            want = naive_place(canonical, box, dim)
+            np.testing.assert_array_equal(placed_object(canonical, box, dim), want)
+    assert placed_object(canonical[:0], boxes[0], 4).shape == (0, 4)
+    # placed_objects: one database object after another into one array
+    sizes = [0, 50, 150]
+    db = GroundTruthDatabase.from_arrays(
+        canonical, np.cumsum([0, *sizes]), ["Car"] * 3, boxes[:3].copy()
+    )
+    rows, at = np.array([2, 0, 1, 2]), boxes[[0, 1, 2, 3]]
+    want = [naive_place(db.object_points(r), b, 5) for r, b in zip(rows, at, strict=True)]
+    np.testing.assert_array_equal(placed_objects(db, rows, at, 5), np.concatenate(want))
+    # GlobalScaling: x, y, z times the factor in float64, stored as float32; features kept
+    points = np.concatenate([canonical, [[-1e6, 1e-45, -0.0, 7.0]]]).astype(np.float32)
+    for scale in (0.95, 1.0, 1.05, 1 / 3):
+        want = points.copy()
+        want[:, :3] = (points[:, :3].astype(np.float64) * scale).astype(np.float32)
+        out = GlobalScaling((scale, scale))(Frame(points.copy()), rng)
+        np.testing.assert_array_equal(out.points, want)
 
 
 def test_stats_helper_counts():

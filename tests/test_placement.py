@@ -397,6 +397,54 @@ def test_touching_boxes_do_not_collide(rng):
     np.testing.assert_array_equal(bev_collisions(many, many), bev_overlap_area(many) > 0)
 
 
+def naive_first_come(boxes, objects):
+    """Greedy in order: a box stays unless its footprint overlaps (overlap_depth > 0) one kept
+    before it of another object."""
+    kept = []
+    for i, box in enumerate(boxes):
+        clash = any(
+            kept[j] and objects[j] != objects[i] and overlap_depth(boxes[j], box) > 0
+            for j in range(i)
+        )
+        kept.append(not clash)
+    return np.array(kept, dtype=bool)
+
+
+def test_first_come_follows_the_naive_greedy(rng):
+    from drcpo.collisions import first_come
+
+    for count, spread in ((60, 30.0), (200, 20.0), (40, 4.0)):
+        boxes = np.column_stack(
+            [
+                rng.uniform(0, spread, (count, 2)),
+                np.zeros(count),
+                rng.uniform(0.5, 5, (count, 3)),
+                rng.uniform(-np.pi, np.pi, count),
+            ]
+        )
+        objects = rng.integers(0, count // 3, count)  # some alternatives of one object
+        want = naive_first_come(boxes, objects)
+        assert 0 < want.sum() < count
+        np.testing.assert_array_equal(first_come(boxes, objects), want)
+    # A chain a-b-c of overlaps: b goes, so c (clear of a) stays; exact edge contact (d) and
+    # a copy of a kept box of the same object (e) stay; a copy of another's (f) goes.
+    chain = np.array(
+        [
+            [0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+            [3.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+            [6.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+            [-4.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+            [0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+            [6.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+        ]
+    )
+    owners = np.array([0, 1, 2, 3, 0, 4])
+    want = naive_first_come(chain, owners)
+    np.testing.assert_array_equal(want, [True, False, True, True, True, False])
+    np.testing.assert_array_equal(first_come(chain, owners), want)
+    assert first_come(np.zeros((0, 7)), np.zeros(0, np.int64)).shape == (0,)
+
+
 def test_box_members_match_points_in_boxes(rng):
     points = np.column_stack(
         [rng.uniform(-5, 45, (20000, 2)), rng.uniform(-3, 2, 20000), rng.random(20000)]
@@ -476,6 +524,63 @@ def reference_area_draw(dims, seed, x_range, y_range):
         y = low_y + u[k, 1] * (high_y - low_y)
         out[k] = [x, y, dz / 2.0, dx, dy, dz, heading[k]]
     return out
+
+
+def reference_fov_draw(dims, seed, x_range, y_range, half_angle):
+    """The draw with a field of view, step by step: headings, then rounds of (u, v) for the
+    rows still to draw; a row whose footprint fits but has a corner (as bev_corners computes
+    it) at an azimuth beyond ``half_angle`` (libm's atan2) is drawn again, at most
+    FOV_ROUNDS more times, then left NaN."""
+    from drcpo.poses import FOV_ROUNDS
+
+    rng = np.random.default_rng(seed)
+    heading = rng.uniform(-np.pi, np.pi, len(dims))
+    out = np.column_stack([np.zeros((len(dims), 2)), dims[:, 2] / 2.0, dims, heading])
+    todo = list(range(len(dims)))
+    for _ in range(FOV_ROUNDS + 1):
+        if not todo:
+            break
+        u = rng.uniform(0.0, 1.0, (len(todo), 2))
+        again = []
+        for k, r in enumerate(todo):
+            dx, dy = float(dims[r, 0]), float(dims[r, 1])
+            cos, sin = float(np.cos(heading[r])), float(np.sin(heading[r]))
+            reach_x = (abs(cos) * dx + abs(sin) * dy) / 2
+            reach_y = (abs(sin) * dx + abs(cos) * dy) / 2
+            low_x, high_x = x_range[0] + reach_x, x_range[1] - reach_x
+            low_y, high_y = y_range[0] + reach_y, y_range[1] - reach_y
+            if low_x > high_x or low_y > high_y:
+                out[r, :2] = np.nan
+                continue
+            x, y = low_x + u[k, 0] * (high_x - low_x), low_y + u[k, 1] * (high_y - low_y)
+            out[r, :2] = x, y
+            corners = [
+                ((cos * a * dx - sin * b * dy) + x, (sin * a * dx + cos * b * dy) + y)
+                for a, b in ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5))
+            ]
+            if not all(abs(math.atan2(cy, cx)) <= half_angle for cx, cy in corners):
+                again.append(r)
+        todo = again
+    out[todo, :2] = np.nan
+    return out, rng.bit_generator.state
+
+
+def test_the_field_of_view_draw_follows_the_step_by_step_reference():
+    from drcpo.poses import draw_poses
+
+    dims = np.concatenate([sizes(60), [[90.0, 1.0, 1.0], [1.0, 200.0, 1.0]]])  # two never fit
+    for area, half in (
+        (((0.0, 70.4), (-40.0, 40.0)), np.deg2rad(41.0)),
+        (((-20.0, 50.0), (-40.0, 40.0)), 0.3),  # most of the area is out of view
+        (((0.0, 70.4), (-40.0, 40.0)), 1e-4),  # nothing fits a sliver: every row left NaN
+        (((-5.0, 5.0), (-5.0, 5.0)), np.pi),  # every direction
+    ):
+        want, state = reference_fov_draw(dims, 4, *area, half)
+        rng = np.random.default_rng(4)
+        got = draw_poses(dims, rng, *area, half_angle=half)
+        np.testing.assert_array_equal(got, want)
+        assert rng.bit_generator.state == state
+    assert np.isnan(want[-2:, :2]).all() and np.isfinite(want[:-2]).all()
 
 
 @pytest.mark.parametrize("height", ["ground", "source"])

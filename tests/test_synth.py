@@ -149,6 +149,152 @@ def test_azimuth_binning_gives_the_brute_force_answer(rng):
     assert (fast.hit >= 0).sum() > 100
 
 
+def naive_solid_hits(solids, directions):
+    """Distance ``(R,)`` to each ray's entry into solid ``s`` and the unit normal there, for
+    every solid in turn: the ray from the origin taken into the solid's frame and its equation
+    solved in plain numpy (box: slabs; ellipsoid: the unit sphere after scaling; cylinder: the
+    side's roots within its height and the caps within its radius), the nearest positive
+    root; the normal from the solid's gradient at the hit. ``(S, R)`` and ``(S, R, 3)``."""
+    count = len(directions)
+    t_all, normal_all = np.full((len(solids), count), np.inf), np.zeros((len(solids), count, 3))
+    for s in range(len(solids)):
+        c, sn = np.cos(solids.yaw[s]), np.sin(solids.yaw[s])
+        o = -solids.centre[s]
+        o = np.array([c * o[0] + sn * o[1], -sn * o[0] + c * o[1], o[2]])
+        q = np.column_stack(
+            [
+                c * directions[:, 0] + sn * directions[:, 1],
+                -sn * directions[:, 0] + c * directions[:, 1],
+                directions[:, 2],
+            ]
+        )
+        h = solids.half[s]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if solids.kind[s] == BOX:
+                enter, leave = np.full(count, -np.inf), np.full(count, np.inf)
+                for a in range(3):
+                    t1, t2 = (-h[a] - o[a]) / q[:, a], (h[a] - o[a]) / q[:, a]
+                    parallel = q[:, a] == 0
+                    outside = parallel & (abs(o[a]) > h[a])
+                    enter = np.maximum(enter, np.where(parallel, -np.inf, np.minimum(t1, t2)))
+                    leave = np.minimum(leave, np.where(parallel, np.inf, np.maximum(t1, t2)))
+                    leave[outside] = -np.inf
+                t = np.where((enter <= leave) & (enter > 0), enter, np.inf)
+            elif solids.kind[s] == ELLIPSOID:
+                p, w = o / h, q / h
+                a, b, cc = (w * w).sum(1), 2 * (w @ p), p @ p - 1.0
+                t = (-b - np.sqrt(b * b - 4 * a * cc)) / (2 * a)
+                t = np.where(t > 0, t, np.inf)  # NaN (no real root) fails too
+            else:
+                r, candidates = h[0], []
+                a, b = (q[:, :2] ** 2).sum(1), 2 * (q[:, :2] @ o[:2])
+                cc = o[:2] @ o[:2] - r * r
+                for sign in (-1.0, 1.0):
+                    side = (-b + sign * np.sqrt(b * b - 4 * a * cc)) / (2 * a)
+                    candidates.append(np.where(abs(o[2] + side * q[:, 2]) <= h[2], side, np.nan))
+                    cap = (sign * h[2] - o[2]) / q[:, 2]
+                    spot = o[:2] + cap[:, None] * q[:, :2]
+                    candidates.append(np.where((spot**2).sum(1) <= r * r, cap, np.nan))
+                candidates = np.where(np.array(candidates) > 0, candidates, np.inf)
+                t = candidates.min(axis=0)
+        hit = np.isfinite(t)
+        point = o + t[hit, None] * q[hit]
+        if solids.kind[s] == BOX:
+            face = np.argmax(np.abs(point) / h, axis=1)
+            local = np.zeros_like(point)
+            local[np.arange(len(point)), face] = np.sign(point[np.arange(len(point)), face])
+        elif solids.kind[s] == ELLIPSOID:
+            local = point / h**2
+        else:
+            on_cap = abs(abs(point[:, 2]) - h[2]) < abs(np.hypot(point[:, 0], point[:, 1]) - h[0])
+            local = np.where(
+                on_cap[:, None],
+                np.column_stack([0 * point[:, :2], np.sign(point[:, 2])]),
+                np.column_stack([point[:, :2], 0 * point[:, 2]]),
+            )
+        local /= np.linalg.norm(local, axis=1, keepdims=True)
+        t_all[s] = t
+        normal_all[s, hit] = np.column_stack(
+            [c * local[:, 0] - sn * local[:, 1], sn * local[:, 0] + c * local[:, 1], local[:, 2]]
+        )
+    return t_all, normal_all
+
+
+def naive_ground_hit(ground, d, t_max):
+    """The first distance below ``t_max`` where the ray reaches the height field: a march in
+    1 cm steps, then bisection of the first step that crosses (inf on none)."""
+    if d[2] >= 0:
+        return np.inf
+    t = np.arange(0.0, t_max + 0.01, 0.01)
+    below = np.flatnonzero(t * d[2] <= ground.height(t * d[0], t * d[1]))
+    if len(below) == 0:
+        return np.inf
+    a, b = t[below[0] - 1], t[below[0]]
+    for _ in range(60):
+        m = (a + b) / 2
+        if m * d[2] <= ground.height(m * d[0], m * d[1]):
+            b = m
+        else:
+            a = m
+    return b if b < t_max else np.inf
+
+
+def test_cast_matches_the_naive_intersections(rng):
+    # Boxes, ellipsoids and cylinders around the sensor over a bumpy ground, cast against
+    # each solid's own equation and a marched ground; rays at random, along the axes, level
+    # (dz exactly 0), straight up and down, and aimed at the solids' centres; per-ray range.
+    rows = []
+    for _ in range(150):
+        kind = int(rng.integers(0, 3))
+        half = rng.uniform(0.1, 3, 3)
+        if kind == CYLINDER:
+            half[1] = half[0]  # (radius, radius, half height)
+        angle, distance = rng.uniform(-np.pi, np.pi), rng.uniform(5.5, 60)
+        centre = (distance * np.cos(angle), distance * np.sin(angle), rng.uniform(-2, 2))
+        rows.append((kind, centre, tuple(half), rng.uniform(-np.pi, np.pi), "paint"))
+    solids = make_solids(rows)
+    ground = Ground(-1.73, [0.05, 0.03], [0.1, -0.05], [0.07, 0.2], [0.3, 1.0])
+    axes = np.vstack([np.eye(3), -np.eye(3)])
+    level = np.column_stack([np.cos(a := rng.uniform(-np.pi, np.pi, 200)), np.sin(a), 0 * a])
+    aimed = _unit(solids.centre + rng.normal(0, 0.3, solids.centre.shape))
+    directions = np.vstack([_unit(rng.normal(size=(1500, 3))), axes, level, aimed])
+    t_max = rng.uniform(5.0, 120.0, len(directions))
+    t_solid, n_solid = naive_solid_hits(solids, directions)
+    for with_ground in (True, False):
+        scene = Scene(solids, ground if with_ground else None)
+        hits = scene.cast(directions, t_max)
+        t_ground = np.array(
+            [
+                naive_ground_hit(ground, d, m) if with_ground else np.inf
+                for d, m in zip(directions, t_max, strict=True)
+            ]
+        )
+        nearest = np.argmin(t_solid, axis=0)
+        t_near = t_solid[nearest, np.arange(len(directions))]
+        want_hit = np.where(t_ground < t_near, GROUND, nearest)
+        want_t = np.minimum(t_ground, t_near)
+        want_hit = np.where(want_t < t_max, want_hit, MISS)
+        want_t = np.where(want_t < t_max, want_t, np.inf)
+        assert (want_hit >= 0).sum() > 200 and (want_hit == MISS).sum() > 100
+        assert (want_hit == GROUND).sum() > 200 or not with_ground
+        np.testing.assert_array_equal(hits.hit, want_hit)
+        np.testing.assert_allclose(hits.t, want_t, rtol=1e-9, atol=1e-6)
+        solid = want_hit >= 0
+        np.testing.assert_allclose(
+            hits.normal[solid], n_solid[want_hit[solid], np.flatnonzero(solid)], atol=1e-6
+        )
+        on_ground = want_hit == GROUND
+        spot = directions[on_ground] * want_t[on_ground, None]
+        phase = spot[:, :1] * ground.wave_x + spot[:, 1:2] * ground.wave_y + ground.phase
+        slope = ground.amplitude * np.cos(phase)
+        up = np.column_stack([-(slope * ground.wave_x).sum(1), -(slope * ground.wave_y).sum(1)])
+        up = _unit(np.column_stack([up, np.ones(len(up))]))
+        np.testing.assert_allclose(hits.normal[on_ground], up, atol=1e-6)
+        assert not hits.normal[want_hit == MISS].any()
+    empty = Scene(Solids.empty(), ground).cast(directions[:50], 100.0)
+    np.testing.assert_array_equal(empty.hit[directions[:50, 2] >= 0], MISS)
+
+
 def test_surface_samples_are_on_the_outside_of_an_actor(rng):
     actor = make_actor("Car", rng)
     points, rows = actor.solids.surface_samples(rng, 0.05)
