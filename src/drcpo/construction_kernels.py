@@ -4,11 +4,10 @@ in one call, reading the candidates' points straight from the (memory-mapped) da
 Per source object: its points within the margin of its box (and, for a mirrored class, their
 mirror images) are counted in the box's partition grid; each partition's density (count over the
 class's largest count there, the index's normaliser, or the object's own largest count), the
-threshold (the mean density of the occupied partitions, summed in numpy's pairwise order) and
-the coverage follow; then each round draws one candidate per deficient partition from the
-``Generator`` (as ``rng.integers(0, K, size)`` does) and adds the points that candidate has in
-that partition of the source box. What travels into the kernels travels as the named tuples
-below.
+threshold (the mean density of the occupied partitions) and the coverage follow; then each round
+draws one candidate per deficient partition from the ``Generator`` (as ``rng.integers(0, K,
+size)`` does) and adds the points that candidate has in that partition of the source box. What
+travels into the kernels travels as the named tuples below.
 """
 
 from __future__ import annotations
@@ -291,75 +290,14 @@ def _normalisers(counts, class_scale, own):
 
 @numba.njit(cache=True, nogil=True)
 def _threshold(counts, scale, fillable):
-    """Mean density of the occupied fillable partitions, summed as ``numpy.mean`` sums."""
+    """Mean density of the occupied fillable partitions (summed in partition order)."""
     densities = np.empty(counts.shape[0], dtype=np.float64)
     n = 0
     for p in range(counts.shape[0]):
         if fillable[p] and counts[p] > 0:
             densities[n] = counts[p] / scale[p]
             n += 1
-    return _numpy_sum(densities, n) / n if n else 0.0
-
-
-@numba.njit(cache=True, nogil=True)
-def _numpy_sum(values, n):
-    """``values[:n].sum()`` in numpy's pairwise order, so that thresholds equal
-    ``numpy.mean``'s bit for bit: blocks of up to 128 values are summed by :func:`_block_sum`,
-    longer runs split in two (the first half a multiple of 8) and the halves' sums added.
-    Iterative, because numba's cache cannot load recursive functions."""
-    if n <= 128:
-        return _block_sum(values, 0, n)
-    # Post-order walk of the split tree: a task is a run (start, length) or, with length -1,
-    # "add the last two sums".
-    starts = np.empty(256, dtype=np.int64)
-    lengths = np.empty(256, dtype=np.int64)
-    sums = np.empty(128, dtype=np.float64)
-    starts[0], lengths[0] = 0, n
-    n_tasks, n_sums = 1, 0
-    while n_tasks:
-        n_tasks -= 1
-        start, length = starts[n_tasks], lengths[n_tasks]
-        if length < 0:
-            n_sums -= 1
-            sums[n_sums - 1] += sums[n_sums]
-        elif length <= 128:
-            sums[n_sums] = _block_sum(values, start, length)
-            n_sums += 1
-        else:
-            first = length // 2
-            first -= first % 8
-            starts[n_tasks], lengths[n_tasks] = 0, -1
-            starts[n_tasks + 1], lengths[n_tasks + 1] = start + first, length - first
-            starts[n_tasks + 2], lengths[n_tasks + 2] = start, first
-            n_tasks += 3
-    return sums[0]
-
-
-@numba.njit(cache=True, nogil=True)
-def _block_sum(values, start, n):
-    """numpy's pairwise_sum for ``n <= 128`` values: 8 running sums, then the rest in turn."""
-    if n < 8:
-        total = 0.0
-        for i in range(start, start + n):
-            total += values[i]
-        return total
-    r0, r1, r2, r3 = values[start], values[start + 1], values[start + 2], values[start + 3]
-    r4, r5, r6, r7 = values[start + 4], values[start + 5], values[start + 6], values[start + 7]
-    i = start + 8
-    stop = start + n - n % 8
-    while i < stop:
-        r0, r1, r2, r3 = r0 + values[i], r1 + values[i + 1], r2 + values[i + 2], r3 + values[i + 3]
-        r4, r5, r6, r7 = (
-            r4 + values[i + 4],
-            r5 + values[i + 5],
-            r6 + values[i + 6],
-            r7 + values[i + 7],
-        )
-        i += 8
-    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    for j in range(i, start + n):
-        total += values[j]
-    return total
+    return densities[:n].sum() / n if n else 0.0
 
 
 @numba.njit(cache=True, nogil=True)
