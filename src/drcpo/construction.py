@@ -21,12 +21,10 @@ the mean, and so every decision, unchanged up to the candidate index's per-parti
 
 Implementation: :func:`construct_objects` builds a batch of objects in one compiled (numba) call
 (:mod:`drcpo.construction_kernels`) that reads the candidates' points straight from the
-(memory-mapped) database and draws from the
-``Generator`` exactly as the plain numpy formulation does (``rng.integers(0, K, size)`` per
-iteration), so results
-are bit-identical to it: same points in the same order, same thresholds (summed in numpy's
-pairwise order), same rng state afterwards. ``tests/test_construction.py`` keeps that
-formulation as the reference.
+(memory-mapped) database and draws from the ``Generator`` exactly as the plain numpy
+formulation does (``rng.integers(0, K, size)`` per iteration): same points in the same order,
+same thresholds (the mean summed in partition order), same rng state afterwards.
+``tests/test_construction.py`` keeps that formulation as the reference.
 """
 
 from __future__ import annotations
