@@ -14,8 +14,6 @@ arms=(
   # labels: construction keeps no point outside the source box, so the label is the source box
   # (by default points up to 5 cm outside are kept and the label grows to hold them)
   paper:construction.margin=0.0
-  # count parity: DR.CPO first, ground-truth sampling tops each class up
-  paper:before_gt_sampling=true
   # the paper's own ablations: construction, location, heading range (Tables 4-6)
   paper:construction.max_iterations=0
   paper:construction.max_iterations=1

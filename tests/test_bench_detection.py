@@ -32,7 +32,7 @@ def test_arms_are_built_in_names_presets_files_and_overrides(tmp_path):
     changed = arms.parse_arm("paper:placement.occluded_fraction=null,placement.location=source")
     placement = changed.config["drcpo"]["placement"]
     assert placement["occluded_fraction"] is None and placement["location"] == "source"
-    assert placement["height"] == "ground"  # the rest of the preset stays
+    assert placement["max_non_ground_points"] == 10  # the rest of the preset stays
     full_path = arms.parse_arm("paper:drcpo.placement.max_non_ground_points=9")
     assert full_path.config["drcpo"]["placement"]["max_non_ground_points"] == 9
     assert changed.slug != paper.slug and "/" not in changed.slug and ":" not in changed.slug

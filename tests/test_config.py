@@ -38,7 +38,7 @@ def test_paper_defaults():
     assert (d.construction.coverage, d.construction.max_iterations) == (0.85, 20)
     assert d.construction.margin == 0.05
     assert d.placement.x_range == [0.0, 70.4] and d.placement.y_range == [-40.0, 40.0]
-    assert d.placement.height == "ground" and d.placement.max_non_ground_points == 10
+    assert d.placement.max_non_ground_points == 10 and d.placement.ground_tolerance == 0.2
     assert d.self_occlusion.radius_factor == 200.0 and d.self_occlusion.min_points == 5
     assert (d.external_occlusion.radius, d.external_occlusion.viewpoint_z) == (1e5, 0.0)
     assert d.min_points_after == 5
@@ -132,7 +132,7 @@ def test_out_of_range_names_the_key_and_the_allowed_range(data, path, allowed):
 @pytest.mark.parametrize(
     ("data", "words"),
     [
-        ({"drcpo": {"placement": {"height": "magic"}}}, ["height", "ground, source"]),
+        ({"drcpo": {"placement": {"location": "magic"}}}, ["location", "random, source"]),
         ({"drcpo": {"external_occlusion": {"preset": "second"}}}, ["preset", "viewpoint_z"]),
         ({"preset": "voxelnet"}, ["preset", "pointrcnn"]),
         ({"drcpo": {"enabled": "yes"}}, ["drcpo.enabled", "true or false"]),
@@ -292,7 +292,6 @@ BAD_VALUES = {
     "gt_sampling.exclude_difficulty": [3],
     "gt_sampling.use_road_plane": 1,
     "drcpo.enabled": 0,
-    "drcpo.before_gt_sampling": "first",
     "drcpo.sample": {"Car": 1.5},
     "drcpo.min_points": 1e7,
     "drcpo.exclude_difficulty": "-1",
@@ -304,7 +303,6 @@ BAD_VALUES = {
     "drcpo.construction.grids": {"Car": [0, 4, 3]},
     "drcpo.placement.x_range": [200, 200],
     "drcpo.placement.y_range": [10, -10],
-    "drcpo.placement.height": "sky",
     "drcpo.placement.location": "anywhere",
     "drcpo.placement.heading_range": 4.0,
     "drcpo.placement.max_non_ground_points": -1,

@@ -208,17 +208,6 @@ def test_a_caller_rejects_placed_boxes_without_touching_the_others(rng):
     assert placed.rejected["occluded"] == 0 and (placed.reasons[placed.accepted] == "").all()
 
 
-def test_source_height_mode_keeps_the_source_z(rng):
-    frame = scene(rng)
-    source = np.column_stack([np.zeros((9, 2)), np.linspace(-3, 1, 9), sizes(9), np.zeros(9)])
-    config = PlacementConfig(height="source", max_non_ground_points=10**6)
-    result = place_objects(frame, sizes(9), source, rng, config)
-    assert len(result.accepted) > 0
-    np.testing.assert_array_equal(result.boxes[:, 2], source[result.accepted, 2])
-    with pytest.raises(DataError, match="source boxes"):
-        place_objects(frame, sizes(9), None, rng, config)
-
-
 def test_the_papers_ablations_place_objects_at_their_own_centre_and_turn_them_in_a_range(rng):
     count = 400
     source = np.column_stack(
@@ -307,8 +296,8 @@ def test_bad_input_is_rejected(rng):
         place_objects(frame, [1.0, 1.0, 1.0], None, rng)
     with pytest.raises(ConfigError, match="placement.x_range"):
         PlacementConfig(x_range=(5, 5))
-    with pytest.raises(ConfigError, match="placement.height"):
-        PlacementConfig(height="air")
+    with pytest.raises(ConfigError, match="placement.location"):
+        PlacementConfig(location="air")
     with pytest.raises(ConfigError, match="placement.fov_half_angle"):
         PlacementConfig(fov_half_angle=4.0)
     with pytest.raises(ConfigError, match="placement.max_non_ground_points"):
@@ -476,9 +465,6 @@ def test_field_of_view_test_matches_the_corner_azimuths(rng):
     np.testing.assert_array_equal(in_fov(boxes, half), expected)
 
 
-OBSERVED = {"height": "observed", "max_non_ground_points": 0}
-
-
 def test_frame_ground_leaves_out_the_points_in_excluded_boxes(rng):
     cloud = ground_cloud(rng, n=40000)
     # An object pasted from another frame, its bottom 0.6 m below this frame's ground.
@@ -583,17 +569,12 @@ def test_the_field_of_view_draw_follows_the_step_by_step_reference():
     assert np.isnan(want[-2:, :2]).all() and np.isfinite(want[:-2]).all()
 
 
-@pytest.mark.parametrize("height", ["ground", "source"])
-def test_both_height_modes_place_where_the_whole_area_draw_puts_them(rng, height):
+def test_place_objects_puts_boxes_where_the_whole_area_draw_puts_them(rng):
     dims = sizes(50)
     expected = reference_area_draw(dims, 9, AREA.x_range, AREA.y_range)
     np.testing.assert_array_equal(sample_poses(dims, np.random.default_rng(9)), expected)
-    # place_objects draws so in either mode (an empty frame: every box fits)
-    config = PlacementConfig(height=height)
+    # place_objects draws so (an empty frame: every box fits)
     frame = Frame(ground_cloud(rng, n=2000).astype(np.float32))
-    source = np.column_stack([np.zeros((len(dims), 2)), np.full(len(dims), -0.9), dims])
-    source = np.column_stack([source, np.zeros(len(dims))])
-    placed = place_objects(frame, dims, source, np.random.default_rng(9), config)
+    placed = place_objects(frame, dims, None, np.random.default_rng(9))
     assert len(placed.accepted) > 0
     np.testing.assert_array_equal(placed.boxes[:, :2], expected[placed.accepted, :2])
-    assert PlacementConfig().height == "ground"

@@ -259,14 +259,6 @@ class DRCPOConfig(Checked):
     KEY_PATH = "drcpo"
 
     enabled: bool = field(default=True, metadata=spec("bool"))
-    before_gt_sampling: bool = field(
-        default=False,
-        metadata=spec(
-            "bool",
-            "run before ground-truth sampling, which then fills each class up to its targets "
-            "counting DR.CPO's objects (CDA's objects per class kept, as in the paper's Table 3)",
-        ),
-    )
     sample: dict[str, int] = field(
         default_factory=lambda: {"Car": 10, "Pedestrian": 10, "Cyclist": 10},
         metadata=spec(

@@ -31,7 +31,7 @@ def build_pipeline(
         index: its candidate index; loaded from ``database.path / "index"`` when ``None`` and
             DR.CPO is enabled.
         kind: ``"drcpo"`` (ground-truth sampling, DR.CPO, global augmentation: the paper's
-            reference configuration; DR.CPO first with ``drcpo.before_gt_sampling``) or
+            reference configuration) or
             ``"cda"`` (the conventional baseline: ground-truth sampling, global augmentation);
             default: the config's ``pipeline`` key.
 
@@ -50,10 +50,7 @@ def build_pipeline(
     if kind == "drcpo" and config.drcpo.enabled:
         if index is None:
             index = load_index(database)
-        # Ground-truth sampling fills each class up to its targets, counting the objects already
-        # in the frame: after DR.CPO, it only tops DR.CPO's objects up to CDA's counts.
-        at = 0 if config.drcpo.before_gt_sampling else len(transforms)
-        transforms.insert(at, DRCPO(database, index, config.drcpo))
+        transforms.append(DRCPO(database, index, config.drcpo))
     aug = config.global_augmentation
     if aug.enabled:
         transforms += [

@@ -4,8 +4,7 @@ A pose is a heading uniform in ``[-pi, pi)`` and a position uniform over the pla
 that the whole BEV footprint lies inside it (with ``fov_only``, also inside the camera's field of
 view: every footprint corner at an azimuth ``|atan2(y, x)| <= fov_half_angle``; KITTI's camera 2
 sees about 41 degrees to each side); :mod:`drcpo.poses` draws the poses. The box bottom is put
-on the ground estimated from the frame's own points (``height="ground"``), or the box keeps its
-source height (``"source"``, the reference implementation).
+on the ground estimated from the frame's own points.
 
 Each object gets one pose, as in the paper. It is rejected, for one reason, when
 
@@ -36,11 +35,10 @@ from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members
 from drcpo.ground import GroundModel
-from drcpo.poses import check_dims, draw_poses, own_poses, source_heights
+from drcpo.poses import check_dims, draw_poses, own_poses
 
 __all__ = [
     "CAMERA_FOV_MODES",
-    "HEIGHT_MODES",
     "KITTI_FOV_HALF_ANGLE",
     "LOCATION_MODES",
     "REASONS",
@@ -53,7 +51,6 @@ __all__ = [
 
 
 REASONS = ("out_of_range", "collision", "obstacle", "occluded")
-HEIGHT_MODES = ("ground", "source")
 CAMERA_FOV_MODES = ("auto", "always", "never")
 LOCATION_MODES = ("random", "source")
 #: Half of KITTI camera 2's horizontal field of view (radians), rounded up.
@@ -63,7 +60,7 @@ KITTI_FOV_HALF_ANGLE = float(np.deg2rad(41.0))
 @dataclass(frozen=True, eq=False)
 class PlacementConfig(Checked):
     """Parameters of :func:`sample_poses` and :func:`place_objects` (paper defaults): the config
-    section ``drcpo.placement``, whose keys are the first nine fields.
+    section ``drcpo.placement``, whose keys are the first eight fields.
 
     Attributes:
         x_range, y_range: placement area (metres, LiDAR frame); the whole footprint stays inside.
@@ -73,7 +70,6 @@ class PlacementConfig(Checked):
         heading_range: ``None`` (the paper: heading uniform over the circle) or the half-width
             (radians) of a uniform turn from the object's own heading (the paper's rotation
             range ablation: pi / 4 ... pi).
-        height: ``"ground"`` (bottom on the estimated ground) or ``"source"``.
         max_non_ground_points: most non-ground frame points a placed box may hold.
         ground_tolerance: points more than this (metres) above the ground are non-ground.
         occluded_fraction: for the caller's occlusion test (``occluded`` of
@@ -115,12 +111,6 @@ class PlacementConfig(Checked):
             low=0.0,
             high=math.pi,
             optional=True,
-        ),
-    )
-    height: str = field(
-        default="ground",
-        metadata=spec(
-            "choice", "box bottom on the local ground, or source height", choices=HEIGHT_MODES
         ),
     )
     max_non_ground_points: int = field(
@@ -246,9 +236,8 @@ def place_objects(
         frame: the :class:`Frame` (or OpenPCDet dict) receiving the objects; its boxes are
             obstacles to avoid and its points the background checked for non-ground points.
         dims: box sizes dx, dy, dz (metres) of the objects, in the order they are tried.
-        source_boxes: ``(K, 7)`` the objects' original boxes; their z is used with
-            ``height="source"``, their centre and heading with ``location="source"`` or a
-            ``heading_range`` (may be ``None`` otherwise).
+        source_boxes: ``(K, 7)`` the objects' original boxes; their centre and heading are used
+            with ``location="source"`` or a ``heading_range`` (may be ``None`` otherwise).
         rng: the only source of randomness.
         config: :class:`PlacementConfig` (defaults when ``None``).
         ground: the frame's :class:`GroundModel`; estimated from the frame's points (with its
@@ -265,8 +254,7 @@ def place_objects(
     room[:, :2] += 2.0 * config.clearance
     boxes = sample_poses(room, rng, config, own)
     ground = frame_ground(frame) if ground is None else ground
-    source_z = source_heights(source_boxes, len(dims), config.height)
-    verdict = _judge(boxes, dims, source_z, frame, ground, config)
+    verdict = _judge(boxes, dims, frame, ground, config)
     accepted = np.flatnonzero(verdict == 0)
     placed = boxes[accepted]
     placed[:, 3:5] = dims[accepted, :2]  # the objects' own footprints, without the clearance
@@ -287,7 +275,6 @@ _REASON_NAMES = np.array(["", *REASONS], dtype=object)  # by verdict
 def _judge(
     boxes: np.ndarray,
     dims: np.ndarray,
-    source_z: np.ndarray | None,
     frame: Frame,
     ground: GroundModel,
     config: PlacementConfig,
@@ -302,10 +289,7 @@ def _judge(
     hit = np.zeros(len(live), dtype=bool)
     if len(frame.boxes) and len(live):
         hit = bev_collisions(boxes[live], frame.boxes).any(axis=1)
-    if config.height == "ground":
-        boxes[live, 2] = ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
-    else:
-        boxes[live, 2] = source_z[live]
+    boxes[live, 2] = ground.height_at(boxes[live, :2]) + boxes[live, 5] / 2.0
     verdict[live[hit]] = _COLLISION
     live = live[~hit]
     own = boxes[live]

@@ -25,7 +25,6 @@ __all__ = [
     "check_dims",
     "draw_poses",
     "in_fov",
-    "source_heights",
 ]
 
 FOV_ROUNDS = 32  # resampling rounds for positions outside the field of view (or the area)
@@ -123,22 +122,6 @@ def check_dims(dims: np.ndarray) -> np.ndarray:
         bad = int(np.flatnonzero(~(np.isfinite(dims) & (dims > 0)).all(axis=1))[0])
         raise DataError(f"dims[{bad}] = {dims[bad].tolist()} is not a positive finite size")
     return dims
-
-
-def source_heights(source_boxes: np.ndarray | None, count: int, height: str) -> np.ndarray | None:
-    """The centre z ``float64 (count,)`` of the ``source_boxes`` ``(count, 7)`` with placement's
-    ``height="source"`` (the boxes keep their source height); ``None`` with another ``height``.
-    DataError when they are missing, of another count or not finite."""
-    if height != "source":
-        return None
-    if source_boxes is None:
-        raise DataError('height "source" needs the source boxes (source_boxes is None)')
-    source_boxes = np.asarray(source_boxes, dtype=np.float64).reshape(-1, 7)
-    if len(source_boxes) != count:
-        raise DataError(f"source_boxes has {len(source_boxes)} rows; dims has {count}")
-    if not np.isfinite(source_boxes[:, 2]).all():
-        raise DataError("source_boxes hold a non-finite z")
-    return source_boxes[:, 2]
 
 
 class _Field(NamedTuple):

@@ -156,7 +156,7 @@ class DRCPO(Transform):
         c = self.config
         return (
             f"DRCPO({self.database!r}, sample={c.sample}, "
-            f"height={c.placement.height!r}, e_hpr_radius={c.external_occlusion.radius:g})"
+            f"e_hpr_radius={c.external_occlusion.radius:g})"
         )
 
     # The steps ------------------------------------------------------------------------------
