@@ -15,7 +15,6 @@ from drcpo.placement import (
     REASONS,
     PlacementConfig,
     _non_ground_counts,
-    frame_ground,
     place_objects,
     sample_poses,
 )
@@ -463,33 +462,6 @@ def test_field_of_view_test_matches_the_corner_azimuths(rng):
     expected = (np.abs(np.arctan2(corners[..., 1], corners[..., 0])) <= half).all(axis=1)
     expected &= np.isfinite(boxes[:, 0])
     np.testing.assert_array_equal(in_fov(boxes, half), expected)
-
-
-def test_frame_ground_leaves_out_the_points_in_excluded_boxes(rng):
-    cloud = ground_cloud(rng, n=40000)
-    # An object pasted from another frame, its bottom 0.6 m below this frame's ground.
-    pasted_xy = np.column_stack([rng.uniform(20, 24, 3000), rng.uniform(-1, 1, 3000)])
-    pasted = np.column_stack(
-        [pasted_xy, uneven(pasted_xy) - 0.6 + rng.uniform(0, 1.5, 3000), np.ones(3000)]
-    )
-    frame = Frame(np.concatenate([cloud, pasted]).astype(np.float32))
-    box = np.array(
-        [[22.0, 0.0, float(uneven(np.array([[22.0, 0.0]]))[0]) + 0.15, 4.2, 2.2, 1.6, 0]]
-    )
-    under = np.array([[21.0, 0.0], [22.5, 0.5], [23.0, -0.5]])
-    plain = frame_ground(frame)
-    assert (plain.height_at(under) - uneven(under) < -0.4).all()  # it rides on the pasted one
-    cleaned = frame_ground(frame, exclude=box)
-    assert np.abs(cleaned.height_at(under) - uneven(under)).max() < 0.1
-    outside = ~points_in_boxes(frame.points, box)[:, 0]
-    reference = GroundModel.from_points(frame.points[outside])
-    np.testing.assert_array_equal(cleaned.heights, reference.heights)
-    for nothing in (None, np.zeros((0, 7))):
-        np.testing.assert_array_equal(frame_ground(frame, exclude=nothing).heights, plain.heights)
-    with pytest.raises(DataError, match=r"exclude boxes must have shape \(M, 7\)"):
-        frame_ground(frame, exclude=np.zeros((2, 6)))
-    with pytest.raises(DataError, match="non-finite"):
-        frame_ground(frame, exclude=np.full((1, 7), np.nan))
 
 
 # --------------------------------------------------------------------------------------------

@@ -31,7 +31,6 @@ import numpy as np
 from drcpo import collisions
 from drcpo.collisions import bev_collisions
 from drcpo.config_fields import Checked, spec
-from drcpo.errors import DataError
 from drcpo.frame import Frame
 from drcpo.geometry import box_members
 from drcpo.ground import GroundModel
@@ -316,30 +315,12 @@ def _non_ground_counts(
     return np.bincount(box[above], minlength=len(boxes)).astype(np.int64)
 
 
-def frame_ground(frame: Frame, exclude: np.ndarray | None = None) -> GroundModel:
+def frame_ground(frame: Frame) -> GroundModel:
     """The frame's ground estimate (with its KITTI road plane when it has one and a calib).
 
     Uses a fixed RANSAC seed, so a frame always gets the same ground.
-
-    Args:
-        frame: the frame.
-        exclude: ``(M, 7)`` boxes whose points are not the frame's ground (e.g. the objects
-            ground-truth sampling added, standing on the ground of the frames they came
-            from): the points inside them (:func:`drcpo.geometry.box_members`; grow the boxes
-            to leave out more) are left out of the estimate. ``None`` or no box: every point.
     """
-    points = frame.points
-    if exclude is not None:
-        exclude = np.asarray(exclude, dtype=np.float64)
-        if exclude.size and (exclude.ndim != 2 or exclude.shape[1] != 7):
-            raise DataError(f"exclude boxes must have shape (M, 7), got {exclude.shape}")
-        if not np.isfinite(exclude).all():
-            raise DataError("exclude boxes hold a non-finite value")
-        if exclude.size:
-            keep = np.ones(len(points), dtype=bool)
-            keep[box_members(points, exclude.reshape(-1, 7))[0]] = False
-            points = points[keep]
     plane, calib = frame.metadata.get("plane"), frame.metadata.get("calib")
     if plane is not None and calib is not None:
-        return GroundModel.from_points(points, plane=plane, calib=calib)
-    return GroundModel.from_points(points)
+        return GroundModel.from_points(frame.points, plane=plane, calib=calib)
+    return GroundModel.from_points(frame.points)
