@@ -47,10 +47,10 @@ class DRCPO(Transform):
 
     1. **Sample** ``sample[class]`` source objects per class, without replacement, among the
        objects that the candidate index covers and that have at least ``min_points`` points.
-    2. **Place** (``partition`` mode, before any construction, so that rejected objects cost
-       nothing): a random heading and position, the box bottom on the frame's ground estimate
-       (or at its source height); rejected for ``out_of_range``, ``collision`` (BEV overlap with
-       any box) or ``obstacle`` (more than ``max_non_ground_points`` non-ground frame points in
+    2. **Place** (before any construction, so that rejected objects cost nothing): a random
+       heading and position, the box bottom on the frame's ground estimate; rejected for
+       ``out_of_range``, ``collision`` (BEV overlap with any box) or ``obstacle`` (more than
+       ``max_non_ground_points`` non-ground frame points in
        the box); see :mod:`drcpo.placement`. Each footprint keeps :attr:`room` free around
        it, as the object's label may grow by that much (step 4). A placed box is rejected
        too (``occluded``) when e-HPR hides at least ``placement.occluded_fraction`` (default
