@@ -138,6 +138,8 @@ def _started(ready: Any, count: int, jobs: dict[Future, int]) -> list[dict[str, 
             for job, number in jobs.items():
                 if job.done():
                     _result(job, number)
+            if all(job.done() for job in jobs):
+                break  # (fewer processes started than asked for: the work was done first)
             continue
         if isinstance(started[-1], Exception):
             raise started[-1]
