@@ -23,7 +23,7 @@ from drcpo.transforms.drcpo_insertion import (
     Inserted,
     Insertion,
     _sparse_originals,
-    external_occlusion,
+    scoped_e_hpr,
 )
 from drcpo.transforms.insertion import (
     BoxQuery,
@@ -1000,7 +1000,7 @@ def e_hpr_of(transform, points, owner, insertions):
     """DR.CPO's e-HPR step on points inserted into a frame of which nothing was cleared."""
     inserted = Inserted(points, owner, np.full(int((owner < 0).sum()), -1))
     setting, minimum = transform.e_hpr_setting(), transform.config.min_points_after
-    return external_occlusion(inserted, insertions, setting, minimum)
+    return scoped_e_hpr(inserted, insertions, setting, minimum)
 
 
 def test_inserted_scope_removes_what_inserted_objects_hide(synthetic_world, rng):

@@ -195,7 +195,7 @@ class DRCPO(Transform):
         with stats.stage("drcpo.external_occlusion", len(inserted.points)) as record:
             grid = frame_grid() if frame_grid is not None and insertions else None
             setting = self.e_hpr_setting() if self.config.external_occlusion.enabled else None
-            keep, dropped = drcpo_insertion.external_occlusion(
+            keep, dropped = drcpo_insertion.scoped_e_hpr(
                 inserted, insertions, setting, self.config.min_points_after, grid
             )
             record["points_out"] = int(keep.sum())

@@ -22,7 +22,7 @@ from drcpo.transforms.insertion import (
     with_box_sources,
 )
 
-__all__ = ["Inserted", "Insertion", "external_occlusion", "insert", "settle"]
+__all__ = ["Inserted", "Insertion", "insert", "scoped_e_hpr", "settle"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,7 +65,7 @@ def insert(frame: Frame, insertions: Sequence[Insertion], room: float) -> Insert
     return Inserted(points, owner, cleared_by)
 
 
-def external_occlusion(
+def scoped_e_hpr(
     inserted: Inserted,
     insertions: Sequence[Insertion],
     setting: tuple[float, np.ndarray] | None,
